@@ -1,0 +1,1 @@
+"""experiments: orchestration (CLI, demo, benchmarks, paper reproduction, tournaments). No math here."""

@@ -1,0 +1,1 @@
+"""planners: game-theoretic and single-agent planners for the racing arena (JAX)."""

@@ -1,0 +1,345 @@
+"""Finite-horizon, discrete-time linear-quadratic (LQ) dynamic games.
+
+Notation (all arrays float; ``T`` horizon, ``N`` players, ``n`` state size, ``m`` input size
+shared by all players)::
+
+    A (T, n, n)        B (T, N, n, m)        Q (T+1, N, n, n)      q (T+1, N, n)
+    R (T, N, N, m, m)  r (T, N, N, m)        R[t, i, j] = R_t^{ij}: player i's weight on u^j
+
+Dynamics ``x_{t+1} = A_t x_t + sum_j B_t^j u_t^j`` and cost of player ``i``::
+
+    J^i = 1/2 sum_{t<T} [x_t' Q_t^i x_t + 2 q_t^i' x_t
+                         + sum_j (u_t^j' R_t^{ij} u_t^j + 2 r_t^{ij}' u_t^j)]
+          + 1/2 x_T' Q_T^i x_T + q_T^i' x_T.
+
+Solvers:
+
+* :func:`solve_feedback`: feedback (closed-loop, subgame-perfect) Nash equilibrium,
+  ``u_t^i = -K_t^i x_t - k_t^i``, by the coupled Riccati recursion.
+* :func:`solve_open_loop`: open-loop Nash equilibrium, ``u_t^i = -k_t^i``, from each player's
+  Pontryagin conditions with an affine costate ``lambda_t^i = M_t^i x_t + m_t^i``.
+* :func:`lqr`: plain single-player LQR (an independent oracle for ``N = 1``).
+
+All solvers are pure JAX (``lax.scan`` over time), jitted (compiled once per shape), freely
+composable with ``jit``/``vmap``/``grad``, and do no validation: call :func:`validate_lq_game`
+once, outside ``jit``, on the raw arrays.
+
+Only the symmetric parts of ``Q`` and ``R`` enter the costs, so the solvers symmetrise them;
+non-symmetric inputs are thus handled consistently with the cost definition.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Array = jax.Array
+
+__all__ = [
+    "lq_costs",
+    "lq_rollout_feedback",
+    "lqr",
+    "solve_feedback",
+    "solve_open_loop",
+    "validate_lq_game",
+]
+
+
+def _sym(M: Array) -> Array:
+    """Symmetric part over the last two axes."""
+    return 0.5 * (M + jnp.swapaxes(M, -1, -2))
+
+
+def _own(R: Array) -> Array:
+    """Per-player own blocks ``X[..., i, i, ...]`` of an ``(..., N, N, ...)`` array at axes 0, 1.
+
+    Works for ``R (N, N, m, m) -> (N, m, m)`` and ``r (N, N, m) -> (N, m)``.
+    """
+    idx = jnp.arange(R.shape[0])
+    return R[idx, idx]
+
+
+# --------------------------------------------------------------------------------------
+# Validation (NumPy, not jitted).
+# --------------------------------------------------------------------------------------
+
+
+def validate_lq_game(A, B, Q, q, R, r) -> None:
+    """Check shapes, finiteness and that every ``R_t^{ii}`` is positive definite.
+
+    Args:
+      A: ``(T, n, n)``. B: ``(T, N, n, m)``. Q: ``(T+1, N, n, n)``. q: ``(T+1, N, n)``.
+      R: ``(T, N, N, m, m)``. r: ``(T, N, N, m)``.
+
+    Raises:
+      ValueError: naming the offending array (and ``t``, ``i`` for a non-PD ``R^{ii}``).
+    """
+    arrays = {k: np.asarray(v) for k, v in dict(A=A, B=B, Q=Q, q=q, R=R, r=r).items()}
+    ndims = dict(A=3, B=4, Q=4, q=3, R=5, r=4)
+    for name, nd in ndims.items():
+        if arrays[name].ndim != nd:
+            raise ValueError(
+                f"{name} must have {nd} dimensions, got shape {arrays[name].shape}"
+            )
+    T, n = arrays["A"].shape[0], arrays["A"].shape[1]
+    N, m = arrays["B"].shape[1], arrays["B"].shape[3]
+    expected = dict(
+        A=(T, n, n),
+        B=(T, N, n, m),
+        Q=(T + 1, N, n, n),
+        q=(T + 1, N, n),
+        R=(T, N, N, m, m),
+        r=(T, N, N, m),
+    )
+    for name, shape in expected.items():
+        if arrays[name].shape != shape:
+            raise ValueError(
+                f"shape mismatch: {name} has shape {arrays[name].shape}, expected {shape} "
+                f"(T={T}, N={N}, n={n}, m={m} inferred from A and B)"
+            )
+    if T < 1 or N < 1 or n < 1 or m < 1:
+        raise ValueError(f"empty game: T={T}, N={N}, n={n}, m={m}")
+    for name, arr in arrays.items():
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} contains non-finite values")
+    R_arr = arrays["R"]
+    for t in range(T):
+        for i in range(N):
+            Rii = R_arr[t, i, i]
+            # Only the symmetric part enters u' R u; PD <=> its smallest eigenvalue > 0.
+            lam_min = float(np.linalg.eigvalsh(0.5 * (Rii + Rii.T)).min())
+            scale = max(1.0, float(np.abs(Rii).max()))
+            if not lam_min > 1e-12 * scale:
+                raise ValueError(
+                    f"R[t={t}, i={i}, i={i}] (player {i}'s weight on its own input at "
+                    f"stage {t}) is not positive definite: min eigenvalue {lam_min:.3e}"
+                )
+
+
+# --------------------------------------------------------------------------------------
+# Feedback Nash equilibrium.
+# --------------------------------------------------------------------------------------
+
+
+@jax.jit
+def solve_feedback(
+    A: Array, B: Array, Q: Array, q: Array, R: Array, r: Array
+) -> tuple[Array, Array]:
+    """Feedback Nash equilibrium of an LQ game.
+
+    Backward recursion on each player's value ``V_t^i(x) = 1/2 x'P_t^i x + p_t^i' x + c``.
+    At every stage the players' first-order conditions are coupled; they are stacked into
+    one ``(N m) x (N m)`` linear system, row block ``i``::
+
+        (R^{ii} + B^i' P^i B^i) K^i + B^i' P^i sum_{j!=i} B^j K^j = B^i' P^i A
+        (R^{ii} + B^i' P^i B^i) k^i + B^i' P^i sum_{j!=i} B^j k^j = B^i' p^i + r^{ii}
+
+    (``P, p`` at ``t+1``). The values are then propagated along the closed loop
+    ``F = A - sum_j B^j K^j``, ``beta = -sum_j B^j k^j``::
+
+        P_t^i = Q^i + F' P^i F + sum_j K^j' R^{ij} K^j
+        p_t^i = q^i + F' (p^i + P^i beta) + sum_j K^j' (R^{ij} k^j - r^{ij})
+
+    Args:
+      A: ``(T, n, n)``. B: ``(T, N, n, m)``. Q: ``(T+1, N, n, n)``. q: ``(T+1, N, n)``.
+      R: ``(T, N, N, m, m)``. r: ``(T, N, N, m)``.
+
+    Returns:
+      ``K (T, N, m, n)`` and ``k (T, N, m)``; equilibrium strategies
+      ``u_t^i = -K_t^i x_t - k_t^i``.
+    """
+    N, n, m = B.shape[1], B.shape[2], B.shape[3]
+    Q, R = _sym(Q), _sym(R)
+
+    def step(carry, stage):
+        P, p = carry  # (N, n, n), (N, n) at t+1
+        A_t, B_t, Q_t, q_t, R_t, r_t = stage
+        BtP = jnp.einsum("iam,iab->imb", B_t, P)  # B^i' P^i, (N, m, n)
+        # Coupled system S [K; k] = [rhs_K, rhs_k], blocks S_ij = delta_ij R^{ii} + B^i'P^i B^j.
+        S = jnp.einsum("imb,jbl->imjl", BtP, B_t)
+        S = S + jnp.einsum("ij,iml->imjl", jnp.eye(N, dtype=S.dtype), _own(R_t))
+        rhs_K = BtP @ A_t  # (N, m, n)
+        rhs_k = jnp.einsum("iam,ia->im", B_t, p) + _own(r_t)  # (N, m)
+        rhs = jnp.concatenate([rhs_K, rhs_k[..., None]], axis=-1).reshape(N * m, n + 1)
+        sol = jnp.linalg.solve(S.reshape(N * m, N * m), rhs).reshape(N, m, n + 1)
+        K, k = sol[..., :n], sol[..., n]
+
+        F = A_t - jnp.einsum("jam,jmb->ab", B_t, K)  # closed-loop dynamics
+        beta = -jnp.einsum("jam,jm->a", B_t, k)  # closed-loop drift
+        P_new = (
+            Q_t
+            + jnp.einsum("ab,ibc,cd->iad", F.T, P, F)
+            + jnp.einsum("jma,ijml,jlb->iab", K, R_t, K)
+        )
+        p_new = (
+            q_t
+            + jnp.einsum("ab,ib->ia", F.T, p + P @ beta)
+            + jnp.einsum("jma,ijm->ia", K, jnp.einsum("ijml,jl->ijm", R_t, k) - r_t)
+        )
+        return (_sym(P_new), p_new), (K, k)
+
+    stages = (A, B, Q[:-1], q[:-1], R, r)
+    _, (K, k) = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True)
+    return K, k
+
+
+@jax.jit
+def lq_rollout_feedback(
+    A: Array, B: Array, K: Array, k: Array, x0: Array
+) -> tuple[Array, Array]:
+    """Roll out the affine feedback strategies ``u_t^i = -K_t^i x_t - k_t^i`` from ``x0``.
+
+    Args:
+      A: ``(T, n, n)``. B: ``(T, N, n, m)``. K: ``(T, N, m, n)``. k: ``(T, N, m)``.
+      x0: ``(n,)``.
+
+    Returns:
+      ``xs (T+1, n)`` and ``us (T, N, m)``.
+    """
+
+    def step(x, stage):
+        A_t, B_t, K_t, k_t = stage
+        u = -(K_t @ x) - k_t  # (N, m)
+        x_next = A_t @ x + jnp.einsum("jam,jm->a", B_t, u)
+        return x_next, (x, u)
+
+    xT, (xs, us) = jax.lax.scan(step, x0, (A, B, K, k))
+    return jnp.concatenate([xs, xT[None]], axis=0), us
+
+
+# --------------------------------------------------------------------------------------
+# Open-loop Nash equilibrium.
+# --------------------------------------------------------------------------------------
+
+
+@jax.jit
+def solve_open_loop(
+    A: Array, B: Array, Q: Array, q: Array, R: Array, r: Array, x0: Array
+) -> tuple[Array, Array]:
+    """Open-loop Nash equilibrium of an LQ game from the initial state ``x0``.
+
+    Player ``i``'s stationarity in its own input, with costate ``lambda_t^i``::
+
+        u_t^i = -(R^{ii})^{-1} (B^i' lambda_{t+1}^i + r^{ii}),
+        lambda_t^i = Q_t^i x_t + q_t^i + A_t' lambda_{t+1}^i,  lambda_T^i = Q_T^i x_T + q_T^i.
+
+    With the ansatz ``lambda_t^i = M_t^i x_t + m_t^i`` the dynamics become
+    ``Lambda_t x_{t+1} = A_t x_t - c_t`` with::
+
+        Lambda_t = I + sum_j B^j (R^{jj})^{-1} B^j' M_{t+1}^j
+        c_t      = sum_j B^j (R^{jj})^{-1} (B^j' m_{t+1}^j + r^{jj})
+        M_t^i    = Q_t^i + A' M_{t+1}^i Lambda_t^{-1} A
+        m_t^i    = q_t^i + A' (m_{t+1}^i - M_{t+1}^i Lambda_t^{-1} c_t)
+
+    Only ``R^{ii}, r^{ii}`` matter: the cross terms are constants for player ``i``'s own
+    decision. Each player's problem is convex if ``Q^i >= 0`` and ``R^{ii} > 0``, so the
+    conditions are sufficient; the equilibrium is unique iff every ``Lambda_t`` is invertible.
+
+    Args:
+      A: ``(T, n, n)``. B: ``(T, N, n, m)``. Q: ``(T+1, N, n, n)``. q: ``(T+1, N, n)``.
+      R: ``(T, N, N, m, m)``. r: ``(T, N, N, m)``. x0: ``(n,)``.
+
+    Returns:
+      ``k (T, N, m)`` (equilibrium inputs ``u_t^i = -k_t^i``) and the equilibrium state
+      trajectory ``xs (T+1, n)``.
+    """
+    n = A.shape[-1]
+    Q, R = _sym(Q), _sym(R)
+
+    def backward(carry, stage):
+        M, mm = carry  # (N, n, n), (N, n) at t+1
+        A_t, B_t, Q_t, q_t, R_t, r_t = stage
+        # (R^{jj})^{-1} [B^j', r^{jj}] in one batched solve: (N, m, n + 1).
+        Rinv = jnp.linalg.solve(
+            _own(R_t), jnp.concatenate([jnp.swapaxes(B_t, -1, -2), _own(r_t)[..., None]], -1)
+        )
+        RinvBt, Rinv_r = Rinv[..., :n], Rinv[..., n]
+        Lam = jnp.eye(n, dtype=A_t.dtype) + jnp.einsum("jam,jmb,jbc->ac", B_t, RinvBt, M)
+        c = jnp.einsum("jam,jm->a", B_t, jnp.einsum("jmb,jb->jm", RinvBt, mm) + Rinv_r)
+        # Lambda may be non-symmetric: solve once for [Lambda^{-1} A, Lambda^{-1} c].
+        LinvAc = jnp.linalg.solve(Lam, jnp.concatenate([A_t, c[:, None]], axis=1))
+        LinvA, Linvc = LinvAc[:, :n], LinvAc[:, n]
+        M_new = Q_t + jnp.einsum("ba,ibc,cd->iad", A_t, M, LinvA)
+        m_new = q_t + jnp.einsum("ba,ib->ia", A_t, mm - M @ Linvc)
+        return (M_new, m_new), (Lam, c, M, mm, RinvBt, Rinv_r)
+
+    stages = (A, B, Q[:-1], q[:-1], R, r)
+    _, (Lam, c, M_next, m_next, RinvBt, Rinv_r) = jax.lax.scan(
+        backward, (Q[-1], q[-1]), stages, reverse=True
+    )
+
+    def forward(x, stage):
+        A_t, Lam_t, c_t, M_t1, m_t1, RinvBt_t, Rinv_r_t = stage
+        x_next = jnp.linalg.solve(Lam_t, A_t @ x - c_t)
+        lam_next = M_t1 @ x_next + m_t1  # costates lambda_{t+1}^i, (N, n)
+        k_t = jnp.einsum("imb,ib->im", RinvBt_t, lam_next) + Rinv_r_t
+        return x_next, (x_next, k_t)
+
+    _, (xs_next, k) = jax.lax.scan(forward, x0, (A, Lam, c, M_next, m_next, RinvBt, Rinv_r))
+    xs = jnp.concatenate([x0[None], xs_next], axis=0)
+    return k, xs
+
+
+# --------------------------------------------------------------------------------------
+# Costs and single-player LQR.
+# --------------------------------------------------------------------------------------
+
+
+@jax.jit
+def lq_costs(
+    A: Array, B: Array, Q: Array, q: Array, R: Array, r: Array, xs: Array, us: Array
+) -> Array:
+    """Total cost of every player along a trajectory.
+
+    ``A`` and ``B`` are not used (the trajectory is taken as given); they are accepted so
+    that the game tuple can be passed whole.
+
+    Args:
+      A: ``(T, n, n)``. B: ``(T, N, n, m)``. Q: ``(T+1, N, n, n)``. q: ``(T+1, N, n)``.
+      R: ``(T, N, N, m, m)``. r: ``(T, N, N, m)``. xs: ``(T+1, n)``. us: ``(T, N, m)``.
+
+    Returns:
+      ``(N,)`` costs ``J^i`` as defined in the module docstring.
+    """
+    del A, B
+    state = 0.5 * jnp.einsum("ta,tiab,tb->i", xs, Q, xs) + jnp.einsum("tia,ta->i", q, xs)
+    inputs = 0.5 * jnp.einsum("tjm,tijml,tjl->i", us, R, us) + jnp.einsum(
+        "tijm,tjm->i", r, us
+    )
+    return state + inputs
+
+
+@jax.jit
+def lqr(A: Array, B: Array, Q: Array, q: Array, R: Array, r: Array) -> tuple[Array, Array]:
+    """Single-player finite-horizon discrete LQR with linear cost terms.
+
+    Minimises ``1/2 sum_t [x'Qx + 2q'x + u'Ru + 2r'u] + 1/2 x_T'Q_T x_T + q_T'x_T`` subject to
+    ``x_{t+1} = A x + B u`` by the standard difference Riccati equation::
+
+        H = R + B'PB,  K = H^{-1} B'PA,  k = H^{-1} (B'p + r)
+        P_t = Q + A'PA - K'HK,           p_t = q + A'p - K'(B'p + r)
+
+    Args:
+      A: ``(T, n, n)``. B: ``(T, n, m)``. Q: ``(T+1, n, n)``. q: ``(T+1, n)``.
+      R: ``(T, m, m)``. r: ``(T, m)``.
+
+    Returns:
+      ``K (T, m, n)`` and ``k (T, m)``; optimal policy ``u_t = -K_t x_t - k_t``.
+    """
+    n = A.shape[-1]
+    Q, R = _sym(Q), _sym(R)
+
+    def step(carry, stage):
+        P, p = carry
+        A_t, B_t, Q_t, q_t, R_t, r_t = stage
+        H = R_t + B_t.T @ P @ B_t
+        g = B_t.T @ p + r_t
+        sol = jnp.linalg.solve(H, jnp.concatenate([B_t.T @ P @ A_t, g[:, None]], axis=1))
+        K, k = sol[:, :n], sol[:, n]
+        P_new = Q_t + A_t.T @ P @ A_t - K.T @ H @ K
+        p_new = q_t + A_t.T @ p - K.T @ g
+        return (_sym(P_new), p_new), (K, k)
+
+    _, (K, k) = jax.lax.scan(step, (Q[-1], q[-1]), (A, B, Q[:-1], q[:-1], R, r), reverse=True)
+    return K, k

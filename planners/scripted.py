@@ -1,0 +1,84 @@
+"""Scripted baseline drivers: a lane-keeping controller and a constant-speed cruiser.
+
+They read the joint state (full information, like the planners) and return normalised
+jerk actions in ``[-1, 1]^2``. The lateral law makes the lateral offset behave like a
+critically damped second-order system around a target offset; the longitudinal law tracks a
+target speed capped by the tightest curve in a preview window.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+from racing_env.track import Track
+from racing_env.vehicle import VehicleParams
+
+LATERAL_STIFFNESS = 1.0  # [1/s^2] n'' = k_p (n_target - n) - k_d n'
+LATERAL_DAMPING = 2.0  # [1/s] critical damping for k_p = 1
+ACCEL_GAIN = 5.0  # [1/s] jerk = gain * (a_desired - a)
+SPEED_GAIN = 1.5  # [1/s] ax_desired = gain * (v_target - V)
+GRIP_MARGIN = 0.75  # fraction of rho(V) used for cornering
+PREVIEW_TIME = 3.0  # [s] look-ahead for the curve speed limit
+
+
+class LaneKeeping:
+    """Follows a lateral offset ``target_n`` [m] at ``target_speed`` [m/s] (default: v_max).
+
+    Args:
+        track: the track raced on.
+        index: the car this controller drives (row of the joint state).
+        vehicle: that car's parameters (limits and jerk scaling).
+        target_speed: cruise speed; ``None`` tracks the car's v_max.
+        target_n: lateral offset to hold [m], positive to the left.
+    """
+
+    name = "lane-keeping"
+
+    def __init__(
+        self,
+        track: Track,
+        index: int,
+        vehicle: VehicleParams = VehicleParams(),
+        target_speed: float | None = None,
+        target_n: float = 0.0,
+    ) -> None:
+        if target_speed is not None and not target_speed > 0:
+            raise ValueError(f"target_speed must be > 0 m/s, got {target_speed!r}")
+        self.track, self.index, self.vehicle = track, int(index), vehicle
+        self.target_speed = float(vehicle.v_max if target_speed is None else target_speed)
+        self.target_n = float(target_n)
+        self._jerk_max = np.array([float(vehicle.jx_max), float(vehicle.jy_max)])
+
+    def _kappa(self, s: np.ndarray) -> np.ndarray:
+        t = self.track
+        if t.closed:
+            return np.interp(np.mod(s, t.length), t.s, t.kappa, period=t.length)
+        return np.interp(s, t.s, t.kappa)
+
+    def __call__(self, observation: np.ndarray | None, joint_state: np.ndarray) -> np.ndarray:
+        s, v, n, chi, ax, ay = np.asarray(joint_state, dtype=float)[self.index]
+        v_pos = max(v, 0.0)
+        ahead = s + np.linspace(0.0, max(v_pos, 5.0) * PREVIEW_TIME, 16)
+        kappa_max = float(np.max(np.abs(self._kappa(ahead))))
+        rho = float(self.vehicle.rho(v_pos))
+        v_curve = np.sqrt(GRIP_MARGIN * rho / max(kappa_max, 1e-6))
+        v_target = min(self.target_speed, v_curve)
+        ax_des = np.clip(SPEED_GAIN * (v_target - v), -GRIP_MARGIN * rho, float(self.vehicle.ax_max(v_pos)))
+        n_rate = v * np.sin(chi)
+        ay_des = (
+            self._kappa(np.array([s]))[0] * v**2
+            + LATERAL_STIFFNESS * (self.target_n - n)
+            - LATERAL_DAMPING * n_rate
+        )
+        jerk = ACCEL_GAIN * np.array([ax_des - ax, ay_des - ay])
+        return np.clip(jerk / self._jerk_max, -1.0, 1.0).astype(np.float32)
+
+
+class ConstantSpeed(LaneKeeping):
+    """Cruises on the centre line at a constant ``target_speed`` (slowing only for curves)."""
+
+    name = "constant-speed"
+
+    def __init__(self, track: Track, index: int, vehicle: VehicleParams = VehicleParams(), target_speed: float = 15.0):
+        super().__init__(track, index, vehicle, target_speed=target_speed, target_n=0.0)

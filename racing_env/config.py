@@ -1,0 +1,107 @@
+"""Configuration of a race: track, cars, scenario, race length, rewards and incident rules."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import numpy as np
+
+from racing_env.costs import CostWeights
+from racing_env.scenarios import SCENARIOS
+from racing_env.track import Track
+from racing_env.vehicle import VehicleParams
+
+INCIDENT_MODES = ("penalty", "terminate", "both", "ignore")
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardConfig:
+    """Per-step reward of each car: a weighted sum of these terms.
+
+    Attributes:
+        progress: per metre of arc length gained this step.
+        position: per step, times ``(cars behind - cars ahead) / (N - 1)``.
+        collision: per step with the car's footprint overlapping another (negative = penalty).
+        off_track: per step with the car's centre beyond a track boundary.
+        finish: on crossing the finish line, times ``(N - place) / (N - 1)`` (winner gets it all).
+    """
+
+    progress: float = 0.1
+    position: float = 0.0
+    collision: float = -5.0
+    off_track: float = -1.0
+    finish: float = 10.0
+
+
+@dataclasses.dataclass(frozen=True)
+class RaceConfig:
+    """Everything that defines a race.
+
+    Attributes:
+        track: a ``Track``, a built-in track name (``straight``, ``trefoil``, ...) or a path to
+            a TUMFTM-format CSV file.
+        num_agents: number of cars N (>= 1).
+        scenario: start configuration, one of ``racing_env.scenarios.SCENARIOS``.
+        vehicles: one ``VehicleParams`` for all cars, one per car, or None for the scenario's.
+        weights: cost weights the planners use (one for all, one per car, or None = defaults).
+        laps: race length in laps on closed tracks.
+        race_distance: finish line position [m] of arc length; overrides ``laps``. Default on
+            open tracks: 20 m before the end of the track.
+        max_steps: steps after which the race is truncated.
+        dt: time step [s].
+        horizon: planning horizon in steps for the game built from this config.
+        on_collision / on_off_track: what an incident does: ``penalty`` (reward term only,
+            the default), ``terminate`` (the car is out, no penalty), ``both`` or ``ignore``
+            (reported in infos only).
+        reward: reward weights.
+        preview_distances: distances ahead [m] at which curvature and widths are observed.
+        render_mode: None, ``rgb_array`` or ``human``.
+        render_size: side of the rendered square frame [px].
+        camera: ``track`` (whole track), ``follow`` (window around the cars) or ``auto``.
+    """
+
+    track: Track | str = "trefoil"
+    num_agents: int = 2
+    scenario: str = "grid"
+    vehicles: VehicleParams | Sequence[VehicleParams] | None = None
+    weights: CostWeights | Sequence[CostWeights] | None = None
+    laps: int = 1
+    race_distance: float | None = None
+    max_steps: int = 3000
+    dt: float = 0.1
+    horizon: int = 50
+    on_collision: str = "penalty"
+    on_off_track: str = "penalty"
+    reward: RewardConfig = dataclasses.field(default_factory=RewardConfig)
+    preview_distances: tuple[float, ...] = (0.0, 10.0, 25.0, 50.0, 100.0)
+    render_mode: str | None = None
+    render_size: int = 512
+    camera: str = "auto"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.num_agents, (int, np.integer)) or self.num_agents < 1:
+            raise ValueError(f"num_agents must be an integer >= 1, got {self.num_agents!r}")
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {sorted(SCENARIOS)}")
+        if not isinstance(self.laps, (int, np.integer)) or self.laps < 1:
+            raise ValueError(f"laps must be an integer >= 1, got {self.laps!r}")
+        if self.race_distance is not None and not self.race_distance > 0:
+            raise ValueError(f"race_distance must be > 0 metres, got {self.race_distance!r}")
+        if not isinstance(self.max_steps, (int, np.integer)) or self.max_steps < 1:
+            raise ValueError(f"max_steps must be an integer >= 1, got {self.max_steps!r}")
+        if not (np.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"dt must be a positive number of seconds, got {self.dt!r}")
+        for name in ("on_collision", "on_off_track"):
+            if getattr(self, name) not in INCIDENT_MODES:
+                raise ValueError(f"{name} must be one of {INCIDENT_MODES}, got {getattr(self, name)!r}")
+        if self.render_mode not in (None, "rgb_array", "human"):
+            raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {self.render_mode!r}")
+        if self.camera not in ("auto", "track", "follow"):
+            raise ValueError(f"camera must be 'auto', 'track' or 'follow', got {self.camera!r}")
+        if len(self.preview_distances) < 1 or any(d < 0 for d in self.preview_distances):
+            raise ValueError(f"preview_distances must be non-empty and >= 0, got {self.preview_distances!r}")
+        if isinstance(self.vehicles, Sequence) and len(self.vehicles) != self.num_agents:
+            raise ValueError(f"got {len(self.vehicles)} VehicleParams for num_agents={self.num_agents}")
+        if isinstance(self.weights, Sequence) and len(self.weights) != self.num_agents:
+            raise ValueError(f"got {len(self.weights)} CostWeights for num_agents={self.num_agents}")

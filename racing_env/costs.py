@@ -1,0 +1,140 @@
+"""The players' cost functions of the racing game (the paper's stage and terminal costs).
+
+Stage cost of player i at joint state ``x (N, 6)`` with its own input ``u_i (2,)``::
+
+    g^i = u_i' R^i u_i                                              (jerk regularisation)
+        + sum_{j != i} c_c^i * exp(1 - (ds_ij / l_ij)^2 - (dn_ij / w_ij)^2)^2   (collision)
+        + c_w^i * max(n_i - wl_i(s_i), 0)^2 + c_w^i * max(-n_i - wr_i(s_i), 0)^2  (track)
+        + c_ax^i * max(ax_i - ax_max^i(V_i), 0)^2                              (ax limit)
+        + c_a^i * max(|(ax_i, ay_i)| - rho^i(V_i), 0)^2                        (gg limit)
+
+``ds_ij`` is the wrapped gap in arc length, ``l_ij``/``w_ij`` the mean length/width of the two
+cars (``l_veh``/``w_veh`` of the paper when the cars are alike), and ``wl/wr`` the usable
+half-widths: the track width minus half the car's width, so the penalty starts when the
+car's footprint touches the boundary. ``max(z, 0)^2`` is the paper's ``1{z >= 0} z^2``.
+
+Terminal cost: ``g_K^i = -s_K^i + c_g^i * sum_{j != i} s_K^j``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from racing_env.dynamics import AX, AY, N_LAT, S, V
+from racing_env.track import Track
+from racing_env.vehicle import ArrayLike, VehicleParams
+
+_NORM_EPS = 1e-12  # keeps |a| differentiable at a = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class CostWeights:
+    """Cost weights of one player (scalars) or of N players (arrays of shape ``(N,)``).
+
+    Attributes:
+        r_jx, r_jy: jerk regularisation, diagonal of R^i [s^6/m^2].
+        c_collision: collision weight c_c (per step, dimensionless proximity term).
+        c_track: track-boundary weight c_w [1/m^2].
+        c_ax: weight on exceeding ax_max(V), c_ax [s^4/m^2].
+        c_acc: weight on exceeding the gg radius rho(V), c_a [s^4/m^2].
+        c_gap: terminal weight c_g on the opponents' progress (> 0 rewards being ahead).
+    """
+
+    r_jx: ArrayLike = 0.01
+    r_jy: ArrayLike = 0.01
+    c_collision: ArrayLike = 10.0
+    c_track: ArrayLike = 100.0
+    c_ax: ArrayLike = 100.0
+    c_acc: ArrayLike = 100.0
+    c_gap: ArrayLike = 0.5
+
+    def __post_init__(self) -> None:
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        if not all(isinstance(v, (int, float, np.ndarray, np.number)) for v in values.values()):
+            return  # traced leaves
+        for name, value in values.items():
+            arr = np.asarray(value, dtype=float)
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"CostWeights.{name} must be finite, got {value!r}")
+            if name in ("r_jx", "r_jy"):
+                if not np.all(arr > 0):
+                    raise ValueError(
+                        f"CostWeights.{name} must be > 0 (R^ii must be positive definite), "
+                        f"got {value!r}"
+                    )
+            elif name != "c_gap" and not np.all(arr >= 0):
+                raise ValueError(f"CostWeights.{name} must be >= 0, got {value!r}")
+
+    def replace(self, **changes: ArrayLike) -> "CostWeights":
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def jerk_weights(self) -> jax.Array:
+        """Diagonal of R, shape ``(..., 2)``."""
+        return jnp.stack([jnp.asarray(self.r_jx), jnp.asarray(self.r_jy)], axis=-1)
+
+
+jax.tree_util.register_dataclass(
+    CostWeights, data_fields=[f.name for f in dataclasses.fields(CostWeights)], meta_fields=[]
+)
+
+
+def stack_weights(weights: Sequence[CostWeights]) -> CostWeights:
+    """Stack per-player weights into one ``CostWeights`` with fields of shape ``(N,)``."""
+    if len(weights) < 1:
+        raise ValueError("stack_weights needs at least one CostWeights")
+    names = [f.name for f in dataclasses.fields(CostWeights)]
+    return CostWeights(**{k: np.array([float(getattr(w, k)) for w in weights]) for k in names})
+
+
+def collision_proximity(x: jax.Array, vehicles: VehicleParams, track: Track) -> jax.Array:
+    """Pairwise proximity ``exp(1 - (ds/l)^2 - (dn/w)^2)^2``, shape ``(N, N)``, zero diagonal."""
+    ds = track.wrap_ds(x[None, :, S] - x[:, None, S])
+    dn = x[None, :, N_LAT] - x[:, None, N_LAT]
+    length = 0.5 * (vehicles.length[:, None] + vehicles.length[None, :])
+    width = 0.5 * (vehicles.width[:, None] + vehicles.width[None, :])
+    proximity = jnp.exp(2.0 * (1.0 - (ds / length) ** 2 - (dn / width) ** 2))
+    return proximity * (1.0 - jnp.eye(x.shape[0], dtype=x.dtype))
+
+
+def state_cost_terms(
+    x: jax.Array, vehicles: VehicleParams, weights: CostWeights, track: Track
+) -> dict[str, jax.Array]:
+    """The input-independent stage-cost terms of every player, each of shape ``(N,)``."""
+    s, v, n = x[:, S], x[:, V], x[:, N_LAT]
+    ax, ay = x[:, AX], x[:, AY]
+    half_width = 0.5 * vehicles.width
+    beyond_left = jnp.maximum(n - (track.width_left_at(s) - half_width), 0.0)
+    beyond_right = jnp.maximum(-n - (track.width_right_at(s) - half_width), 0.0)
+    over_ax = jnp.maximum(ax - vehicles.ax_max(v), 0.0)
+    over_gg = jnp.maximum(jnp.sqrt(ax**2 + ay**2 + _NORM_EPS) - vehicles.rho(v), 0.0)
+    return {
+        "collision": weights.c_collision * collision_proximity(x, vehicles, track).sum(axis=1),
+        "track": weights.c_track * (beyond_left**2 + beyond_right**2),
+        "ax_limit": weights.c_ax * over_ax**2,
+        "gg_limit": weights.c_acc * over_gg**2,
+    }
+
+
+def input_cost(u: jax.Array, weights: CostWeights) -> jax.Array:
+    """Jerk regularisation ``u_i' R^i u_i`` for every player: ``u (N, 2)`` -> ``(N,)``."""
+    return jnp.sum(weights.jerk_weights * u**2, axis=-1)
+
+
+def stage_costs(
+    x: jax.Array, u: jax.Array, vehicles: VehicleParams, weights: CostWeights, track: Track
+) -> jax.Array:
+    """Stage cost of every player: ``x (N, 6)``, ``u (N, 2)`` -> ``(N,)``."""
+    terms = state_cost_terms(x, vehicles, weights, track)
+    return input_cost(u, weights) + sum(terms.values())
+
+
+def terminal_costs(x: jax.Array, weights: CostWeights) -> jax.Array:
+    """Terminal cost ``-s^i + c_g^i sum_{j != i} s^j`` of every player, ``(N,)``."""
+    s = x[:, S]
+    return -s + weights.c_gap * (jnp.sum(s) - s)

@@ -1,0 +1,139 @@
+"""RaceGame: the N-player racing game, the one definition used by the env and every planner."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from racing_env import costs as _costs
+from racing_env.costs import CostWeights, stack_weights
+from racing_env.dynamics import INPUT_DIM, STATE_DIM, joint_step
+from racing_env.track import Track
+from racing_env.vehicle import VehicleParams, stack_vehicles
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RaceGame:
+    """The dynamic game of N cars on a track (a JAX pytree; pass it into jitted functions).
+
+    Attributes:
+        track: the track (curvature and widths as functions of arc length).
+        vehicles: per-car parameters, fields of shape ``(N,)``.
+        weights: per-player cost weights, fields of shape ``(N,)``.
+        dt: time step [s] (static).
+        horizon: number of stages K of a planning problem (static).
+
+    Arrays: joint state ``x (N, 6)``, joint input ``u (N, 2)``, input sequences
+    ``U (K, N, 2)``, state trajectories ``xs (K + 1, N, 6)``. All functions are pure JAX.
+    """
+
+    track: Track
+    vehicles: VehicleParams
+    weights: CostWeights
+    dt: float = 0.1
+    horizon: int = 50
+
+    @staticmethod
+    def create(
+        track: Track,
+        vehicles: VehicleParams | Sequence[VehicleParams],
+        weights: CostWeights | Sequence[CostWeights] | None = None,
+        dt: float = 0.1,
+        horizon: int = 50,
+    ) -> "RaceGame":
+        """Build a game, broadcasting single parameter sets to all players.
+
+        ``vehicles`` fixes N: a sequence of ``VehicleParams`` (one per car). ``weights`` is
+        one ``CostWeights`` for everybody, a sequence of N, or ``None`` for the defaults.
+        """
+        if isinstance(vehicles, VehicleParams):
+            raise ValueError("RaceGame.create needs a sequence of VehicleParams, one per car")
+        num_cars = len(vehicles)
+        if num_cars < 1:
+            raise ValueError(f"a race needs at least 1 car, got {num_cars}")
+        if weights is None:
+            weights = CostWeights()
+        if isinstance(weights, CostWeights):
+            weights = [weights] * num_cars
+        if len(weights) != num_cars:
+            raise ValueError(f"got {len(weights)} CostWeights for {num_cars} cars")
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+        if int(horizon) < 1:
+            raise ValueError(f"horizon must be >= 1 stage, got {horizon!r}")
+        return RaceGame(
+            track=track,
+            vehicles=stack_vehicles(vehicles),
+            weights=stack_weights(weights),
+            dt=float(dt),
+            horizon=int(horizon),
+        )
+
+    @property
+    def num_players(self) -> int:
+        return int(np.shape(self.vehicles.v_max)[0])
+
+    @property
+    def state_dim(self) -> int:
+        return STATE_DIM
+
+    @property
+    def input_dim(self) -> int:
+        return INPUT_DIM
+
+    def replace(self, **changes) -> "RaceGame":
+        return dataclasses.replace(self, **changes)
+
+    # --- dynamics ---------------------------------------------------------------------
+    def step(self, x: jax.Array, u: jax.Array) -> jax.Array:
+        """Joint RK4 step: ``x (N, 6)``, ``u (N, 2)`` [m/s^3] -> ``(N, 6)``."""
+        return joint_step(x, u, self.dt, self.track.kappa_at)
+
+    def rollout(self, x0: jax.Array, U: jax.Array) -> jax.Array:
+        """Simulate ``U (K, N, 2)`` from ``x0 (N, 6)``: returns ``xs (K + 1, N, 6)``."""
+
+        def body(x, u):
+            x_next = self.step(x, u)
+            return x_next, x_next
+
+        _, xs = jax.lax.scan(body, x0, U)
+        return jnp.concatenate([x0[None], xs], axis=0)
+
+    # --- costs ------------------------------------------------------------------------
+    def stage_costs(self, x: jax.Array, u: jax.Array) -> jax.Array:
+        """Stage cost of every player, ``(N,)``."""
+        return _costs.stage_costs(x, u, self.vehicles, self.weights, self.track)
+
+    def stage_cost(self, i: int, x: jax.Array, u_i: jax.Array) -> jax.Array:
+        """Stage cost g^i of player ``i`` at joint state ``x (N, 6)`` with its input ``u_i (2,)``.
+
+        Player i's stage cost depends on its own input only (the paper's structure), so the
+        other players' inputs are not arguments.
+        """
+        state_terms = _costs.state_cost_terms(x, self.vehicles, self.weights, self.track)
+        r_i = self.weights.jerk_weights[i]
+        return sum(t[i] for t in state_terms.values()) + jnp.sum(r_i * u_i**2)
+
+    def terminal_costs(self, x: jax.Array) -> jax.Array:
+        """Terminal cost of every player, ``(N,)``."""
+        return _costs.terminal_costs(x, self.weights)
+
+    def terminal_cost(self, i: int, x: jax.Array) -> jax.Array:
+        """Terminal cost g_K^i of player ``i``."""
+        return self.terminal_costs(x)[i]
+
+    def costs(self, xs: jax.Array, U: jax.Array) -> jax.Array:
+        """Total cost of every player along a trajectory: ``xs (K+1, N, 6)``, ``U (K, N, 2)`` -> ``(N,)``."""
+        running = jax.vmap(self.stage_costs)(xs[:-1], U).sum(axis=0)
+        return running + self.terminal_costs(xs[-1])
+
+
+jax.tree_util.register_dataclass(
+    RaceGame,
+    data_fields=["track", "vehicles", "weights"],
+    meta_fields=["dt", "horizon"],
+)

@@ -1,0 +1,75 @@
+"""The agents' observation vectors (pure JAX, all cars at once).
+
+Observation of car i, shape ``(8 + 7 (N - 1) + 3 P,)`` with P preview distances:
+
+* own state: ``V, n, chi, ax, ay``, room to the left boundary ``w_left(s) - n``, room to the
+  right boundary ``w_right(s) + n``, and the fraction of the race still to go;
+* for each other car j, in cyclic order ``i+1, ..., i-1``: wrapped gap ``ds``, ``dn``,
+  ``dV``, ``dchi``, its ``ax``, ``ay`` and whether it is still racing (1/0);
+* the track ahead at each preview distance d: ``kappa(s+d)``, ``w_left(s+d)``, ``w_right(s+d)``.
+
+Units are physical (m, m/s, rad, m/s^2, 1/m).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from racing_env.dynamics import AX, AY, CHI, N_LAT, S, V
+from racing_env.track import Track
+
+OWN_FEATURES = 8
+OTHER_FEATURES = 7
+PREVIEW_FEATURES = 3
+
+
+def observation_size(num_cars: int, num_preview: int) -> int:
+    return OWN_FEATURES + OTHER_FEATURES * (num_cars - 1) + PREVIEW_FEATURES * num_preview
+
+
+def observe(
+    x: jax.Array,
+    active: jax.Array,
+    track: Track,
+    finish_s: jax.Array,
+    preview: jax.Array,
+) -> jax.Array:
+    """Observations of all cars: ``x (N, 6)``, ``active (N,)`` -> ``(N, obs_size)``."""
+    num_cars = x.shape[0]
+    s, n = x[:, S], x[:, N_LAT]
+    to_go = jnp.clip((finish_s - s) / finish_s, 0.0, 1.0)
+    own = jnp.stack(
+        [
+            x[:, V],
+            n,
+            x[:, CHI],
+            x[:, AX],
+            x[:, AY],
+            track.width_left_at(s) - n,
+            track.width_right_at(s) + n,
+            to_go,
+        ],
+        axis=-1,
+    )
+    # others[i, k] describes car (i + k) % N for k = 1..N-1
+    idx = (jnp.arange(num_cars)[:, None] + jnp.arange(1, num_cars)[None, :]) % num_cars
+    xo = x[idx]  # (N, N-1, 6)
+    others = jnp.stack(
+        [
+            track.wrap_ds(xo[..., S] - s[:, None]),
+            xo[..., N_LAT] - n[:, None],
+            xo[..., V] - x[:, None, V],
+            xo[..., CHI] - x[:, None, CHI],
+            xo[..., AX],
+            xo[..., AY],
+            active[idx].astype(x.dtype),
+        ],
+        axis=-1,
+    ).reshape(num_cars, -1)
+    s_ahead = s[:, None] + preview[None, :]
+    ahead = jnp.stack(
+        [track.kappa_at(s_ahead), track.width_left_at(s_ahead), track.width_right_at(s_ahead)],
+        axis=-1,
+    ).reshape(num_cars, -1)
+    return jnp.concatenate([own, others, ahead], axis=-1)

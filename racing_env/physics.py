@@ -1,0 +1,95 @@
+"""What the environment enforces and detects beyond the smooth game model.
+
+The planners' game only *penalises* leaving the gg diagram, exceeding ax_max(V) or driving
+backwards; the environment makes them impossible, and it detects footprint overlaps
+(collisions) and cars beyond the track boundary. All functions are pure JAX on the joint
+state ``x (N, 6)``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from racing_env.dynamics import AX, AY, CHI, N_LAT, S, V
+from racing_env.track import Track
+from racing_env.vehicle import VehicleParams
+
+
+def enforce_limits(x: jax.Array, vehicles: VehicleParams) -> jax.Array:
+    """Project every car's accelerations onto its feasible set and keep ``V >= 0``.
+
+    The acceleration vector is scaled radially onto the gg circle ``|a| <= rho(V)`` (the
+    paper's combined-acceleration limit), then ``ax`` is capped at ``ax_max(V)``, and
+    finally ``ay`` is clipped so the cap cannot push ``|a|`` past ``rho`` (only possible
+    above v_max, where ``ax_max < 0``). A car cannot reverse: ``V`` stops at zero and a
+    stopped car keeps no braking and no lateral acceleration (``ay = V * yaw rate``).
+    """
+    v = jnp.maximum(x[:, V], 0.0)
+    ax, ay = x[:, AX], x[:, AY]
+    rho = vehicles.rho(v)
+    norm = jnp.sqrt(ax**2 + ay**2)
+    scale = jnp.where(norm > rho, rho / jnp.maximum(norm, 1e-12), 1.0)
+    ax, ay = ax * scale, ay * scale
+    ax = jnp.clip(ax, -rho, vehicles.ax_max(v))
+    ay_room = jnp.sqrt(jnp.maximum(rho**2 - ax**2, 0.0))
+    ay = jnp.clip(ay, -ay_room, ay_room)
+    ax = jnp.where(v <= 0.0, jnp.maximum(ax, 0.0), ax)
+    ay = jnp.where(v <= 0.0, 0.0, ay)
+    return x.at[:, V].set(v).at[:, AX].set(ax).at[:, AY].set(ay)
+
+
+def saturate_jerk(x: jax.Array, u: jax.Array, vehicles: VehicleParams, dt: float) -> jax.Array:
+    """Limit the longitudinal jerk so ``ax`` ends the step no higher than ``ax_max(V)``.
+
+    Projecting ``ax`` only at the end of a step would let it ramp past ``ax_max`` inside
+    the step, and a car driven flat out would settle above its v_max. With the jerk capped
+    at ``(ax_max(V) - ax) / dt`` the speed approaches v_max from below (for
+    ``2 ax_max_0 dt < v_max``, true for any sensible car).
+
+    A stopped car (``V <= 0``) gets no negative longitudinal and no lateral jerk: inside the
+    step they would make ``V < 0`` (the car creeping backwards) and ``ay / V_EPS`` turn it on
+    the spot.
+    """
+    cap = (vehicles.ax_max(x[:, V]) - x[:, AX]) / dt
+    stopped = x[:, V] <= 0.0
+    jx = jnp.minimum(u[:, 0], cap)
+    jx = jnp.where(stopped, jnp.maximum(jx, 0.0), jx)
+    jy = jnp.where(stopped, 0.0, u[:, 1])
+    return jnp.stack([jx, jy], axis=-1)
+
+
+def footprint_overlap(x: jax.Array, vehicles: VehicleParams, track: Track) -> jax.Array:
+    """Which pairs of car footprints overlap, ``(N, N)`` bool, symmetric, false diagonal.
+
+    Each footprint is a rectangle (length x width) at ``(s, n)`` with heading ``chi``
+    relative to the centreline, compared in the local frame of the centreline at the
+    pair's mean arc length (longitudinal gaps scaled by ``1 - n kappa``). The test is the
+    separating-axis theorem on the four edge normals of the two rectangles.
+    """
+    ds = track.wrap_ds(x[None, :, S] - x[:, None, S])
+    n_mean = 0.5 * (x[None, :, N_LAT] + x[:, None, N_LAT])
+    kappa = track.kappa_at(x[:, None, S] + 0.5 * ds)
+    dx = ds * (1.0 - n_mean * kappa)
+    dy = x[None, :, N_LAT] - x[:, None, N_LAT]
+    chi_i = jnp.broadcast_to(x[:, None, CHI], dx.shape)
+    chi_j = jnp.broadcast_to(x[None, :, CHI], dx.shape)
+    axes = jnp.stack([chi_i, chi_i + jnp.pi / 2, chi_j, chi_j + jnp.pi / 2], axis=-1)
+    half_l, half_w = 0.5 * vehicles.length, 0.5 * vehicles.width
+
+    def radius(half_length, half_width, heading):
+        rel = heading[..., None] - axes
+        return half_length * jnp.abs(jnp.cos(rel)) + half_width * jnp.abs(jnp.sin(rel))
+
+    reach = radius(half_l[:, None, None], half_w[:, None, None], chi_i) + radius(
+        half_l[None, :, None], half_w[None, :, None], chi_j
+    )
+    separation = jnp.abs(dx[..., None] * jnp.cos(axes) + dy[..., None] * jnp.sin(axes))
+    overlap = jnp.all(separation <= reach, axis=-1)
+    return overlap & ~jnp.eye(x.shape[0], dtype=bool)
+
+
+def off_track(x: jax.Array, track: Track) -> jax.Array:
+    """Cars whose centre is beyond the left or right boundary, ``(N,)`` bool."""
+    s, n = x[:, S], x[:, N_LAT]
+    return (n > track.width_left_at(s)) | (-n > track.width_right_at(s))

@@ -1,0 +1,106 @@
+"""Gymnasium view of a race: one learner against opponent policies.
+
+The opponents are callables ``policy(observation, joint_state) -> action`` (a normalised
+action in ``[-1, 1]^2``), so planners and trained models can be plugged in. The env is
+registered as ``racing_env/Race-v0``::
+
+    env = gymnasium.make("racing_env/Race-v0", opponents=[my_policy], track="trefoil")
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Sequence
+
+import gymnasium
+import numpy as np
+
+from racing_env.config import RaceConfig
+from racing_env.env import RacingParallelEnv, agent_name
+
+OpponentPolicy = Callable[[np.ndarray, np.ndarray], Any]
+
+
+def coasting_policy(observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+    """An opponent that applies zero jerk (keeps its accelerations)."""
+    return np.zeros(2, dtype=np.float32)
+
+
+class RaceEnv(gymnasium.Env):
+    """One learner (``car_<learner>``) against ``N - 1`` opponent policies.
+
+    Args:
+        opponents: one policy per opponent (in car order, skipping the learner); default:
+            coasting cars. Their number fixes N = len(opponents) + 1 unless ``num_agents``
+            is given, in which case a single policy is reused for every opponent.
+        learner: index of the learner's car.
+        **config: ``RaceConfig`` fields (track, scenario, laps, reward, ...).
+
+    The episode ends (terminated) when the learner finishes or retires, and is truncated
+    at ``max_steps``. ``info`` is the learner's PettingZoo info.
+    """
+
+    metadata = RacingParallelEnv.metadata
+
+    def __init__(
+        self,
+        opponents: Sequence[OpponentPolicy] | None = None,
+        learner: int = 0,
+        **config: Any,
+    ) -> None:
+        if opponents is None:
+            opponents = [coasting_policy]
+        opponents = list(opponents)
+        num = int(config.pop("num_agents", len(opponents) + 1))
+        if len(opponents) == 1 and num > 2:
+            opponents = opponents * (num - 1)
+        if len(opponents) != num - 1:
+            raise ValueError(f"need {num - 1} opponent policies for {num} cars, got {len(opponents)}")
+        if not all(callable(p) for p in opponents):
+            raise ValueError("every opponent must be a callable policy(observation, joint_state) -> action")
+        if not 0 <= learner < num:
+            raise ValueError(f"learner must be a car index in [0, {num - 1}], got {learner}")
+        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
+        self.render_mode = self.race.render_mode
+        self.learner = agent_name(learner)
+        self._opponents = {
+            a: p for a, p in zip([x for x in self.race.possible_agents if x != self.learner], opponents)
+        }
+        self.observation_space = self.race.observation_space(self.learner)
+        self.action_space = self.race.action_space(self.learner)
+        self._observations: dict[str, np.ndarray] = {}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self._observations, infos = self.race.reset(seed=seed, options=options)
+        return self._observations[self.learner], infos[self.learner]
+
+    def step(self, action):
+        state = self.race.state()
+        actions = {self.learner: action}
+        for agent in self.race.agents:
+            if agent != self.learner:
+                actions[agent] = np.asarray(self._opponents[agent](self._observations[agent], state))
+        observations, rewards, terms, truncs, infos = self.race.step(actions)
+        self._observations = observations
+        return (
+            observations[self.learner],
+            rewards[self.learner],
+            terms[self.learner],
+            truncs[self.learner],
+            infos[self.learner],
+        )
+
+    def render(self):
+        return self.race.render()
+
+    def close(self) -> None:
+        self.race.close()
+
+
+ENV_ID = "racing_env/Race-v0"
+
+
+def register() -> None:
+    """Register ``racing_env/Race-v0`` with Gymnasium (idempotent)."""
+    if ENV_ID not in gymnasium.registry:
+        gymnasium.register(id=ENV_ID, entry_point="racing_env.single_agent:RaceEnv")

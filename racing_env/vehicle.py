@@ -1,0 +1,99 @@
+"""Vehicle parameters of the point-mass race car.
+
+A :class:`VehicleParams` holds scalars for one car, or arrays of shape ``(N,)`` for a field
+of ``N`` cars (see :func:`stack_vehicles`). It is a JAX pytree, so it can be passed into
+jitted functions and vmapped over.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+ArrayLike = float | np.ndarray | jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class VehicleParams:
+    """Physical limits of one car (or, stacked, of N cars).
+
+    Attributes:
+        length: footprint length l_veh [m].
+        width: footprint width w_veh [m].
+        v_max: top speed [m/s]. Enforced through ``ax_max(V)``, which falls to zero at v_max
+            (and becomes negative above it, so a car faster than v_max decelerates).
+        ax_max_0: largest positive longitudinal acceleration at standstill [m/s^2].
+        rho_0: radius of the gg diagram (combined acceleration limit) at standstill [m/s^2].
+        rho_aero: growth of the gg radius with speed squared (downforce) [1/m],
+            ``rho(V) = rho_0 + rho_aero * V**2``.
+        jx_max: longitudinal jerk limit [m/s^3]; scales the env's normalised actions.
+        jy_max: lateral jerk limit [m/s^3].
+    """
+
+    length: ArrayLike = 4.7
+    width: ArrayLike = 2.0
+    v_max: ArrayLike = 25.0
+    ax_max_0: ArrayLike = 8.0
+    rho_0: ArrayLike = 12.0
+    rho_aero: ArrayLike = 0.004
+    jx_max: ArrayLike = 30.0
+    jy_max: ArrayLike = 30.0
+
+    def __post_init__(self) -> None:
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        if not all(isinstance(v, (int, float, np.ndarray, np.number)) for v in values.values()):
+            return  # traced or abstract leaves inside jit/vmap: validated at construction time
+        for name, value in values.items():
+            arr = np.asarray(value, dtype=float)
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"VehicleParams.{name} must be finite, got {value!r}")
+            lower_ok = arr >= 0 if name == "rho_aero" else arr > 0
+            if not np.all(lower_ok):
+                allowed = ">= 0" if name == "rho_aero" else "> 0"
+                raise ValueError(f"VehicleParams.{name} must be {allowed}, got {value!r}")
+
+    def ax_max(self, v: jax.Array) -> jax.Array:
+        """Largest positive longitudinal acceleration at speed ``v`` [m/s^2].
+
+        ``ax_max_0 * (1 - (v / v_max)**2)``: zero at v_max and negative beyond it.
+        """
+        return self.ax_max_0 * (1.0 - (v / self.v_max) ** 2)
+
+    def rho(self, v: jax.Array) -> jax.Array:
+        """Radius of the gg diagram at speed ``v`` [m/s^2]."""
+        return self.rho_0 + self.rho_aero * v**2
+
+    @property
+    def jerk_max(self) -> jax.Array:
+        """Jerk limits ``[jx_max, jy_max]``, shape ``(..., 2)`` [m/s^3]."""
+        return jnp.stack([jnp.asarray(self.jx_max), jnp.asarray(self.jy_max)], axis=-1)
+
+    def car(self, index: int) -> "VehicleParams":
+        """The scalar parameters of car ``index`` from stacked ``(N,)`` fields."""
+        return VehicleParams(
+            **{f.name: float(np.asarray(getattr(self, f.name))[index]) for f in dataclasses.fields(self)}
+        )
+
+    def replace(self, **changes: ArrayLike) -> "VehicleParams":
+        return dataclasses.replace(self, **changes)
+
+
+jax.tree_util.register_dataclass(
+    VehicleParams,
+    data_fields=[f.name for f in dataclasses.fields(VehicleParams)],
+    meta_fields=[],
+)
+
+
+def stack_vehicles(vehicles: Sequence[VehicleParams]) -> VehicleParams:
+    """Stack per-car parameters into one ``VehicleParams`` whose fields have shape ``(N,)``."""
+    if len(vehicles) < 1:
+        raise ValueError("stack_vehicles needs at least one VehicleParams")
+    fields = [f.name for f in dataclasses.fields(VehicleParams)]
+    return VehicleParams(
+        **{name: np.array([float(getattr(v, name)) for v in vehicles]) for name in fields}
+    )

@@ -1,0 +1,378 @@
+"""Exact-identity tests for the LQ game solvers (float64, 1e-8).
+
+Nash equilibria are checked by best responses: fixing the other players' equilibrium
+strategies leaves player ``i`` a single-player LQ problem, solved here by oracles written
+independently in NumPy (an affine-drift Riccati recursion for feedback, a dense
+normal-equation solve over the stacked inputs for open loop).
+"""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from planners.lq_game import (  # noqa: E402
+    lq_costs,
+    lq_rollout_feedback,
+    lqr,
+    solve_feedback,
+    solve_open_loop,
+    validate_lq_game,
+)
+
+TOL = 1e-8
+
+
+def rel_gap(a, b) -> float:
+    a, b = np.asarray(a), np.asarray(b)
+    return float(np.max(np.abs(a - b)) / max(1.0, float(np.max(np.abs(b)))))
+
+
+def random_game(seed: int, N: int, T: int = 8, n: int = 4, m: int = 2, linear: bool = True):
+    """A random, time-varying, well-posed LQ game as NumPy arrays (A, B, Q, q, R, r)."""
+    rng = np.random.default_rng(seed)
+    A = 0.95 * np.eye(n) + 0.15 * rng.standard_normal((T, n, n))
+    B = 0.5 * rng.standard_normal((T, N, n, m))
+    L = rng.standard_normal((T + 1, N, n, n))
+    Q = np.einsum("tiab,ticb->tiac", L, L) / n  # PSD
+    R = np.zeros((T, N, N, m, m))
+    for t in range(T):
+        for i in range(N):
+            for j in range(N):
+                G = rng.standard_normal((m, m))
+                if i == j:
+                    R[t, i, j] = G @ G.T / m + 0.5 * np.eye(m)  # PD
+                else:
+                    R[t, i, j] = 0.1 * (G + G.T)  # symmetric, possibly indefinite
+    if linear:
+        q = 0.5 * rng.standard_normal((T + 1, N, n))
+        r = 0.3 * rng.standard_normal((T, N, N, m))
+    else:
+        q = np.zeros((T + 1, N, n))
+        r = np.zeros((T, N, N, m))
+    return A, B, Q, q, R, r
+
+
+def random_x0(seed: int, n: int = 4) -> np.ndarray:
+    return np.random.default_rng(seed + 1000).standard_normal(n)
+
+
+# ------------------------------------------------------------------------------------
+# NumPy oracles.
+# ------------------------------------------------------------------------------------
+
+
+def riccati_affine(A, B, c, Q, q, R, r):
+    """min 1/2 sum [x'Qx + 2q'x + u'Ru + 2r'u] + terminal, x+ = A x + B u + c.
+
+    A (T,n,n), B (T,n,m), c (T,n), Q (T+1,n,n), q (T+1,n), R (T,m,m), r (T,m).
+    Returns K (T,m,n), k (T,m) with u = -K x - k.
+    """
+    T = A.shape[0]
+    P, p = Q[T], q[T]
+    Ks, ks = [], []
+    for t in reversed(range(T)):
+        H = R[t] + B[t].T @ P @ B[t]
+        g = B[t].T @ (P @ c[t] + p) + r[t]
+        K = np.linalg.solve(H, B[t].T @ P @ A[t])
+        k = np.linalg.solve(H, g)
+        p = q[t] + A[t].T @ (p + P @ c[t]) - K.T @ g
+        P = Q[t] + A[t].T @ P @ A[t] - K.T @ H @ K
+        P = 0.5 * (P + P.T)
+        Ks.append(K)
+        ks.append(k)
+    return np.array(Ks[::-1]), np.array(ks[::-1])
+
+
+def feedback_best_response(game, K, k, i):
+    """Player i's optimal affine policy against the others' feedback laws."""
+    A, B, Q, q, R, r = game
+    T, N = B.shape[0], B.shape[1]
+    others = [j for j in range(N) if j != i]
+    A_cl = A - sum((B[:, j] @ K[:, j] for j in others), np.zeros_like(A))
+    c = -sum((np.einsum("tam,tm->ta", B[:, j], k[:, j]) for j in others), np.zeros(A.shape[:2]))
+    Qi, qi = Q[:, i].copy(), q[:, i].copy()
+    for j in others:
+        # u^j = -(K^j x + k^j): 1/2 u'R u + r'u = 1/2 x'K'RKx + x'(K'Rk - K'r) + const.
+        Kj, kj, Rij, rij = K[:, j], k[:, j], R[:, i, j], r[:, i, j]
+        Qi[:T] += np.einsum("tma,tml,tlb->tab", Kj, Rij, Kj)
+        qi[:T] += np.einsum("tma,tml,tl->ta", Kj, Rij, kj) - np.einsum("tma,tm->ta", Kj, rij)
+    return riccati_affine(A_cl, B[:, i], c, Qi, qi, R[:, i, i], r[:, i, i])
+
+
+def stacked_dynamics(A, B):
+    """x = Phi x0 + sum_j Gamma[j] U_j with x ((T+1) n,), U_j (T m,) time-major."""
+    T, N, n, m = B.shape
+    Phi = np.zeros(((T + 1) * n, n))
+    Gam = np.zeros((N, (T + 1) * n, T * m))
+    Phi[:n] = np.eye(n)
+    for t in range(T):
+        rows, nxt = slice(t * n, (t + 1) * n), slice((t + 1) * n, (t + 2) * n)
+        Phi[nxt] = A[t] @ Phi[rows]
+        Gam[:, nxt] = np.einsum("ab,jbc->jac", A[t], Gam[:, rows])
+        Gam[:, nxt, t * m : (t + 1) * m] = B[t]
+    return Phi, Gam
+
+
+def block_diag(blocks):
+    k, a, b = blocks.shape
+    out = np.zeros((k * a, k * b))
+    for s in range(k):
+        out[s * a : (s + 1) * a, s * b : (s + 1) * b] = blocks[s]
+    return out
+
+
+def open_loop_best_response(game, x0, k, i):
+    """Player i's optimal input sequence (T, m) against the others' fixed u^j = -k^j.
+
+    Also returns the Hessian of J^i in U_i (to check convexity and second-order identities).
+    """
+    A, B, Q, q, R, r = game
+    T, N, n, m = B.shape
+    Phi, Gam = stacked_dynamics(A, B)
+    Qbd, qbd = block_diag(Q[:, i]), q[:, i].reshape(-1)
+    Rbd, rbd = block_diag(R[:, i, i]), r[:, i, i].reshape(-1)
+    x_fixed = Phi @ x0 + sum(Gam[j] @ (-k[:, j].reshape(-1)) for j in range(N) if j != i)
+    H = Gam[i].T @ Qbd @ Gam[i] + Rbd
+    g = Gam[i].T @ (Qbd @ x_fixed + qbd) + rbd
+    return -np.linalg.solve(H, g).reshape(T, m), H
+
+
+def as_np(*arrays):
+    return tuple(np.asarray(a) for a in arrays)
+
+
+CASES = [(N, linear) for N in (1, 2, 3) for linear in (True, False)]
+
+
+# ------------------------------------------------------------------------------------
+# Nash conditions.
+# ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("N,linear", CASES)
+def test_feedback_is_best_response(N, linear):
+    game = random_game(seed=10 * N + linear, N=N, T=7, linear=linear)
+    K, k = as_np(*solve_feedback(*game))
+    T, _, n, m = game[1].shape
+    assert K.shape == (T, N, m, n) and k.shape == (T, N, m)
+    for i in range(N):
+        K_br, k_br = feedback_best_response(game, K, k, i)
+        assert rel_gap(K[:, i], K_br) < TOL, (i, rel_gap(K[:, i], K_br))
+        assert rel_gap(k[:, i], k_br) < TOL, (i, rel_gap(k[:, i], k_br))
+    if not linear:
+        assert np.max(np.abs(k)) == 0.0
+
+
+@pytest.mark.parametrize("N,linear", CASES)
+def test_open_loop_is_best_response(N, linear):
+    game = random_game(seed=100 + 10 * N + linear, N=N, T=9, linear=linear)
+    x0 = random_x0(N)
+    k, xs = as_np(*solve_open_loop(*game, jnp.asarray(x0)))
+    T, _, n, m = game[1].shape
+    assert k.shape == (T, N, m) and xs.shape == (T + 1, n)
+    for i in range(N):
+        u_br, H = open_loop_best_response(game, x0, k, i)
+        assert np.linalg.eigvalsh(H).min() > 0  # player i's problem is strictly convex
+        assert rel_gap(-k[:, i], u_br) < TOL, (i, rel_gap(-k[:, i], u_br))
+    # xs is the trajectory generated by the equilibrium inputs.
+    A, B = game[0], game[1]
+    x = x0
+    for t in range(T):
+        assert rel_gap(xs[t], x) < TOL
+        x = A[t] @ x - np.einsum("jam,jm->a", B[t], k[t])
+    assert rel_gap(xs[T], x) < TOL
+
+
+def test_open_loop_ignores_cross_input_weights():
+    game = random_game(seed=7, N=3)
+    A, B, Q, q, R, r = game
+    eye = np.eye(3, dtype=bool)[None, :, :, None, None]
+    R2 = np.where(eye, R, 5.0 * R)
+    r2 = np.where(eye[..., 0], r, -3.0 * r)
+    x0 = jnp.asarray(random_x0(7))
+    k1, xs1 = solve_open_loop(*game, x0)
+    k2, xs2 = solve_open_loop(A, B, Q, q, R2, r2, x0)
+    assert rel_gap(k1, k2) < TOL and rel_gap(xs1, xs2) < TOL
+
+
+@pytest.mark.parametrize("N", [2, 3])
+def test_lq_costs_second_order_identity(N):
+    """J^i(U* + d) - J^i(U*) = 1/2 d'H d at an open-loop Nash point: checks lq_costs and
+    first-order optimality together (no linear term in d)."""
+    game = random_game(seed=300 + N, N=N)
+    x0 = random_x0(300 + N)
+    k, _ = solve_open_loop(*game, jnp.asarray(x0))
+    A, B = game[0], game[1]
+    K0 = jnp.zeros(k.shape + (A.shape[-1],))
+    xs, us = lq_rollout_feedback(A, B, K0, k, jnp.asarray(x0))
+    J = np.asarray(lq_costs(*game, xs, us))
+    rng = np.random.default_rng(N)
+    for i in range(N):
+        _, H = open_loop_best_response(game, x0, np.asarray(k), i)
+        d = rng.standard_normal((k.shape[0], k.shape[2]))
+        kp = np.asarray(k).copy()
+        kp[:, i] -= d  # u^i = -k^i + d
+        xs_p, us_p = lq_rollout_feedback(A, B, K0, jnp.asarray(kp), jnp.asarray(x0))
+        Jp = np.asarray(lq_costs(*game, xs_p, us_p))
+        expected = 0.5 * d.reshape(-1) @ H @ d.reshape(-1)
+        assert abs((Jp[i] - J[i]) - expected) < TOL * max(1.0, abs(expected), abs(J[i]))
+
+
+def test_feedback_rollout_and_costs_match_dense():
+    game = random_game(seed=42, N=2)
+    A, B, Q, q, R, r = game
+    K, k = solve_feedback(*game)
+    x0 = random_x0(42)
+    xs, us = as_np(*lq_rollout_feedback(A, B, K, k, jnp.asarray(x0)))
+    T, N = B.shape[:2]
+    Phi, Gam = stacked_dynamics(A, B)
+    x_dense = Phi @ x0 + sum(Gam[j] @ us[:, j].reshape(-1) for j in range(N))
+    assert rel_gap(xs.reshape(-1), x_dense) < TOL
+    J = np.asarray(lq_costs(*game, jnp.asarray(xs), jnp.asarray(us)))
+    for i in range(N):
+        Ji = sum(
+            0.5 * xs[t] @ Q[t, i] @ xs[t] + q[t, i] @ xs[t]
+            + sum(0.5 * us[t, j] @ R[t, i, j] @ us[t, j] + r[t, i, j] @ us[t, j] for j in range(N))
+            for t in range(T)
+        ) + 0.5 * xs[T] @ Q[T, i] @ xs[T] + q[T, i] @ xs[T]
+        assert abs(J[i] - Ji) < TOL * max(1.0, abs(Ji))
+
+
+# ------------------------------------------------------------------------------------
+# Single player: all three solvers agree.
+# ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("linear", [True, False])
+def test_single_player_solvers_agree(linear):
+    A, B, Q, q, R, r = random_game(seed=5 + linear, N=1, T=10, linear=linear)
+    x0 = jnp.asarray(random_x0(5))
+    K_lqr, k_lqr = lqr(A, B[:, 0], Q[:, 0], q[:, 0], R[:, 0, 0], r[:, 0, 0])
+    K_fb, k_fb = solve_feedback(A, B, Q, q, R, r)
+    assert rel_gap(K_fb[:, 0], K_lqr) < TOL and rel_gap(k_fb[:, 0], k_lqr) < TOL
+
+    xs_lqr, us_lqr = lq_rollout_feedback(A, B, K_lqr[:, None], k_lqr[:, None], x0)
+    xs_fb, us_fb = lq_rollout_feedback(A, B, K_fb, k_fb, x0)
+    k_ol, xs_ol = solve_open_loop(A, B, Q, q, R, r, x0)
+    assert rel_gap(xs_fb, xs_lqr) < TOL and rel_gap(xs_ol, xs_lqr) < TOL
+    assert rel_gap(us_fb, us_lqr) < TOL and rel_gap(-k_ol, us_lqr) < TOL
+
+
+def test_lqr_matches_affine_oracle():
+    A, B, Q, q, R, r = random_game(seed=9, N=1, T=6)
+    K, k = as_np(*lqr(A, B[:, 0], Q[:, 0], q[:, 0], R[:, 0, 0], r[:, 0, 0]))
+    c = np.zeros(A.shape[:2])
+    K_o, k_o = riccati_affine(A, B[:, 0], c, Q[:, 0], q[:, 0], R[:, 0, 0], r[:, 0, 0])
+    assert rel_gap(K, K_o) < TOL and rel_gap(k, k_o) < TOL
+
+
+def test_only_symmetric_parts_matter():
+    game = random_game(seed=11, N=2)
+    A, B, Q, q, R, r = game
+    rng = np.random.default_rng(0)
+    S = rng.standard_normal(Q.shape)
+    W = rng.standard_normal(R.shape)
+    Qs = Q + (S - np.swapaxes(S, -1, -2))
+    Rs = R + (W - np.swapaxes(W, -1, -2))
+    x0 = jnp.asarray(random_x0(11))
+    for a, b in zip(solve_feedback(*game), solve_feedback(A, B, Qs, q, Rs, r)):
+        assert rel_gap(a, b) < TOL
+    for a, b in zip(solve_open_loop(*game, x0), solve_open_loop(A, B, Qs, q, Rs, r, x0)):
+        assert rel_gap(a, b) < TOL
+
+
+# ------------------------------------------------------------------------------------
+# Validation.
+# ------------------------------------------------------------------------------------
+
+
+def test_validate_accepts_valid_game():
+    validate_lq_game(*random_game(seed=1, N=3))
+
+
+def test_validate_rejects_non_pd_own_weight():
+    A, B, Q, q, R, r = random_game(seed=2, N=3)
+    R = R.copy()
+    R[4, 1, 1] = np.diag([1.0, -0.5])
+    with pytest.raises(ValueError, match=r"R\[t=4, i=1, i=1\].*not positive definite"):
+        validate_lq_game(A, B, Q, q, R, r)
+    R[4, 1, 1] = np.zeros((2, 2))  # PSD but singular is rejected too
+    with pytest.raises(ValueError, match=r"t=4, i=1"):
+        validate_lq_game(A, B, Q, q, R, r)
+
+
+def test_validate_rejects_shape_mismatch():
+    A, B, Q, q, R, r = random_game(seed=3, N=2, T=5)
+    with pytest.raises(ValueError, match=r"shape mismatch: Q has shape \(5, 2, 4, 4\)"):
+        validate_lq_game(A, B, Q[:-1], q, R, r)
+    with pytest.raises(ValueError, match=r"shape mismatch: r"):
+        validate_lq_game(A, B, Q, q, R, r[:, :1])
+    with pytest.raises(ValueError, match=r"R must have 5 dimensions"):
+        validate_lq_game(A, B, Q, q, R[:, 0], r)
+    with pytest.raises(ValueError, match=r"non-finite"):
+        validate_lq_game(A * np.nan, B, Q, q, R, r)
+
+
+# ------------------------------------------------------------------------------------
+# jit / vmap.
+# ------------------------------------------------------------------------------------
+
+
+def test_jit_matches_eager():
+    """The (jitted) public functions equal their un-jitted bodies and survive nested jit."""
+    game = tuple(jnp.asarray(a) for a in random_game(seed=21, N=3, T=5))
+    A, B, Q, q, R, r = game
+    x0 = jnp.asarray(random_x0(21))
+    lqr_args = (A, B[:, 0], Q[:, 0], q[:, 0], R[:, 0, 0], r[:, 0, 0])
+
+    def run_all(raw: bool):
+        f = (lambda fn: fn.__wrapped__) if raw else (lambda fn: fn)  # __wrapped__: no jit
+        K, k = f(solve_feedback)(*game)
+        xs, us = f(lq_rollout_feedback)(A, B, K, k, x0)
+        J = f(lq_costs)(*game, xs, us)
+        return (K, k, xs, us, J, *f(solve_open_loop)(*game, x0), *f(lqr)(*lqr_args))
+
+    eager = run_all(raw=True)
+    for jitted in (run_all(raw=False), jax.jit(run_all, static_argnums=0)(False)):
+        for a, b in zip(eager, jitted):
+            assert rel_gap(b, a) < TOL
+
+
+def test_vmap_over_initial_states():
+    game = tuple(jnp.asarray(a) for a in random_game(seed=22, N=2))
+    A, B = game[0], game[1]
+    x0s = jnp.asarray(np.random.default_rng(22).standard_normal((5, 4)))
+    k_b, xs_b = jax.jit(jax.vmap(solve_open_loop, in_axes=(None,) * 6 + (0,)))(*game, x0s)
+    K, k = solve_feedback(*game)
+    roll = jax.vmap(lq_rollout_feedback, in_axes=(None, None, None, None, 0))
+    xs_fb, us_fb = roll(A, B, K, k, x0s)
+    costs = jax.vmap(lq_costs, in_axes=(None,) * 6 + (0, 0))(*game, xs_fb, us_fb)
+    assert k_b.shape == (5,) + game[1].shape[:2] + (2,) and costs.shape == (5, 2)
+    for b in range(5):
+        k1, xs1 = solve_open_loop(*game, x0s[b])
+        assert rel_gap(k_b[b], k1) < TOL and rel_gap(xs_b[b], xs1) < TOL
+        xs2, us2 = lq_rollout_feedback(A, B, K, k, x0s[b])
+        assert rel_gap(xs_fb[b], xs2) < TOL and rel_gap(us_fb[b], us2) < TOL
+        assert rel_gap(costs[b], lq_costs(*game, xs2, us2)) < TOL
+
+
+def test_vmap_over_games():
+    games = [random_game(seed=30 + s, N=2, T=6) for s in range(4)]
+    batch = tuple(jnp.asarray(np.stack(parts)) for parts in zip(*games))
+    x0 = jnp.asarray(random_x0(30))
+    K_b, k_b = jax.jit(jax.vmap(solve_feedback))(*batch)
+    kol_b, xs_b = jax.vmap(solve_open_loop, in_axes=(0,) * 6 + (None,))(*batch, x0)
+    A, B, Q, q, R, r = batch
+    K_l, k_l = jax.vmap(lqr)(A, B[:, :, 0], Q[:, :, 0], q[:, :, 0], R[:, :, 0, 0], r[:, :, 0, 0])
+    for s, game in enumerate(games):
+        K, k = solve_feedback(*game)
+        assert rel_gap(K_b[s], K) < TOL and rel_gap(k_b[s], k) < TOL
+        kol, xs = solve_open_loop(*game, x0)
+        assert rel_gap(kol_b[s], kol) < TOL and rel_gap(xs_b[s], xs) < TOL
+        A_, B_, Q_, q_, R_, r_ = game
+        K1, k1 = lqr(A_, B_[:, 0], Q_[:, 0], q_[:, 0], R_[:, 0, 0], r_[:, 0, 0])
+        assert rel_gap(K_l[s], K1) < TOL and rel_gap(k_l[s], k1) < TOL

@@ -1,0 +1,94 @@
+"""Tests of the Gymnasium single-agent view (racing_env.single_agent)."""
+
+import warnings
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import racing_env
+from racing_env import track as tr
+from racing_env.single_agent import ENV_ID, RaceEnv
+
+
+@pytest.fixture(scope="module")
+def trefoil() -> tr.Track:
+    return tr.trefoil()
+
+
+def test_gymnasium_check_env_passes_without_space_warnings(trefoil):
+    """gymnasium's check_env accepts RaceEnv and warns about nothing (spaces included)."""
+    env = gymnasium.make(ENV_ID, track=trefoil, max_steps=30)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped)
+    messages = [str(w.message) for w in caught]
+    assert not any("space" in m.lower() for m in messages), messages
+    assert messages == [], messages  # no other warning either
+
+
+def test_make_registered_id_with_opponents(trefoil):
+    """gymnasium.make('racing_env/Race-v0', opponents=[...]) works after `import racing_env`."""
+    assert ENV_ID in gymnasium.registry
+    env = gymnasium.make(ENV_ID, opponents=[lambda obs, state: np.array([1.0, 0.0])], track=trefoil)
+    assert isinstance(env.unwrapped, RaceEnv)
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.contains(obs) and "position" in info
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert env.observation_space.contains(obs)
+    assert isinstance(reward, float) and terminated is False and truncated is False
+    env.close()
+
+
+def test_opponents_are_called_with_observation_and_joint_state(trefoil):
+    """Each opponent is called with its own observation and the joint state before the step,
+    and its action drives its car (checked against the PettingZoo env driven by hand)."""
+    calls = []
+
+    def opponent(observation, joint_state):
+        calls.append((np.array(observation), np.array(joint_state)))
+        return np.array([1.0, -0.5])
+
+    env = RaceEnv(opponents=[opponent], track=trefoil, race_distance=500.0)
+    reference = racing_env.parallel_env(track=trefoil, race_distance=500.0)
+    env.reset(seed=11)
+    ref_obs, _ = reference.reset(seed=11)
+    learner_actions = [np.array([0.3, 0.1]), np.array([-0.2, 0.4]), np.array([1.0, 0.0])]
+    for k, action in enumerate(learner_actions):
+        ref_state = reference.state()
+        obs, reward, *_ = env.step(action)
+        assert len(calls) == k + 1
+        seen_obs, seen_state = calls[-1]
+        assert seen_obs.tobytes() == ref_obs["car_1"].tobytes()
+        assert seen_state.tobytes() == ref_state.tobytes() and seen_state.shape == (2, 6)
+        ref_obs, ref_rewards, *_ = reference.step({"car_0": action, "car_1": np.array([1.0, -0.5])})
+        assert obs.tobytes() == ref_obs["car_0"].tobytes() and reward == ref_rewards["car_0"]
+    assert env.unwrapped.race.state().tobytes() == reference.state().tobytes()
+
+
+def test_wrong_number_of_opponent_policies_raises(trefoil):
+    """A policy list that does not match the number of cars is refused with ValueError."""
+    coast = lambda obs, state: np.zeros(2)  # noqa: E731
+    with pytest.raises(ValueError, match="need 1 opponent policies for 2 cars, got 2"):
+        RaceEnv(opponents=[coast, coast], num_agents=2, track=trefoil)
+    with pytest.raises(ValueError, match="need 3 opponent policies for 4 cars, got 2"):
+        gymnasium.make(ENV_ID, opponents=[coast, coast], num_agents=4, track=trefoil)
+    with pytest.raises(ValueError, match="callable"):
+        RaceEnv(opponents=["not a policy"], track=trefoil)
+    with pytest.raises(ValueError, match="learner must be a car index"):
+        RaceEnv(opponents=[coast], learner=2, track=trefoil)
+
+
+def test_single_policy_is_reused_and_learner_can_be_any_car(trefoil):
+    """With num_agents given, one policy drives every opponent; the learner may be car_1."""
+    seen = []
+
+    def opponent(observation, joint_state):
+        seen.append(joint_state.shape)
+        return np.zeros(2)
+
+    env = RaceEnv(opponents=[opponent], num_agents=3, learner=1, track=trefoil)
+    env.reset(seed=0)
+    env.step(np.zeros(2))
+    assert env.learner == "car_1" and seen == [(3, 6), (3, 6)]  # car_0 and car_2
