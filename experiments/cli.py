@@ -15,6 +15,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_paper(args: argparse.Namespace) -> int:
+    from experiments.paper import run_paper
+
+    run_paper(Path(args.out))
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from experiments.bench import run_bench
 
@@ -37,6 +44,10 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--laps", type=int, default=1, help="race length in laps (default: 1)")
     demo.add_argument("--seed", type=int, default=0, help="start-grid seed (default: 0)")
     demo.set_defaults(func=_cmd_demo)
+
+    paper = sub.add_parser("paper", help="reproduce the paper's Figures 1-2 and claims (PNG figures + paper.json)")
+    paper.add_argument("--out", default="runs/paper", help="output folder (default: runs/paper)")
+    paper.set_defaults(func=_cmd_paper)
 
     bench = sub.add_parser("bench", help="performance figures as JSON (stdout) and a table (stderr)")
     bench.add_argument("--only", action="append", help="section(s) to run, e.g. --only env (repeatable or comma-separated)")

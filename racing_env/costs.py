@@ -45,8 +45,10 @@ class CostWeights:
         c_gap: terminal weight c_g on the opponents' progress (> 0 rewards being ahead).
     """
 
-    r_jx: ArrayLike = 0.01
-    r_jy: ArrayLike = 0.01
+    # 1.0 keeps the iLQ games well scaled: with jerk almost free (0.01) the solvers'
+    # local models change too fast between iterations and feedback iLQGame stops converging.
+    r_jx: ArrayLike = 1.0
+    r_jy: ArrayLike = 1.0
     c_collision: ArrayLike = 10.0
     c_track: ArrayLike = 100.0
     c_ax: ArrayLike = 100.0

@@ -1,0 +1,872 @@
+"""Iterative linear-quadratic (iLQ) game solver: feedback and open-loop iLQGames, and iLQR.
+
+One solver serves three planners of the paper (``reference/ilqgame-racing-paper.tex``,
+Algorithm 1):
+
+* feedback iLQGame (``mode="feedback"``): each iteration solves the feedback Nash
+  equilibrium of the local LQ game (:func:`planners.lq_game.solve_feedback`);
+* open-loop iLQGame (``mode="open_loop"``): the open-loop Nash equilibrium of the local LQ
+  game (:func:`planners.lq_game.solve_open_loop`), otherwise the same code path;
+* iLQR: the same solver with ``N = 1`` (see :mod:`planners.ilqr`, which predicts the
+  opponents and hands a single-player, time-varying problem to :func:`solve`).
+
+The game protocol
+-----------------
+A :class:`GameProblem` is a pytree whose only data is ``params`` (any pytree: a
+``RaceGame``, weights, predicted trajectories, ...). Its functions are static and receive
+``params`` as their first argument, so new weights or new initial states re-use the
+compiled solver::
+
+    dynamics(params, t, x, u) -> x_next        x (n,), u (N, m), t int stage index
+    stage_cost(params, t, i, x, u_i) -> scalar  player i's g_t^i; depends on its own input only
+    terminal_cost(params, i, x) -> scalar       player i's g_T^i
+
+with static ``num_players N``, ``state_dim n``, ``input_dim m`` and ``horizon T``.
+:func:`problem_from_race_game` adapts a :class:`racing_env.RaceGame` (joint state
+``(N, 6)`` flattened to ``n = 6 N``). :func:`solve` and :func:`nash_residual` also accept a
+``RaceGame`` directly; states then come and go in the game's ``(N, 6)`` shape.
+
+One iteration
+-------------
+Around the nominal trajectory ``(x_hat, u_hat)``:
+
+1. linearise the dynamics with ``jax.jacfwd`` (vmapped over the horizon):
+   ``dx_{t+1} = A_t dx_t + sum_j B_t^j du_t^j``;
+2. quadratise each player's cost (Hessian/gradient w.r.t. ``[x, u_i]``, vmapped over
+   stages and players): ``Q_t^i, q_t^i`` (state) and ``R_t^{ii}, r_t^{ii}`` (own input).
+   Mixed state-input terms and ``R^{ij}, r^{ij}`` for ``i != j`` are zero (the paper's cost
+   structure; the mixed terms are dropped if a custom cost has them);
+3. regularisation: every ``Q_t^i`` is projected onto the PSD cone (eigenvalues clipped at
+   zero, ``convexify="eig"``, the default; ``"diag"`` makes it diagonally dominant instead,
+   ``"none"`` keeps the exact Hessian), then ``Q_t^i += state_regularization * I`` and
+   ``R_t^{ii} += control_regularization * I``. The collision term makes the exact ``Q^i``
+   indefinite; with it, the local LQ "equilibria" are often saddle points of a player's
+   local problem and the iteration wanders (observed on the paper's scenario). Projection
+   keeps every player's local problem convex, so each LQ solution is a genuine equilibrium
+   of the local game. It does not move open-loop fixed points (they depend on gradients
+   only); it does change feedback ones (``K`` depends on ``Q``), which is the usual price
+   of a regularised feedback iLQGame;
+4. solve the LQ game in deviation coordinates. Feedback: ``du = -K dx - k``. Open loop: the
+   LQ game starts at ``dx_0 = x_0 - x_hat_0 = 0``, so :func:`~planners.lq_game.solve_open_loop`
+   is called with a ZERO initial deviation and its inputs ``du_t = -k_t`` are the whole
+   update; ``K = 0``. With ``dx_0 = 0`` the open-loop equilibrium is linear in the
+   gradients ``(q, r)``, so ``eta * k`` is exactly the equilibrium of the local game with
+   its linear terms scaled by ``eta``: a consistent short step towards it;
+5. forward pass on the nonlinear dynamics from ``x_0``::
+
+       u_t = u_hat_t - K_t (x_t - x_hat_t) - eta k_t,   x_{t+1} = f_t(x_t, u_t).
+
+Step-size control (``step_control="trust_region"``, the default)
+---------------------------------------------------------------
+1. A trust region on the state trajectory, as in the ilqgames reference implementation of
+   Fridovich-Keil et al. (ICRA 2020, https://github.com/HJReachability/ilqgames:
+   ``SolverParams::trust_region_size``, "maximum absolute difference between states ... to
+   satisfy trust region", with the feed-forward terms ``alpha`` backed off geometrically by
+   ``geometric_alpha_scaling`` in ``ILQSolver::ModifyLQStrategies``, and convergence on the
+   max elementwise state difference; iLQGames.jl likewise has ``max_elwise_diff_step``).
+   Here: multiply ``eta`` by ``step_decay`` until ``max_t |x_new_t - x_hat_t|_inf <=
+   trust_radius`` and the rollout is finite; give up after ``max_backtracks`` reductions
+   (status ``LINE_SEARCH_FAILED``). As ``eta -> 0`` the new trajectory tends to the nominal
+   one, so the search terminates for any finite LQ solution.
+2. Overshoot damping (``oscillation_damping=True``): the trust region alone bounds each
+   step but does not make the iteration contract; on the paper's scenario both fixed
+   ``eta = 1`` and the plain trust region run into limit cycles (e.g. period 7). A step
+   whose state change points against a decaying sum of the previous unit steps (memory
+   ``damping_memory``) reveals an overshoot: the next iteration starts at
+   ``eta * step_decay``; otherwise it starts at ``min(initial_step, eta / step_decay)``.
+   Near a stable fixed point this settles on a step that contracts (full steps where the
+   iteration allows them).
+Why no Armijo backtracking on costs: a game has no single merit function that every
+player's Nash update decreases (a player's cost may rightly rise), and the open-loop merit
+``sum_i |dJ^i/du^i|^2`` has no feedback counterpart; both checks above are player-neutral,
+mode-neutral and cost one rollout per trial. ``step_control="none"`` applies a fixed
+``eta = initial_step`` (the paper's plain update), for comparisons.
+
+Convergence: the state change of a full step, ``max_t |x_new_t - x_hat_t|_inf`` scaled by
+``initial_step / eta`` (exact for an accepted full step, first-order otherwise), is at most
+``tolerance``, and the step was not shortened by the trust region (a step forced down by
+the trust region, e.g. against a region where the dynamics are undefined, says nothing
+about the full step). At a fixed point ``k = 0``; for ``mode="open_loop"`` this is exactly the
+first-order open-loop Nash condition of the nonlinear game (regularisation does not move
+it), see :func:`nash_residual`. For ``mode="feedback"`` it is the feedback condition of the
+sequence of (regularised) local LQ games. The soft constraints ``max(z, 0)^2`` of the racing
+costs have discontinuous Hessians, so feedback iterations can chatter where a trajectory
+sits on a constraint boundary; such runs end with ``MAX_ITERATIONS``.
+
+Failures are reported, never returned as NaN: a non-finite LQ solution stops the solve
+with status ``NON_FINITE`` and the last finite iterate; a failed step-size search stops with
+``LINE_SEARCH_FAILED``; the iteration cap gives ``MAX_ITERATIONS``. ``converged`` is True
+only with status ``CONVERGED``.
+
+Everything inside :func:`solve` is one jitted function (``lax.while_loop`` over
+iterations, ``lax.scan`` only for the recursions and rollouts, ``vmap`` over the horizon for
+derivatives), compiled once per shapes, problem functions and :class:`SolverOptions`.
+It can be vmapped over initial states (and over ``params``); :func:`solve_batch` does that.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from planners import lq_game
+
+Array = jax.Array
+
+__all__ = [
+    "CONVERGED",
+    "GameProblem",
+    "LINE_SEARCH_FAILED",
+    "MAX_ITERATIONS",
+    "NON_FINITE",
+    "RUNNING",
+    "SolverOptions",
+    "SolverResult",
+    "nash_residual",
+    "problem_from_race_game",
+    "rollout",
+    "solve",
+    "solve_batch",
+    "status_message",
+    "total_costs",
+    "validate_problem",
+]
+
+# Status codes of a solve (SolverResult.status).
+RUNNING = -1  # internal only: never returned
+CONVERGED = 0
+MAX_ITERATIONS = 1
+NON_FINITE = 2
+LINE_SEARCH_FAILED = 3
+
+_STATUS_MESSAGES = {
+    CONVERGED: "converged",
+    MAX_ITERATIONS: "iteration cap reached before convergence",
+    NON_FINITE: "non-finite LQ solution or trajectory; stopped at the last finite iterate",
+    LINE_SEARCH_FAILED: "step-size control found no step inside the trust region",
+}
+
+
+def status_message(status) -> str:
+    """Human-readable meaning of a ``SolverResult.status`` code."""
+    return _STATUS_MESSAGES.get(int(status), f"unknown status {int(status)}")
+
+
+# --------------------------------------------------------------------------------------
+# The game protocol.
+# --------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class GameProblem:
+    """An N-player discrete-time game for :func:`solve` (a pytree: ``params`` is its data).
+
+    Attributes:
+        dynamics: ``(params, t, x (n,), u (N, m)) -> (n,)``.
+        stage_cost: ``(params, t, i, x (n,), u_i (m,)) -> ()``, player ``i``'s stage cost.
+        terminal_cost: ``(params, i, x (n,)) -> ()``.
+        num_players, state_dim, input_dim, horizon: ``N, n, m, T`` (static ints).
+        params: pytree of arrays passed to the functions (traced inside the solver).
+
+    The functions are compared by identity for jit caching: define them once (module
+    level), not as fresh lambdas per call, to avoid recompiling.
+    """
+
+    dynamics: Callable[..., Array]
+    stage_cost: Callable[..., Array]
+    terminal_cost: Callable[..., Array]
+    num_players: int
+    state_dim: int
+    input_dim: int
+    horizon: int
+    params: Any = None
+
+    def replace(self, **changes) -> "GameProblem":
+        return dataclasses.replace(self, **changes)
+
+
+jax.tree_util.register_dataclass(
+    GameProblem,
+    data_fields=["params"],
+    meta_fields=[
+        "dynamics",
+        "stage_cost",
+        "terminal_cost",
+        "num_players",
+        "state_dim",
+        "input_dim",
+        "horizon",
+    ],
+)
+
+
+def _race_dynamics(game, t, x, u):
+    del t
+    return game.step(x.reshape(u.shape[0], -1), u).reshape(-1)
+
+
+def _race_stage_cost(game, t, i, x, u_i):
+    del t
+    return game.stage_cost(i, x.reshape(game.num_players, -1), u_i)
+
+
+def _race_terminal_cost(game, i, x):
+    return game.terminal_cost(i, x.reshape(game.num_players, -1))
+
+
+def problem_from_race_game(game) -> GameProblem:
+    """Adapt a :class:`racing_env.RaceGame`: flat joint state ``x (6 N,)``, inputs ``(N, 2)``.
+
+    The game is the problem's ``params``, so solving games that differ only in weights,
+    vehicles or track arrays (same shapes) re-uses the compiled solver.
+    """
+    return GameProblem(
+        dynamics=_race_dynamics,
+        stage_cost=_race_stage_cost,
+        terminal_cost=_race_terminal_cost,
+        num_players=game.num_players,
+        state_dim=game.num_players * game.state_dim,
+        input_dim=game.input_dim,
+        horizon=game.horizon,
+        params=game,
+    )
+
+
+def _is_race_game(obj) -> bool:
+    from racing_env.game import RaceGame  # local import: the solver does not need racing_env
+
+    return isinstance(obj, RaceGame)
+
+
+def _as_problem(problem_or_game) -> tuple[GameProblem, bool]:
+    if isinstance(problem_or_game, GameProblem):
+        return problem_or_game, False
+    if _is_race_game(problem_or_game):
+        return problem_from_race_game(problem_or_game), True
+    raise TypeError(
+        f"expected a GameProblem or a racing_env.RaceGame, got {type(problem_or_game).__name__}"
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Options and result.
+# --------------------------------------------------------------------------------------
+
+_MODES = ("feedback", "open_loop")
+_STEP_CONTROLS = ("trust_region", "none")
+_CONVEXIFY = ("eig", "diag", "none")
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverOptions:
+    """Configuration of :func:`solve` (static: a new configuration compiles a new solver).
+
+    Attributes:
+        mode: ``"feedback"`` or ``"open_loop"`` Nash equilibrium of the local LQ games.
+        max_iterations: iteration cap (>= 1).
+        tolerance: convergence when a full step changes the state trajectory by at most this
+            much (max-norm over stages and state entries, state units).
+        step_control: ``"trust_region"`` (shrink ``eta`` until the step stays inside
+            ``trust_radius``, plus overshoot damping) or ``"none"`` (fixed
+            ``eta = initial_step``).
+        trust_radius: largest accepted max-norm change of the state trajectory per iteration.
+        initial_step: the largest ``eta``, tried first, in ``(0, 1]``.
+        step_decay: factor in ``(0, 1)`` by which ``eta`` shrinks per trial.
+        max_backtracks: trials after the first before the search gives up.
+        oscillation_damping: start the next iteration at a shorter ``eta`` after a step that
+            reverses the recent direction of travel (trust-region mode only).
+        damping_memory: decay in ``[0, 1)`` of the running sum of past step directions.
+        state_regularization: ``lambda_x >= 0`` added to the diagonal of every ``Q_t^i``.
+        convexify: ``"eig"`` (project every ``Q_t^i`` onto the PSD cone), ``"diag"`` (make it
+            diagonally dominant: cheaper, more conservative) or ``"none"``.
+        control_regularization: ``lambda_u >= 0`` added to the diagonal of every ``R_t^{ii}``.
+    """
+
+    mode: str = "feedback"
+    max_iterations: int = 100
+    tolerance: float = 1e-6
+    step_control: str = "trust_region"
+    trust_radius: float = 2.0
+    initial_step: float = 1.0
+    step_decay: float = 0.5
+    max_backtracks: int = 25
+    oscillation_damping: bool = True
+    damping_memory: float = 0.8
+    state_regularization: float = 0.0
+    convexify: str = "eig"
+    control_regularization: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in _MODES:
+            raise ValueError(f"mode must be one of {_MODES}, got {self.mode!r}")
+        if self.step_control not in _STEP_CONTROLS:
+            raise ValueError(
+                f"step_control must be one of {_STEP_CONTROLS}, got {self.step_control!r}"
+            )
+        if self.convexify not in _CONVEXIFY:
+            raise ValueError(f"convexify must be one of {_CONVEXIFY}, got {self.convexify!r}")
+        if int(self.max_iterations) < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations!r}")
+        if int(self.max_backtracks) < 0:
+            raise ValueError(f"max_backtracks must be >= 0, got {self.max_backtracks!r}")
+        checks = {
+            "tolerance": self.tolerance >= 0,
+            "trust_radius": self.trust_radius > 0,
+            "initial_step": 0 < self.initial_step <= 1,
+            "step_decay": 0 < self.step_decay < 1,
+            "damping_memory": 0 <= self.damping_memory < 1,
+            "state_regularization": self.state_regularization >= 0,
+            "control_regularization": self.control_regularization >= 0,
+        }
+        allowed = {
+            "tolerance": ">= 0 (0: run all max_iterations unless a step is exactly zero)",
+            "trust_radius": "> 0",
+            "initial_step": "in (0, 1]",
+            "step_decay": "in (0, 1)",
+            "damping_memory": "in [0, 1)",
+            "state_regularization": ">= 0",
+            "control_regularization": ">= 0",
+        }
+        for name, ok in checks.items():
+            value = getattr(self, name)
+            if not (np.isfinite(value) and ok):
+                raise ValueError(f"SolverOptions.{name} must be {allowed[name]}, got {value!r}")
+
+
+class SolverResult(NamedTuple):
+    """Outcome of :func:`solve` (a pytree; batched along a leading axis by :func:`solve_batch`).
+
+    Attributes:
+        xs: state trajectory ``(T+1, n)``, or ``(T+1, N, 6)`` when a RaceGame was passed.
+        us: inputs ``(T, N, m)``.
+        converged: bool, status == CONVERGED.
+        status: int code, see :func:`status_message`.
+        iterations: number of accepted steps (each: one LQ solve and one forward pass with
+            step-size search).
+        costs: ``(N,)`` total cost of every player along ``(xs, us)``.
+        eta: step size of the last accepted step.
+        K: ``(T, N, m, n)`` feedback gains of the last LQ solve (zeros for open loop).
+        k: ``(T, N, m)`` feed-forward terms of the last LQ solve (around the previous
+            nominal; at convergence they vanish).
+        history: ``(max_iterations,)`` the convergence measure per iteration: state change of
+            the step scaled to a full step (NaN after the end).
+        step_history: ``(max_iterations,)`` accepted ``eta`` per iteration.
+        k_history: ``(max_iterations,)`` ``max |k|`` of every LQ solve.
+    """
+
+    xs: Array
+    us: Array
+    converged: Array
+    status: Array
+    iterations: Array
+    costs: Array
+    eta: Array
+    K: Array
+    k: Array
+    history: Array
+    step_history: Array
+    k_history: Array
+
+
+# --------------------------------------------------------------------------------------
+# Building blocks (pure JAX).
+# --------------------------------------------------------------------------------------
+
+
+def rollout(problem: GameProblem, x0: Array, us: Array) -> Array:
+    """Simulate ``us (T, N, m)`` from ``x0 (n,)``: ``xs (T+1, n)``."""
+    params = problem.params
+
+    def body(x, inp):
+        t, u = inp
+        x_next = problem.dynamics(params, t, x, u)
+        return x_next, x_next
+
+    ts = jnp.arange(us.shape[0])
+    _, xs = jax.lax.scan(body, x0, (ts, us))
+    return jnp.concatenate([x0[None], xs], axis=0)
+
+
+def total_costs(problem: GameProblem, xs: Array, us: Array) -> Array:
+    """Total cost of every player along ``xs (T+1, n)``, ``us (T, N, m)``: ``(N,)``."""
+    params = problem.params
+    players = jnp.arange(problem.num_players)
+    ts = jnp.arange(us.shape[0])
+
+    def stage(t, x, u):
+        return jax.vmap(lambda i, u_i: problem.stage_cost(params, t, i, x, u_i))(players, u)
+
+    running = jax.vmap(stage)(ts, xs[:-1], us).sum(axis=0)
+    terminal = jax.vmap(lambda i: problem.terminal_cost(params, i, xs[-1]))(players)
+    return running + terminal
+
+
+def _linearize(problem: GameProblem, xs: Array, us: Array) -> tuple[Array, Array]:
+    """``A (T, n, n)`` and ``B (T, N, n, m)`` along the nominal trajectory."""
+    params = problem.params
+    jac = jax.jacfwd(lambda t, x, u: problem.dynamics(params, t, x, u), argnums=(1, 2))
+    A, B = jax.vmap(jac)(jnp.arange(us.shape[0]), xs[:-1], us)  # B (T, n, N, m)
+    return A, jnp.transpose(B, (0, 2, 1, 3))
+
+
+def _hess_grad(fun: Callable[[Array], Array], z: Array) -> tuple[Array, Array]:
+    """Hessian and gradient of a scalar function in one forward-over-reverse pass."""
+    grad = jax.grad(fun)
+
+    def grad_twice(z_):
+        g = grad(z_)
+        return g, g
+
+    return jax.jacfwd(grad_twice, has_aux=True)(z)
+
+
+def _quadratize(problem: GameProblem, xs: Array, us: Array):
+    """Per-player ``Q (T+1, N, n, n)``, ``q (T+1, N, n)``, ``Rii (T, N, m, m)``, ``rii (T, N, m)``."""
+    params = problem.params
+    n = problem.state_dim
+    players = jnp.arange(problem.num_players)
+
+    def stage(t, x, u):
+        def player(i, u_i):
+            fun = lambda z: problem.stage_cost(params, t, i, z[:n], z[n:])
+            H, g = _hess_grad(fun, jnp.concatenate([x, u_i]))
+            return H[:n, :n], g[:n], H[n:, n:], g[n:]
+
+        return jax.vmap(player)(players, u)
+
+    Q, q, Rii, rii = jax.vmap(stage)(jnp.arange(us.shape[0]), xs[:-1], us)
+    QT, qT = jax.vmap(
+        lambda i: _hess_grad(lambda x: problem.terminal_cost(params, i, x), xs[-1])
+    )(players)
+    Q = jnp.concatenate([Q, QT[None]], axis=0)
+    q = jnp.concatenate([q, qT[None]], axis=0)
+    return Q, q, Rii, rii
+
+
+def _own_to_full(Rii: Array, rii: Array) -> tuple[Array, Array]:
+    """Embed own blocks ``(T, N, m, m)``, ``(T, N, m)`` into ``R (T, N, N, m, m)``, ``r``."""
+    T, N, m = rii.shape
+    idx = jnp.arange(N)
+    R = jnp.zeros((T, N, N, m, m), Rii.dtype).at[:, idx, idx].set(Rii)
+    r = jnp.zeros((T, N, N, m), rii.dtype).at[:, idx, idx].set(rii)
+    return R, r
+
+
+def _regularize(Q: Array, Rii: Array, options: SolverOptions) -> tuple[Array, Array]:
+    Q = 0.5 * (Q + jnp.swapaxes(Q, -1, -2))
+    if options.convexify == "eig":
+        w, V = jnp.linalg.eigh(Q)
+        Q = jnp.einsum("...ab,...b,...cb->...ac", V, jnp.maximum(w, 0.0), V)
+    elif options.convexify == "diag":
+        diag = jnp.diagonal(Q, axis1=-2, axis2=-1)
+        off = jnp.sum(jnp.abs(Q), axis=-1) - jnp.abs(diag)
+        Q = Q + jnp.eye(Q.shape[-1], dtype=Q.dtype) * jnp.maximum(off - diag, 0.0)[..., None]
+    if options.state_regularization > 0:
+        Q = Q + options.state_regularization * jnp.eye(Q.shape[-1], dtype=Q.dtype)
+    if options.control_regularization > 0:
+        Rii = Rii + options.control_regularization * jnp.eye(Rii.shape[-1], dtype=Rii.dtype)
+    return Q, Rii
+
+
+def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions):
+    """Linearise, quadratise and solve the local LQ game: ``K (T, N, m, n)``, ``k (T, N, m)``."""
+    A, B = _linearize(problem, xs, us)
+    Q, q, Rii, rii = _quadratize(problem, xs, us)
+    Q, Rii = _regularize(Q, Rii, options)
+    R, r = _own_to_full(Rii, rii)
+    if options.mode == "feedback":
+        K, k = lq_game.solve_feedback(A, B, Q, q, R, r)
+    else:
+        # Deviation coordinates: the local game starts at dx_0 = 0, not at x_0.
+        k, _ = lq_game.solve_open_loop(A, B, Q, q, R, r, jnp.zeros_like(xs[0]))
+        K = jnp.zeros(k.shape + (xs.shape[-1],), k.dtype)
+    return K, k
+
+
+def _forward(problem: GameProblem, xs_hat: Array, us_hat: Array, K: Array, k: Array, eta):
+    """Nonlinear forward pass ``u = u_hat - K (x - x_hat) - eta k`` from ``xs_hat[0]``."""
+    params = problem.params
+
+    def body(x, inp):
+        t, x_hat, u_hat, K_t, k_t = inp
+        u = u_hat - K_t @ (x - x_hat) - eta * k_t
+        return problem.dynamics(params, t, x, u), (x, u)
+
+    ts = jnp.arange(us_hat.shape[0])
+    xT, (xs, us) = jax.lax.scan(body, xs_hat[0], (ts, xs_hat[:-1], us_hat, K, k))
+    return jnp.concatenate([xs, xT[None]], axis=0), us
+
+
+def _deviation(xs_new: Array, xs_hat: Array) -> Array:
+    """Max-norm state change; ``inf`` for a non-finite trajectory."""
+    d = jnp.max(jnp.abs(xs_new - xs_hat))
+    return jnp.where(jnp.isfinite(d), d, jnp.inf)
+
+
+def _step(problem, xs_hat, us_hat, K, k, eta0, options: SolverOptions):
+    """Trust-region step-size search from ``eta0``. Returns ``(xs, us, eta, deviation, ok)``."""
+    eta0 = jnp.asarray(eta0, xs_hat.dtype)
+    xs, us = _forward(problem, xs_hat, us_hat, K, k, eta0)
+    dev = _deviation(xs, xs_hat)
+    if options.step_control == "none":
+        return xs, us, eta0, dev, jnp.isfinite(dev)
+
+    radius = options.trust_radius
+
+    def cond(c):
+        _, _, _, dev, trial = c
+        return (dev > radius) & (trial < options.max_backtracks)
+
+    def body(c):
+        _, _, eta, _, trial = c
+        eta = eta * options.step_decay
+        xs, us = _forward(problem, xs_hat, us_hat, K, k, eta)
+        return xs, us, eta, _deviation(xs, xs_hat), trial + 1
+
+    xs, us, eta, dev, _ = jax.lax.while_loop(cond, body, (xs, us, eta0, dev, 0))
+    return xs, us, eta, dev, dev <= radius
+
+
+class _Carry(NamedTuple):
+    it: Array
+    xs: Array
+    us: Array
+    K: Array
+    k: Array
+    eta: Array
+    cap: Array  # eta tried first in the next iteration
+    last_step: Array  # xs change of the last accepted step, for oscillation detection
+    status: Array
+    history: Array
+    step_history: Array
+    k_history: Array
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def _solve_jit(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions):
+    dtype = jnp.result_type(x0.dtype, us0.dtype, float)
+    x0 = x0.astype(dtype)
+    us0 = us0.astype(dtype)
+    T, N, m = us0.shape
+    n = x0.shape[0]
+    xs0 = rollout(problem, x0, us0)
+    nan_hist = jnp.full((options.max_iterations,), jnp.nan, dtype)
+    damping = options.step_control == "trust_region" and options.oscillation_damping
+    init = _Carry(
+        it=jnp.asarray(0),
+        xs=xs0,
+        us=us0,
+        K=jnp.zeros((T, N, m, n), dtype),
+        k=jnp.zeros((T, N, m), dtype),
+        eta=jnp.asarray(0.0, dtype),
+        cap=jnp.asarray(options.initial_step, dtype),
+        last_step=jnp.zeros_like(xs0),
+        status=jnp.where(jnp.all(jnp.isfinite(xs0)), RUNNING, NON_FINITE),
+        history=nan_hist,
+        step_history=nan_hist,
+        k_history=nan_hist,
+    )
+
+    def cond(c: _Carry):
+        return c.status == RUNNING
+
+    def body(c: _Carry):
+        K, k = _lq_step(problem, c.xs, c.us, options)
+        lq_ok = jnp.all(jnp.isfinite(K)) & jnp.all(jnp.isfinite(k))
+        xs, us, eta, dev, step_ok = _step(problem, c.xs, c.us, K, k, c.cap, options)
+        ok = lq_ok & step_ok
+        it = c.it + ok.astype(c.it.dtype)
+        # Convergence measure: the state change of a full step (exact for eta = 1; the
+        # change is linear in eta to first order).
+        measure = dev * (options.initial_step / eta)
+        step = xs - c.xs
+        if damping:
+            # Overshoot damping: a step that reverses the recent direction of travel
+            # (negative inner product with a decaying sum of the previous unit steps)
+            # means the last step was too long for a contraction: halve the next one.
+            # Otherwise let eta grow back towards initial_step.
+            reversed_ = jnp.vdot(step, c.last_step) < 0
+            unit = step / jnp.maximum(jnp.sqrt(jnp.vdot(step, step)), 1e-300)
+            step = options.damping_memory * c.last_step + unit
+            cap = jnp.where(
+                reversed_,
+                eta * options.step_decay,
+                jnp.minimum(options.initial_step, eta / options.step_decay),
+            )
+        else:
+            cap = jnp.asarray(options.initial_step, dtype)
+        status = jnp.where(
+            ~lq_ok,
+            NON_FINITE,
+            jnp.where(
+                ~step_ok,
+                jnp.where(jnp.isfinite(dev), LINE_SEARCH_FAILED, NON_FINITE),
+                jnp.where(
+                    (measure <= options.tolerance) & (eta >= c.cap),
+                    CONVERGED,
+                    jnp.where(it >= options.max_iterations, MAX_ITERATIONS, RUNNING),
+                ),
+            ),
+        )
+        keep = lambda new, old: jnp.where(ok, new, old)
+        return _Carry(
+            it=it,
+            xs=keep(xs, c.xs),
+            us=keep(us, c.us),
+            K=keep(K, c.K),
+            k=keep(k, c.k),
+            eta=keep(eta, c.eta),
+            cap=keep(cap, c.cap),
+            last_step=keep(step, c.last_step),
+            status=status,
+            history=c.history.at[c.it].set(jnp.where(ok, measure, jnp.nan)),
+            step_history=c.step_history.at[c.it].set(jnp.where(ok, eta, jnp.nan)),
+            k_history=c.k_history.at[c.it].set(jnp.max(jnp.abs(k))),
+        )
+
+    c = jax.lax.while_loop(cond, body, init)
+    costs = total_costs(problem, c.xs, c.us)
+    return SolverResult(
+        xs=c.xs,
+        us=c.us,
+        converged=c.status == CONVERGED,
+        status=c.status,
+        iterations=c.it,
+        costs=costs,
+        eta=c.eta,
+        K=c.K,
+        k=c.k,
+        history=c.history,
+        step_history=c.step_history,
+        k_history=c.k_history,
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Validation (outside jit).
+# --------------------------------------------------------------------------------------
+
+
+@jax.jit
+def _first_own_hessians(problem: GameProblem, x0: Array, us0: Array) -> Array:
+    xs = rollout(problem, x0, us0)
+    return _quadratize(problem, xs, us0)[2]
+
+
+def _is_concrete(*trees) -> bool:
+    leaves = jax.tree_util.tree_leaves(trees)
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
+
+
+def validate_problem(problem_or_game, x0=None, us0=None, control_regularization: float = 0.0):
+    """Refuse games whose own-input Hessians ``R_t^{ii}`` are not positive definite.
+
+    For a RaceGame ``R^{ii} = 2 diag(r_jx, r_jy)`` of player i's jerk weights, checked
+    directly. For a GameProblem the first quadratisation (along the rollout of ``us0``,
+    zeros by default, from ``x0``) is checked at every stage. ``control_regularization``
+    is added first, as the solver does.
+
+    Raises:
+        ValueError: naming the player (and stage) and the smallest eigenvalue.
+    """
+    if _is_race_game(problem_or_game):
+        game = problem_or_game
+        if not _is_concrete(game.weights):
+            return
+        w = 2.0 * np.asarray(game.weights.jerk_weights, dtype=float) + control_regularization
+        for i in range(w.shape[0]):
+            if not np.all(w[i] > 0):
+                raise ValueError(
+                    f"player {i}'s input weight R^ii = 2 diag(r_jx, r_jy) = diag{tuple(w[i])} "
+                    "is not positive definite: the LQ game (and the Nash equilibrium) is not "
+                    "defined; use jerk weights r_jx, r_jy > 0"
+                )
+        return
+    problem, _ = _as_problem(problem_or_game)
+    if x0 is None:
+        raise ValueError("validate_problem needs x0 for a GameProblem")
+    x0 = jnp.asarray(x0)
+    if us0 is None:
+        us0 = jnp.zeros((problem.horizon, problem.num_players, problem.input_dim), x0.dtype)
+    if not _is_concrete(problem, x0, us0):
+        return
+    Rii = np.asarray(_first_own_hessians(problem, x0, jnp.asarray(us0)))
+    Rii = 0.5 * (Rii + np.swapaxes(Rii, -1, -2))
+    Rii = Rii + control_regularization * np.eye(Rii.shape[-1])
+    if not np.all(np.isfinite(Rii)):
+        raise ValueError("the own-input Hessians R^ii are not finite along the initial rollout")
+    eig = np.linalg.eigvalsh(Rii)  # (T, N, m)
+    lam = eig.min(axis=-1)
+    scale = np.maximum(1.0, np.abs(Rii).max(axis=(-1, -2)))
+    bad = ~(lam > 1e-12 * scale)
+    if np.any(bad):
+        t, i = map(int, np.argwhere(bad)[0])
+        raise ValueError(
+            f"R^ii of player {i} (Hessian of its stage cost w.r.t. its own input) is not "
+            f"positive definite at stage {t}: min eigenvalue {lam[t, i]:.3e}. The LQ game "
+            "needs R^ii > 0 at every stage (make the input cost strictly convex or raise "
+            "control_regularization)"
+        )
+
+
+# --------------------------------------------------------------------------------------
+# Public API.
+# --------------------------------------------------------------------------------------
+
+
+def _make_options(options: SolverOptions | None, overrides: dict) -> SolverOptions:
+    if options is None:
+        options = SolverOptions()
+    if overrides:
+        unknown = set(overrides) - {f.name for f in dataclasses.fields(SolverOptions)}
+        if unknown:
+            raise TypeError(f"unknown solver options: {sorted(unknown)}")
+        options = dataclasses.replace(options, **overrides)
+    return options
+
+
+def _initial_inputs(problem: GameProblem, init, dtype) -> Array:
+    shape = (problem.horizon, problem.num_players, problem.input_dim)
+    if init is None:
+        return jnp.zeros(shape, dtype)
+    us = getattr(init, "us", init)  # a SolverResult / ILQRResult or an array
+    us = jnp.asarray(us)
+    if us.shape != shape:
+        raise ValueError(f"initial inputs must have shape (T, N, m) = {shape}, got {us.shape}")
+    return us
+
+
+def solve(
+    problem_or_game,
+    x0,
+    init=None,
+    *,
+    options: SolverOptions | None = None,
+    validate: bool = True,
+    **overrides,
+) -> SolverResult:
+    """Solve a game by iterative LQ games (feedback or open-loop Nash), or iLQR for ``N = 1``.
+
+    Args:
+        problem_or_game: a :class:`GameProblem` or a :class:`racing_env.RaceGame`.
+        x0: initial state, ``(n,)`` (GameProblem) or ``(N, 6)`` (RaceGame).
+        init: initial inputs: ``None`` (zeros), an array ``(T, N, m)`` (warm start), or a
+            previous result (its ``us``, e.g. open loop started from a feedback solution).
+        options: a :class:`SolverOptions`; keyword ``overrides`` replace its fields
+            (e.g. ``mode="open_loop"``, ``max_iterations=50``).
+        validate: refuse non-PD ``R^{ii}`` with a ValueError (skipped when traced).
+
+    Returns:
+        :class:`SolverResult`. For a RaceGame, ``xs`` has shape ``(T+1, N, 6)``.
+
+    Works under ``jax.vmap``/``jax.jit`` (validation then only happens on concrete inputs).
+    """
+    options = _make_options(options, overrides)
+    problem, is_game = _as_problem(problem_or_game)
+    x0 = jnp.asarray(x0)
+    if not jnp.issubdtype(x0.dtype, jnp.floating):
+        x0 = x0.astype(jnp.result_type(float))
+    x0_flat = x0.reshape(-1)
+    if x0_flat.shape != (problem.state_dim,):
+        raise ValueError(
+            f"x0 must have {problem.state_dim} entries"
+            + (f" (shape ({problem.num_players}, 6))" if is_game else "")
+            + f", got shape {x0.shape}"
+        )
+    us0 = _initial_inputs(problem, init, x0.dtype)
+    if validate:
+        if is_game:
+            validate_problem(problem_or_game, control_regularization=options.control_regularization)
+        else:
+            validate_problem(problem, x0_flat, us0, options.control_regularization)
+    result = _solve_jit(problem, x0_flat, us0, options)
+    if is_game:
+        result = result._replace(xs=result.xs.reshape(result.xs.shape[0], *x0.shape))
+    return result
+
+
+def solve_batch(
+    problem_or_game,
+    x0s,
+    init=None,
+    *,
+    params_axes=None,
+    options: SolverOptions | None = None,
+    validate: bool = True,
+    **overrides,
+) -> SolverResult:
+    """:func:`solve` vmapped over a batch of initial states ``x0s (B, ...)``.
+
+    ``init``: ``None``, inputs shared by the batch ``(T, N, m)``, or batched ``(B, T, N, m)``
+    (or a batched result). ``params_axes``: vmap axes of the problem's ``params`` (a pytree
+    prefix, e.g. a RaceGame whose ``weights`` leaves are batched: build the game with
+    stacked weights and pass ``params_axes=game.replace(track=None, vehicles=None,
+    weights=0)``); ``None`` shares the params. The result has a leading batch axis.
+    """
+    options = _make_options(options, overrides)
+    problem, is_game = _as_problem(problem_or_game)
+    x0s = jnp.asarray(x0s)
+    if not jnp.issubdtype(x0s.dtype, jnp.floating):
+        x0s = x0s.astype(jnp.result_type(float))
+    shape = (problem.horizon, problem.num_players, problem.input_dim)
+    us0 = None if init is None else jnp.asarray(getattr(init, "us", init))
+    us_axis = None if us0 is None or us0.shape == shape else 0
+    if validate and is_game and params_axes is None:
+        validate_problem(problem_or_game, control_regularization=options.control_regularization)
+    elif validate and params_axes is None:
+        first = None if us0 is None else (us0 if us_axis is None else us0[0])
+        validate_problem(problem, x0s[0].reshape(-1), first, options.control_regularization)
+
+    def one(params, x0, us):
+        p = problem.replace(params=params)
+        return solve(p, x0.reshape(-1), us, options=options, validate=False)
+
+    result = jax.vmap(one, in_axes=(params_axes, 0, us_axis))(problem.params, x0s, us0)
+    if is_game:
+        result = result._replace(xs=result.xs.reshape(result.xs.shape[:2] + x0s.shape[1:]))
+    return result
+
+
+@jax.jit
+def _nash_residual_problem(problem: GameProblem, x0: Array, us: Array) -> Array:
+    def J(U):
+        return total_costs(problem, rollout(problem, x0, U), U)
+
+    return _own_gradient_norms(jax.jacrev(J)(us))
+
+
+@jax.jit
+def _nash_residual_game(game, x0: Array, us: Array) -> Array:
+    def J(U):
+        return game.costs(game.rollout(x0, U), U)
+
+    return _own_gradient_norms(jax.jacrev(J)(us))
+
+
+def _own_gradient_norms(G: Array) -> Array:
+    """``G (N, T, N, m)`` = dJ^i/du^j -> ``(N,)`` norms of dJ^i/du^i."""
+    idx = jnp.arange(G.shape[0])
+    own = G[idx, :, idx, :]  # (N, T, m)
+    return jnp.sqrt(jnp.sum(own**2, axis=(1, 2)))
+
+
+def nash_residual(problem_or_game, x0, us) -> Array:
+    """First-order open-loop Nash residual: ``|| dJ^i / du^i ||_2`` for every player, ``(N,)``.
+
+    ``J^i(u)`` is player i's total cost of the trajectory simulated from ``x0`` with the
+    joint inputs ``us (T, N, m)``; the gradient w.r.t. its own input sequence is taken with
+    ``jax.grad`` (reverse mode) through the rollout. For a RaceGame this goes through
+    ``RaceGame.rollout`` and ``RaceGame.costs`` (``x0 (N, 6)``). It vanishes at an open-loop
+    Nash equilibrium (and at its iLQ fixed point); a feedback equilibrium generally does not
+    satisfy it when the players interact.
+    """
+    us = jnp.asarray(getattr(us, "us", us))
+    if _is_race_game(problem_or_game):
+        return _nash_residual_game(problem_or_game, jnp.asarray(x0, us.dtype), us)
+    problem, _ = _as_problem(problem_or_game)
+    return _nash_residual_problem(problem, jnp.asarray(x0, us.dtype).reshape(-1), us)

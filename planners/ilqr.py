@@ -1,0 +1,176 @@
+"""Sequential baseline of the paper: iLQR against constant-velocity opponent predictions.
+
+The ego car (player ``ego`` of a :class:`racing_env.RaceGame`) predicts every opponent
+``j`` from its current state at constant speed and constant lateral offset::
+
+    s_j(t) = s_j0 + V_j0 * t * dt,   V_j = V_j0,   n_j = n_j0,   chi_j = ax_j = ay_j = 0,
+
+and then solves the single-player problem whose stage cost is the game's stage cost of the
+ego evaluated at the joint state ``[ego state; predicted opponents at stage t]`` (collision,
+track, acceleration limits, jerk) and whose terminal cost is the ego's terminal cost (the
+opponents' progress enters as a constant). It is :func:`planners.ilq.solve` with ``N = 1``
+and a time-varying problem (the prediction is part of the problem's ``params``, so new
+start states or weights re-use the compiled solver).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from planners import ilq
+from racing_env.dynamics import STATE_DIM, rk4_step
+
+Array = jax.Array
+
+__all__ = ["ILQRResult", "ego_problem", "predict_constant_velocity", "solve_ilqr"]
+
+
+class ILQRResult(NamedTuple):
+    """Outcome of :func:`solve_ilqr` (a pytree).
+
+    Attributes:
+        xs: ``(T+1, N, 6)`` joint trajectory: the ego's plan in row ``ego``, the opponents'
+            predictions in the other rows.
+        us: ``(T, N, 2)`` joint inputs: the ego's planned jerks in row ``ego``, zeros for the
+            opponents (their predicted motion has zero jerk).
+        predicted: ``(T+1, N, 6)`` the constant-velocity prediction of every car (the
+            opponents' rows are what the ego planned against).
+        ego: index of the ego car.
+        cost: the ego's total cost of the plan against the prediction.
+        converged, status, iterations: as in :class:`planners.ilq.SolverResult`.
+        plan: the single-player :class:`planners.ilq.SolverResult` (``xs (T+1, 6)``,
+            ``us (T, 1, 2)``, ``K (T, 1, 2, 6)``, ``k``, histories).
+    """
+
+    xs: Array
+    us: Array
+    predicted: Array
+    ego: Array
+    cost: Array
+    converged: Array
+    status: Array
+    iterations: Array
+    plan: ilq.SolverResult
+
+
+def predict_constant_velocity(game, x0) -> Array:
+    """Constant-speed, constant-offset prediction of all cars: ``(T+1, N, 6)``.
+
+    ``s(t) = s_0 + V_0 t dt``, ``V = V_0``, ``n = n_0``, ``chi = ax = ay = 0``.
+    """
+    x0 = jnp.asarray(x0)
+    if not jnp.issubdtype(x0.dtype, jnp.floating):
+        x0 = x0.astype(jnp.result_type(float))
+    steps = game.horizon + 1
+    t = jnp.arange(steps, dtype=x0.dtype)[:, None] * game.dt  # (T+1, 1)
+    shape = (steps, x0.shape[0])
+    pred = jnp.zeros((steps,) + x0.shape, x0.dtype)
+    pred = pred.at[:, :, 0].set(x0[:, 0] + x0[:, 1] * t)
+    pred = pred.at[:, :, 1].set(jnp.broadcast_to(x0[:, 1], shape))
+    pred = pred.at[:, :, 2].set(jnp.broadcast_to(x0[:, 2], shape))
+    return pred
+
+
+class _EgoParams(NamedTuple):
+    game: object  # RaceGame
+    predicted: Array  # (T+1, N, 6)
+    ego: Array  # int scalar
+
+
+def _ego_dynamics(params: _EgoParams, t, x, u):
+    del t
+    return rk4_step(x, u[0], params.game.dt, params.game.track.kappa_at)
+
+
+def _ego_joint(params: _EgoParams, t, x):
+    return params.predicted[t].at[params.ego].set(x)
+
+
+def _ego_stage_cost(params: _EgoParams, t, i, x, u_i):
+    del i  # the only player
+    return params.game.stage_cost(params.ego, _ego_joint(params, t, x), u_i)
+
+
+def _ego_terminal_cost(params: _EgoParams, i, x):
+    del i
+    joint = _ego_joint(params, params.predicted.shape[0] - 1, x)
+    return params.game.terminal_cost(params.ego, joint)
+
+
+def ego_problem(game, x0, ego: int = 0) -> ilq.GameProblem:
+    """The ego's single-player :class:`planners.ilq.GameProblem` against the prediction."""
+    x0 = jnp.asarray(x0)
+    if x0.shape != (game.num_players, STATE_DIM):
+        raise ValueError(
+            f"x0 must have shape (N, 6) = ({game.num_players}, {STATE_DIM}), got {x0.shape}"
+        )
+    if not isinstance(ego, jax.core.Tracer) and not 0 <= int(ego) < game.num_players:
+        raise ValueError(f"ego must be a car index in [0, {game.num_players}), got {ego!r}")
+    params = _EgoParams(
+        game=game,
+        predicted=predict_constant_velocity(game, x0),
+        ego=jnp.asarray(ego, dtype=jnp.int32),
+    )
+    return ilq.GameProblem(
+        dynamics=_ego_dynamics,
+        stage_cost=_ego_stage_cost,
+        terminal_cost=_ego_terminal_cost,
+        num_players=1,
+        state_dim=STATE_DIM,
+        input_dim=game.input_dim,
+        horizon=game.horizon,
+        params=params,
+    )
+
+
+def solve_ilqr(game, x0, ego: int = 0, U0=None, *, options=None, **overrides) -> ILQRResult:
+    """Plan the ego's inputs by iLQR against constant-velocity opponent predictions.
+
+    Args:
+        game: a :class:`racing_env.RaceGame`.
+        x0: joint start state ``(N, 6)``.
+        ego: index of the planning car.
+        U0: initial ego inputs: ``None`` (zeros), ``(T, 2)``, ``(T, 1, 2)``, joint
+            ``(T, N, 2)`` (the ego's row is used), or a previous result.
+        options, overrides: :class:`planners.ilq.SolverOptions` and field overrides. The
+            ``mode`` is irrelevant for one player (feedback and open loop coincide); the
+            feedback recursion is used.
+
+    Returns:
+        :class:`ILQRResult`.
+    """
+    x0 = jnp.asarray(x0)
+    if not jnp.issubdtype(x0.dtype, jnp.floating):
+        x0 = x0.astype(jnp.result_type(float))
+    problem = ego_problem(game, x0, ego)
+    T = game.horizon
+    if U0 is not None:
+        U0 = jnp.asarray(getattr(U0, "us", U0))
+        if U0.shape == (T, game.num_players, game.input_dim) and game.num_players > 1:
+            U0 = U0[:, ego]
+        U0 = U0.reshape(T, 1, game.input_dim)
+    if options is None:
+        options = ilq.SolverOptions()
+    overrides.setdefault("mode", "feedback")
+    ilq.validate_problem(game, control_regularization=overrides.get(
+        "control_regularization", options.control_regularization))
+    plan = ilq.solve(problem, x0[ego], U0, options=options, validate=False, **overrides)
+    pred = problem.params.predicted
+    xs = pred.at[:, ego].set(plan.xs)
+    us = jnp.zeros((T, game.num_players, game.input_dim), plan.us.dtype).at[:, ego].set(
+        plan.us[:, 0]
+    )
+    return ILQRResult(
+        xs=xs,
+        us=us,
+        predicted=pred,
+        ego=problem.params.ego,
+        cost=plan.costs[0],
+        converged=plan.converged,
+        status=plan.status,
+        iterations=plan.iterations,
+        plan=plan,
+    )

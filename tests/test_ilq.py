@@ -1,0 +1,263 @@
+"""Tests of the iterative LQ game solver (planners.ilq) and the iLQR baseline (planners.ilqr).
+
+The paper's scenario is built here: a 300 m straight, 6 m wide on each side, dt = 0.1 s,
+horizon 50; ego car 0 (v_max 20 m/s) at s = 10 m, V = 20 m/s on the centre line; opponent
+car 1 (v_max 25 m/s) at s = 0, V = 23 m/s, 2 m to the left.
+
+Weights: the default CostWeights have jerk weights r = 0.01, which make the jerk almost
+free compared with the other terms; the problem is then so flat in the lateral directions
+that neither iLQGame variant converges within 100 iterations (see the module docstring of
+planners.ilq). The tests therefore use r_jx = r_jy = 1 (``WEIGHTS``) and r = 0.1 for the
+step-size test, other weights at their defaults.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import racing_env  # noqa: F401  (enables float64)
+from planners import ilq, lq_game
+from planners.ilqr import ego_problem, predict_constant_velocity, solve_ilqr
+from racing_env import CostWeights, RaceGame, VehicleParams
+from racing_env.track import straight
+
+WEIGHTS = CostWeights(r_jx=1.0, r_jy=1.0)
+X0 = np.array(
+    [
+        [10.0, 20.0, 0.0, 0.0, 0.0, 0.0],  # ego: ahead, centre line
+        [0.0, 23.0, 2.0, 0.0, 0.0, 0.0],  # opponent: behind, 2 m to the left, faster
+    ]
+)
+
+
+def paper_game(weights: CostWeights = WEIGHTS) -> RaceGame:
+    track = straight(length=300.0, width_left=6.0, width_right=6.0, ds=1.0)
+    vehicles = [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)]
+    return RaceGame.create(track, vehicles, weights, dt=0.1, horizon=50)
+
+
+@pytest.fixture(scope="module")
+def game() -> RaceGame:
+    return paper_game()
+
+
+@pytest.fixture(scope="module")
+def open_loop(game) -> ilq.SolverResult:
+    return ilq.solve(game, X0, mode="open_loop")
+
+
+@pytest.fixture(scope="module")
+def feedback(game) -> ilq.SolverResult:
+    return ilq.solve(game, X0, mode="feedback")
+
+
+# --------------------------------------------------------------------------------------
+# A tiny LQ game written through the GameProblem protocol.
+# --------------------------------------------------------------------------------------
+
+
+def _lq_dynamics(p, t, x, u):
+    return p["A"][t] @ x + jnp.einsum("jam,jm->a", p["B"][t], u)
+
+
+def _lq_stage_cost(p, t, i, x, u_i):
+    Q, q, R, r = p["Q"][t, i], p["q"][t, i], p["R"][t, i, i], p["r"][t, i, i]
+    return 0.5 * x @ Q @ x + q @ x + 0.5 * u_i @ R @ u_i + r @ u_i
+
+
+def _lq_terminal_cost(p, i, x):
+    T = p["A"].shape[0]
+    return 0.5 * x @ p["Q"][T, i] @ x + p["q"][T, i] @ x
+
+
+def random_lq_game(seed: int, T: int = 6, N: int = 2, n: int = 4, m: int = 2):
+    rng = np.random.default_rng(seed)
+    A = np.eye(n) + 0.2 * rng.standard_normal((T, n, n))
+    B = 0.5 * rng.standard_normal((T, N, n, m))
+    L = rng.standard_normal((T + 1, N, n, n))
+    Q = np.einsum("tiab,ticb->tiac", L, L) / n  # PSD
+    q = rng.standard_normal((T + 1, N, n))
+    R = np.zeros((T, N, N, m, m))
+    r = np.zeros((T, N, N, m))
+    for i in range(N):
+        M = rng.standard_normal((T, m, m))
+        R[:, i, i] = np.einsum("tab,tcb->tac", M, M) + np.eye(m)
+        r[:, i, i] = rng.standard_normal((T, m))
+    params = {k: jnp.asarray(v) for k, v in dict(A=A, B=B, Q=Q, q=q, R=R, r=r).items()}
+    problem = ilq.GameProblem(
+        dynamics=_lq_dynamics,
+        stage_cost=_lq_stage_cost,
+        terminal_cost=_lq_terminal_cost,
+        num_players=N,
+        state_dim=n,
+        input_dim=m,
+        horizon=T,
+        params=params,
+    )
+    x0 = jnp.asarray(rng.standard_normal(n))
+    us0 = jnp.asarray(3.0 * rng.standard_normal((T, N, m)))  # an arbitrary start
+    return problem, params, x0, us0
+
+
+@pytest.mark.parametrize("mode", ["feedback", "open_loop"])
+def test_one_full_step_lands_on_the_lq_solution(mode):
+    problem, p, x0, us0 = random_lq_game(seed=1)
+    args = (p["A"], p["B"], p["Q"], p["q"], p["R"], p["r"])
+    if mode == "feedback":
+        K, k = lq_game.solve_feedback(*args)
+        xs_ref, us_ref = lq_game.lq_rollout_feedback(p["A"], p["B"], K, k, x0)
+    else:
+        k, xs_ref = lq_game.solve_open_loop(*args, x0)
+        us_ref = -k
+    res = ilq.solve(problem, x0, us0, mode=mode, step_control="none", max_iterations=2)
+    assert bool(res.converged) and int(res.iterations) == 2
+    assert float(res.history[0]) > 1e-1  # the first step moved far ...
+    assert float(res.history[1]) < 1e-9  # ... straight onto the equilibrium
+    np.testing.assert_allclose(res.xs, xs_ref, atol=1e-9)
+    np.testing.assert_allclose(res.us, us_ref, atol=1e-9)
+    if mode == "open_loop":  # the LQ open-loop equilibrium is first-order Nash
+        assert np.all(np.asarray(ilq.nash_residual(problem, x0, res.us)) < 1e-9)
+
+
+def test_refuses_non_positive_definite_input_weight():
+    problem, p, x0, _ = random_lq_game(seed=2)
+    R = np.array(p["R"])
+    R[:, 1, 1] = np.diag([1.0, -0.5])  # player 1's own-input Hessian is indefinite
+    bad = problem.replace(params={**p, "R": jnp.asarray(R)})
+    with pytest.raises(ValueError, match=r"player 1 .*not positive definite"):
+        ilq.solve(bad, x0, mode="feedback")
+    with pytest.raises(ValueError, match="not positive definite"):
+        ilq.validate_problem(bad, x0)
+
+
+# --------------------------------------------------------------------------------------
+# Failures are reported, not returned as NaN.
+# --------------------------------------------------------------------------------------
+
+
+def _cliff_dynamics(p, t, x, u):
+    del p, t
+    return x + u[0] + jnp.where(x > 2.0, jnp.nan, 0.0)  # undefined beyond x = 2
+
+
+def _cliff_stage_cost(p, t, i, x, u_i):
+    del p, t, i
+    return 0.5 * jnp.sum(u_i**2) + 0.5 * jnp.sum((x - 10.0) ** 2)
+
+
+def _cliff_terminal_cost(p, i, x):
+    del p, i
+    return 0.5 * jnp.sum((x - 10.0) ** 2)
+
+
+CLIFF = ilq.GameProblem(_cliff_dynamics, _cliff_stage_cost, _cliff_terminal_cost, 1, 1, 1, 5)
+
+
+def test_non_finite_rollout_is_reported_with_the_last_finite_iterate():
+    x0 = jnp.zeros(1)
+    full = ilq.solve(CLIFF, x0, step_control="none")  # the full step jumps off the cliff
+    assert int(full.status) == ilq.NON_FINITE and not bool(full.converged)
+    assert int(full.iterations) == 0
+    assert np.all(np.isfinite(np.asarray(full.xs))) and np.all(np.isfinite(np.asarray(full.us)))
+    guarded = ilq.solve(CLIFF, x0)  # the trust region refuses non-finite rollouts
+    assert np.all(np.isfinite(np.asarray(guarded.xs)))
+    assert float(jnp.max(guarded.xs[:-1])) <= 2.0  # never stepped from beyond the cliff
+    assert not bool(guarded.converged)
+    assert ilq.status_message(full.status).startswith("non-finite")
+
+
+def test_iteration_cap_reports_non_convergence(game):
+    res = ilq.solve(game, X0, mode="feedback", max_iterations=1)
+    assert not bool(res.converged)
+    assert int(res.status) == ilq.MAX_ITERATIONS and int(res.iterations) == 1
+    for leaf in (res.xs, res.us, res.costs, res.K, res.k):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+
+
+# --------------------------------------------------------------------------------------
+# The paper's scenario.
+# --------------------------------------------------------------------------------------
+
+
+def test_open_loop_solution_is_first_order_nash(game, open_loop):
+    assert bool(open_loop.converged), ilq.status_message(open_loop.status)
+    assert np.all(np.isfinite(np.asarray(open_loop.xs)))
+    assert open_loop.xs.shape == (51, 2, 6) and open_loop.us.shape == (50, 2, 2)
+    zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
+    res = np.asarray(ilq.nash_residual(game, X0, open_loop.us))
+    assert np.all(res <= 1e-4 * zero), (res, zero)
+    np.testing.assert_allclose(open_loop.costs, game.costs(open_loop.xs, open_loop.us))
+    np.testing.assert_allclose(open_loop.xs, game.rollout(jnp.asarray(X0), open_loop.us))
+    assert np.all(np.asarray(open_loop.K) == 0.0)
+
+
+def test_feedback_solution_has_vanishing_feedforward_and_is_not_open_loop_nash(
+    game, feedback, open_loop
+):
+    assert bool(feedback.converged), ilq.status_message(feedback.status)
+    it = int(feedback.iterations)
+    k_first = float(feedback.k_history[0])
+    assert float(jnp.max(jnp.abs(feedback.k))) <= 1e-5 * k_first
+    assert float(feedback.k_history[it - 1]) <= 1e-5 * k_first
+    assert np.all(np.isnan(np.asarray(feedback.history[it:])))
+    res_fb = np.asarray(ilq.nash_residual(game, X0, feedback.us))
+    res_ol = np.asarray(ilq.nash_residual(game, X0, open_loop.us))
+    # The players interact: the feedback equilibrium violates the open-loop condition.
+    assert res_fb.max() > 1e-2 and res_fb.max() > 1e3 * res_ol.max(), (res_fb, res_ol)
+    np.testing.assert_allclose(feedback.xs, game.rollout(jnp.asarray(X0), feedback.us))
+
+
+def test_single_car_feedback_and_open_loop_coincide():
+    track = straight(length=300.0, width_left=6.0, width_right=6.0, ds=1.0)
+    game1 = RaceGame.create(track, [VehicleParams(v_max=20.0)], WEIGHTS, dt=0.1, horizon=50)
+    x0 = np.array([[10.0, 15.0, 5.5, 0.0, 0.0, 0.0]])  # slow and over the left boundary
+    fb = ilq.solve(game1, x0, mode="feedback")
+    ol = ilq.solve(game1, x0, mode="open_loop")
+    assert bool(fb.converged) and bool(ol.converged)
+    np.testing.assert_allclose(fb.xs, ol.xs, atol=1e-6)
+    np.testing.assert_allclose(fb.us, ol.us, atol=1e-5)
+    assert float(fb.xs[-1, 0, 1]) > 17.0 and float(fb.xs[-1, 0, 2]) < 5.0  # sped up, back in
+
+
+def test_step_control_converges_where_the_fixed_full_step_cycles():
+    game = paper_game(CostWeights(r_jx=0.1, r_jy=0.1))
+    fixed = ilq.solve(game, X0, mode="feedback", step_control="none")
+    controlled = ilq.solve(game, X0, mode="feedback")
+    assert not bool(fixed.converged) and int(fixed.status) == ilq.MAX_ITERATIONS
+    assert np.nanmin(np.asarray(fixed.history[-20:])) > 1e-2  # still jumping around
+    assert bool(controlled.converged), ilq.status_message(controlled.status)
+    assert float(jnp.nanmin(controlled.step_history)) < 1.0  # the control did intervene
+
+
+def test_ilqr_ego_swerves_right_of_the_predicted_opponent(game):
+    res = solve_ilqr(game, X0, ego=0)
+    assert bool(res.converged), ilq.status_message(res.status)
+    assert res.xs.shape == (51, 2, 6) and res.us.shape == (50, 2, 2)
+    pred = np.asarray(predict_constant_velocity(game, X0))
+    np.testing.assert_allclose(pred[:, 1, 0], 0.0 + 23.0 * 0.1 * np.arange(51))
+    np.testing.assert_allclose(res.xs[:, 1], pred[:, 1])  # opponent = its prediction
+    np.testing.assert_allclose(res.us[:, 1], 0.0)
+    ego_n = np.asarray(res.xs[:, 0, 2])
+    assert ego_n.min() < -1.0 and ego_n.max() <= 1e-6  # to the right, never to the left
+    # The plan is the ego's best response to the prediction: zero gradient of its cost.
+    ego = ego_problem(game, X0, 0)
+    grad = jax.jit(jax.grad(lambda u: ilq.total_costs(ego, ilq.rollout(ego, X0[0], u), u)[0]))
+    assert float(jnp.linalg.norm(grad(res.plan.us))) < 1e-6
+
+
+def test_vmapped_batch_matches_individual_solves(game):
+    x0s = np.stack([X0, X0, X0, X0])
+    x0s[1, 1, 2] = 1.0  # opponent closer to the centre line
+    x0s[2, 1, 1] = 24.0  # faster opponent
+    x0s[3, 0, 0] = 15.0  # larger gap
+    batch = ilq.solve_batch(game, x0s, mode="feedback")
+    assert batch.xs.shape == (4, 51, 2, 6)
+    for b in range(4):
+        single = ilq.solve(game, x0s[b], mode="feedback")
+        assert bool(single.converged) and bool(batch.converged[b])
+        assert int(single.iterations) == int(batch.iterations[b])
+        np.testing.assert_allclose(batch.xs[b], single.xs, atol=1e-10)
+        np.testing.assert_allclose(batch.us[b], single.us, atol=1e-10)
