@@ -4,11 +4,10 @@ The paper's scenario is built here: a 300 m straight, 6 m wide on each side, dt 
 horizon 50; ego car 0 (v_max 20 m/s) at s = 10 m, V = 20 m/s on the centre line; opponent
 car 1 (v_max 25 m/s) at s = 0, V = 23 m/s, 2 m to the left.
 
-Weights: the default CostWeights have jerk weights r = 0.01, which make the jerk almost
-free compared with the other terms; the problem is then so flat in the lateral directions
-that neither iLQGame variant converges within 100 iterations (see the module docstring of
-planners.ilq). The tests therefore use r_jx = r_jy = 1 (``WEIGHTS``) and r = 0.1 for the
-step-size test, other weights at their defaults.
+Weights: ``WEIGHTS`` pins the jerk weights r_jx = r_jy = 1 (today's defaults) so the tests
+do not move if the defaults change: with r = 0.01 the jerk is almost free, the problem is
+so flat laterally that neither iLQGame variant converges within 100 iterations. The
+step-size test uses r = 0.1.
 """
 
 from __future__ import annotations

@@ -1,0 +1,57 @@
+"""The `racing` command line: help, demo outputs, errors, and the paper reproduction (slow)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from experiments.cli import build_parser, main
+
+
+def test_help_lists_the_subcommands(capsys):
+    """`racing --help` explains every subcommand."""
+    with pytest.raises(SystemExit) as exit_info:
+        build_parser().parse_args(["--help"])
+    assert exit_info.value.code == 0
+    text = capsys.readouterr().out
+    for command in ("demo", "paper", "bench"):
+        assert command in text
+
+
+def test_demo_writes_gif_plot_and_result(tmp_path):
+    """`racing demo` races two scripted cars to the finish and writes its three outputs."""
+    assert main(["demo", "--out", str(tmp_path), "--track", "straight"]) == 0
+    for name in ("race.gif", "trajectories.png", "result.json"):
+        assert (tmp_path / name).stat().st_size > 0
+    result = json.loads((tmp_path / "result.json").read_text())
+    positions = sorted(row["position"] for row in result["summary"])
+    assert positions == [1, 2]
+    assert all(row["finished"] for row in result["summary"])
+
+
+def test_bad_track_is_a_clear_error(tmp_path, capsys):
+    """An unknown track name exits with status 2 and names the built-in tracks."""
+    assert main(["demo", "--out", str(tmp_path), "--track", "nowhere"]) == 2
+    assert "trefoil" in capsys.readouterr().err
+
+
+def test_bench_rejects_unknown_sections(capsys):
+    """`racing bench --only nope` exits with status 2 and lists the sections."""
+    assert main(["bench", "--only", "nope"]) == 2
+    assert "env" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_paper_reproduction_writes_figures_and_json(tmp_path):
+    """`racing paper` solves every method, writes both figures and a complete paper.json."""
+    assert main(["paper", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "paper.json").read_text())
+    for name in ("fig1_methods.png", "fig2_collision_weight.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    for key in ("ilqr", "feedback", "open_loop", "open_loop_from_feedback"):
+        method = report["methods"][key]
+        assert {"converged", "iterations", "solve_time_s", "ego_n_min", "final_gap_s", "min_distance"} <= set(method)
+    assert report["methods"]["open_loop"]["converged"]
+    assert max(report["methods"]["open_loop"]["nash_residual"]) < 1e-4
+    assert len(report["findings"]) >= 6
