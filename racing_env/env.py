@@ -153,7 +153,12 @@ class RacingParallelEnv(ParallelEnv):
             dtype=np.float32,
         )
         positions = self._positions()
-        infos = {a: self._info(i, positions, np.zeros(self.num_cars, bool), np.zeros((self.num_cars,) * 2, bool), np.zeros(self.num_cars, bool), {}) for i, a in enumerate(self.agents)}
+        no_incident = np.zeros(self.num_cars, dtype=bool)
+        no_contact = np.zeros((self.num_cars, self.num_cars), dtype=bool)
+        infos = {
+            a: self._info(i, positions, no_incident, no_contact, no_incident, {})
+            for i, a in enumerate(self.agents)
+        }
         observations = {a: obs[self._index[a]] for a in self.agents}
         if self.render_mode == "human":
             self.render()
