@@ -1,4 +1,4 @@
-"""The `racing` command line: demo, bench (more subcommands join as they land)."""
+"""The `racing` command line: demo, paper, tournament, bench."""
 
 from __future__ import annotations
 
@@ -19,6 +19,19 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     from experiments.paper import run_paper
 
     run_paper(Path(args.out))
+    return 0
+
+
+def _cmd_tournament(args: argparse.Namespace) -> int:
+    from experiments.tournament import TournamentConfig, run_tournament
+
+    config = TournamentConfig(
+        agents=tuple(a for part in args.agents for a in part.split(",") if a),
+        track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
+        cars=args.cars, seed=args.seed, max_steps=args.max_steps, step_budget_s=args.step_budget,
+        jerk_weight=args.jerk_weight,
+    )
+    run_tournament(config, Path(args.out), gif=not args.no_gif, fresh=args.fresh)
     return 0
 
 
@@ -48,6 +61,29 @@ def build_parser() -> argparse.ArgumentParser:
     paper = sub.add_parser("paper", help="reproduce the paper's Figures 1-2 and claims (PNG figures + paper.json)")
     paper.add_argument("--out", default="runs/paper", help="output folder (default: runs/paper)")
     paper.set_defaults(func=_cmd_paper)
+
+    tour = sub.add_parser(
+        "tournament",
+        help="round robin of agents over seeded start grids (resumable; leaderboard, CSV, PNG, GIF)",
+        description="Every combination of --cars agents races on --grids start grids, once per rotation of "
+        "the starting slots. Results are appended to OUT/results.jsonl as races end; rerunning the same "
+        "command resumes. Agent specs: ilqr, ilqgame-ol, ilqgame-fb, lane-keeping, constant-speed, rl:PATH.zip",
+    )
+    tour.add_argument("--agents", nargs="+", default=["ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping"],
+                      help="agent specs (space- or comma-separated)")
+    tour.add_argument("--track", default="trefoil", help="built-in track name or TUMFTM CSV path (default: trefoil)")
+    tour.add_argument("--laps", type=int, default=1, help="laps on closed tracks (default: 1)")
+    tour.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
+    tour.add_argument("--grids", type=int, default=2, help="seeded start grids per pairing (default: 2)")
+    tour.add_argument("--cars", type=int, default=2, help="cars per race (default: 2)")
+    tour.add_argument("--seed", type=int, default=0, help="tournament seed (default: 0)")
+    tour.add_argument("--max-steps", type=int, default=3000, help="truncate races after this many steps")
+    tour.add_argument("--step-budget", type=float, default=1.0, help="per-step time budget of an agent [s] (default: 1)")
+    tour.add_argument("--jerk-weight", type=float, default=0.1, help="planners' jerk weight r in the race game (default: 0.1)")
+    tour.add_argument("--out", default="runs/tournament", help="output folder (default: runs/tournament)")
+    tour.add_argument("--no-gif", action="store_true", help="do not render a GIF of the first race")
+    tour.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")
+    tour.set_defaults(func=_cmd_tournament)
 
     bench = sub.add_parser("bench", help="performance figures as JSON (stdout) and a table (stderr)")
     bench.add_argument("--only", action="append", help="section(s) to run, e.g. --only env (repeatable or comma-separated)")

@@ -1,0 +1,325 @@
+"""`racing tournament`: round robin of agents over start grids, with ratings and resume.
+
+Every combination of ``cars`` distinct agent specs races on ``grids`` seeded start grids,
+once per rotation of the starting slots (positions swapped for 2 cars). Each finished race
+is appended to ``results.jsonl`` at once, so an interrupted tournament resumes where it
+stopped; the leaderboard is recomputed from that file in schedule order, which makes it
+identical for the same configuration whether or not the run was interrupted.
+
+An agent that raises, or whose action takes longer than ``step_budget_s`` (the first
+action of a race is exempt: it may compile), loses that race: it is placed last, the error
+is recorded, and the tournament goes on.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import itertools
+import json
+import math
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from racing_env.config import RaceConfig
+from racing_env.costs import CostWeights
+from racing_env.env import RacingParallelEnv
+
+RESULTS = "results.jsonl"
+CONFIG = "tournament.json"
+
+
+@dataclasses.dataclass(frozen=True)
+class TournamentConfig:
+    """What a tournament races. ``race_distance`` [m] overrides ``laps`` when given."""
+
+    agents: tuple[str, ...]
+    track: str = "trefoil"
+    laps: int = 1
+    race_distance: float | None = None
+    grids: int = 2
+    cars: int = 2
+    seed: int = 0
+    max_steps: int = 3000
+    step_budget_s: float = 1.0
+    jerk_weight: float = 0.1
+
+    # The planners' jerk weight r (R = r I) in the race's game. Racing wants it small: with
+    # r = 1 (the solver default, tuned for single solves) a 5 s horizon buys so little
+    # progress per unit of jerk that the planners barely accelerate.
+
+    def __post_init__(self) -> None:
+        if len(self.agents) < 2:
+            raise ValueError(f"a tournament needs at least 2 agent specs, got {list(self.agents)}")
+        if len(set(self.agents)) != len(self.agents):
+            raise ValueError(f"agent specs must be distinct, got {list(self.agents)}")
+        if not 2 <= self.cars <= len(self.agents):
+            raise ValueError(f"cars per race must be in [2, {len(self.agents)}], got {self.cars}")
+        if self.grids < 1:
+            raise ValueError(f"grids must be >= 1, got {self.grids}")
+        if not self.jerk_weight > 0:
+            raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight}")
+        if not self.step_budget_s > 0:
+            raise ValueError(f"step_budget_s must be > 0 seconds, got {self.step_budget_s}")
+
+
+def schedule(config: TournamentConfig) -> list[dict[str, Any]]:
+    """All races in a fixed order: ``id``, the specs by starting slot, the grid seed."""
+    races = []
+    for group in itertools.combinations(config.agents, config.cars):
+        for grid in range(config.grids):
+            for shift in range(config.cars):
+                lineup = group[shift:] + group[:shift]
+                seed = config.seed * 10_000 + grid
+                races.append({"id": f"{'|'.join(lineup)}@grid{grid}", "lineup": list(lineup), "seed": seed, "grid": grid})
+    return races
+
+
+def count_overtakes(s: np.ndarray) -> int:
+    """Position swaps between any two cars along ``s (T, N)`` (sign changes of the gaps)."""
+    total = 0
+    for i, j in itertools.combinations(range(s.shape[1]), 2):
+        sign = np.sign(s[:, i] - s[:, j])
+        sign = sign[sign != 0]
+        total += int(np.sum(sign[1:] != sign[:-1]))
+    return total
+
+
+def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0):
+    """Race one lineup; returns ``(record, frames)``. Faults are recorded, never raised."""
+    from planners.agents import make_agent
+
+    env = RacingParallelEnv(
+        RaceConfig(track=config.track, num_agents=config.cars, scenario="grid", laps=config.laps,
+                   race_distance=config.race_distance, max_steps=config.max_steps,
+                   weights=CostWeights(r_jx=config.jerk_weight, r_jy=config.jerk_weight),
+                   render_mode="rgb_array" if render_every else None)
+    )
+    names = env.possible_agents
+    faults: dict[int, str] = {}
+    agents = []
+    for i, spec in enumerate(race["lineup"]):
+        try:
+            agent = make_agent(spec)
+            agent.reset(race["seed"], i, env)
+        except Exception as err:  # noqa: BLE001 - a broken agent loses, the tournament goes on
+            faults[i] = f"setup: {type(err).__name__}: {err}"
+            agent = None
+        agents.append(agent)
+    observations, _ = env.reset(seed=race["seed"])
+    xs, frames = [env.state()], []
+    act_times = [[] for _ in names]
+    contact = np.zeros(len(names), dtype=int)
+    off = np.zeros(len(names), dtype=int)
+    last_info: dict[str, dict] = {}
+    step = 0
+    while env.agents and not faults:
+        if render_every and step % render_every == 0:
+            frames.append(env.render())
+        state = env.state()
+        actions = {}
+        for agent_name in env.agents:
+            i = names.index(agent_name)
+            start = time.perf_counter()
+            try:
+                actions[agent_name] = agents[i].act(observations[agent_name], state)
+            except Exception as err:  # noqa: BLE001
+                faults[i] = f"step {step}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}"
+                continue
+            elapsed = time.perf_counter() - start
+            if step > 0:
+                act_times[i].append(elapsed)
+                if elapsed > config.step_budget_s:
+                    faults[i] = f"step {step}: took {elapsed:.3f} s, over the budget of {config.step_budget_s} s"
+        if faults:
+            break
+        observations, _, _, _, infos = env.step(actions)
+        for agent_name, info in infos.items():
+            i = names.index(agent_name)
+            contact[i] += info["collided"]
+            off[i] += info["off_track"]
+            last_info[agent_name] = info
+        xs.append(env.state())
+        step += 1
+    xs = np.stack(xs)
+    final_s = xs[-1, :, 0]
+    finish = [last_info.get(n, {}).get("finish_time") for n in names]
+    # order: finishers by time, then the rest by distance, then faulted cars last
+    def key(i):
+        return (i in faults, finish[i] is None, finish[i] if finish[i] is not None else -final_s[i])
+
+    order = sorted(range(len(names)), key=key)
+    places = {i: p + 1 for p, i in enumerate(order)}
+    winner, second = order[0], order[1]
+    if finish[winner] is not None and finish[second] is not None:
+        gap = {"seconds": finish[second] - finish[winner]}
+    else:
+        gap = {"metres": float(final_s[winner] - final_s[second])}
+    cars = []
+    for i, spec in enumerate(race["lineup"]):
+        agent = agents[i]
+        summary = agent.summary() if agent is not None and hasattr(agent, "summary") else {}
+        times = np.array(act_times[i]) if act_times[i] else np.array([np.nan])
+        cars.append({
+            "agent": spec, "car": names[i], "place": places[i], "finish_time": finish[i],
+            "distance": float(final_s[i] - xs[0, i, 0]), "mean_speed": float(np.mean(xs[:, i, 1])),
+            "collision_steps": int(contact[i]), "time_off_track": float(off[i] * env.config.dt),
+            "act_time_mean_s": float(np.nanmean(times)), "act_time_max_s": float(np.nanmax(times)),
+            "solver_failures": int(summary.get("fallbacks", 0)), "error": faults.get(i),
+        })
+    record = {"id": race["id"], "grid": race["grid"], "seed": race["seed"], "steps": step,
+              "order": [race["lineup"][i] for i in order], "gap": gap,
+              "overtakes": count_overtakes(xs[:, :, 0]), "cars": cars}
+    if render_every:
+        frames.append(env.render())
+    env.close()
+    return record, frames
+
+
+def wilson_interval(wins: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95% Wilson score interval of a win rate."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = wins / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict[str, Any]:
+    """Win rates with intervals, head-to-head matrix and Plackett-Luce ratings (openskill)."""
+    from openskill.models import PlackettLuce
+
+    names = list(config.agents)
+    position = {r["id"]: k for k, r in enumerate(schedule(config))}
+    records = sorted(records, key=lambda r: position[r["id"]])
+    model = PlackettLuce()
+    ratings = {n: model.rating(name=n) for n in names}
+    h2h = np.zeros((len(names), len(names)), dtype=int)
+    stats = {n: {"races": 0, "wins": 0, "errors": 0, "collision_steps": 0, "act_times": []} for n in names}
+    for record in records:
+        order = record["order"]
+        teams = [[ratings[n]] for n in order]
+        for n, [new] in zip(order, model.rate(teams, ranks=list(range(1, len(order) + 1)))):
+            ratings[n] = new
+        for a, b in itertools.combinations(order, 2):  # a finished ahead of b
+            h2h[names.index(a), names.index(b)] += 1
+        for car in record["cars"]:
+            st = stats[car["agent"]]
+            st["races"] += 1
+            st["wins"] += car["place"] == 1
+            st["errors"] += car["error"] is not None
+            st["collision_steps"] += car["collision_steps"]
+            st["act_times"].append(car["act_time_mean_s"])
+    rows = []
+    for n in names:
+        st = stats[n]
+        lo, hi = wilson_interval(st["wins"], st["races"])
+        r = ratings[n]
+        rows.append({"agent": n, "races": st["races"], "wins": st["wins"],
+                     "win_rate": st["wins"] / st["races"] if st["races"] else float("nan"),
+                     "win_rate_ci95": [lo, hi], "rating_mu": r.mu, "rating_sigma": r.sigma,
+                     "rating": r.mu - 3 * r.sigma, "errors": st["errors"], "collision_steps": st["collision_steps"],
+                     "mean_act_time_s": float(np.nanmean(st["act_times"])) if st["act_times"] else float("nan")})
+    rows.sort(key=lambda row: -row["rating"])
+    return {"rows": rows, "head_to_head": {"agents": names, "wins": h2h.tolist()}}
+
+
+def plot_head_to_head(table: dict[str, Any], path: Path) -> None:
+    """Heat map: row agent finished ahead of column agent in this many races."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    names, wins = table["agents"], np.array(table["wins"])
+    fig, ax = plt.subplots(figsize=(1.4 * len(names) + 2, 1.2 * len(names) + 1.5))
+    image = ax.imshow(wins, cmap="Blues")
+    for (i, j), value in np.ndenumerate(wins):
+        if i != j:
+            ax.text(j, i, str(value), ha="center", va="center", color="black")
+    ax.set_xticks(range(len(names)), names, rotation=30, ha="right")
+    ax.set_yticks(range(len(names)), names)
+    ax.set_xlabel("... finished behind")
+    ax.set_ylabel("row agent finished ahead of ...")
+    fig.colorbar(image, ax=ax, shrink=0.8)
+    ax.set_title("head to head (races)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def load_results(out: Path) -> list[dict[str, Any]]:
+    path = out / RESULTS
+    if not path.exists():
+        return []
+    records = []
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if line:
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue  # a line cut by an interruption: that race is re-run
+    return records
+
+
+def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progress: bool = True,
+                   fresh: bool = False) -> dict[str, Any]:
+    """Run (or resume) a tournament into ``out``; returns the leaderboard."""
+    from rich.console import Console
+    from rich.table import Table
+    from tqdm import tqdm
+
+    from racing_env.render import save_gif
+
+    console = Console(width=140)
+    out.mkdir(parents=True, exist_ok=True)
+    config_json = json.dumps(dataclasses.asdict(config), sort_keys=True)
+    config_path = out / CONFIG
+    if fresh:
+        (out / RESULTS).unlink(missing_ok=True)
+    elif config_path.exists() and config_path.read_text() != config_json and (out / RESULTS).exists():
+        raise ValueError(f"{out} holds results of a different tournament configuration; "
+                         "use another --out folder or --fresh to start over")
+    config_path.write_text(config_json)
+    races = schedule(config)
+    done = {r["id"]: r for r in load_results(out)}
+    todo = [r for r in races if r["id"] not in done]
+    if done:
+        console.print(f"resuming: {len(done)} of {len(races)} races already in {out / RESULTS}")
+    with open(out / RESULTS, "a") as sink:
+        for race in tqdm(todo, desc="tournament", disable=not progress):
+            want_gif = gif and not (out / "race.gif").exists()
+            record, frames = run_one_race(config, race, render_every=3 if want_gif else 0)
+            sink.write(json.dumps(record) + "\n")
+            sink.flush()
+            done[record["id"]] = record
+            if want_gif and frames:
+                save_gif(frames, out / "race.gif", fps=10.0 / 3)
+    records = [done[r["id"]] for r in races if r["id"] in done]
+    board = leaderboard(config, records)
+    with open(out / "summary.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=[k for k in board["rows"][0] if k != "win_rate_ci95"] + ["ci95_low", "ci95_high"])
+        writer.writeheader()
+        for row in board["rows"]:
+            flat = {k: v for k, v in row.items() if k != "win_rate_ci95"}
+            writer.writerow({**flat, "ci95_low": row["win_rate_ci95"][0], "ci95_high": row["win_rate_ci95"][1]})
+    plot_head_to_head(board["head_to_head"], out / "head_to_head.png")
+    (out / "leaderboard.json").write_text(json.dumps(board, indent=2))
+    table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
+    for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "errors", "contact steps", "act [ms]"):
+        table.add_column(col)
+    for k, row in enumerate(board["rows"], 1):
+        lo, hi = row["win_rate_ci95"]
+        table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
+                      f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", str(row["errors"]), str(row["collision_steps"]),
+                      f"{1e3 * row['mean_act_time_s']:.1f}")
+    console.print(table)
+    console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'head_to_head.png'}"
+                  + (f", {out / 'race.gif'}" if (out / 'race.gif').exists() else ""))
+    return board

@@ -1,0 +1,576 @@
+"""Competitors: one small protocol for every driver (game planners, scripted, RL).
+
+Every agent implements :class:`Agent`::
+
+    agent = make_agent("ilqgame-fb")
+    agent.reset(seed=0, index=1, env_info=env)       # env: RacingParallelEnv (or its RaceGame)
+    action = agent.act(observation, env.state())      # normalised jerks in [-1, 1]^2
+    agent.diagnostics()                               # the last step: solve time, iterations, ...
+
+and is a callable ``agent(observation, joint_state) -> action``, so it plugs into
+``experiments.race.run_race`` and into the Gymnasium view as an opponent.
+
+Receding-horizon planners (:class:`ILQRAgent`, :class:`OpenLoopGameAgent`,
+:class:`FeedbackGameAgent`) re-solve the env's :class:`racing_env.RaceGame` from the current
+joint state every ``replan_every`` steps, warm-started from the previous solution shifted by
+the steps elapsed (the last input repeated, or zeros). Between re-plans the feedback agent
+applies ``u = u_hat_t - K_t (x - x_hat_t)``, the others the planned ``u_hat_t``. A solve that
+raises or returns non-finite values falls back to the previous plan (shifted) or, without
+one, to a braking action with a lateral correction toward the centre line; actions are never
+NaN. The state's ``s`` is cumulative on closed tracks; the game wraps it itself (curvature,
+widths and gaps), so the agents pass the joint state through unchanged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import traceback
+from typing import Any, Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from planners import ilq, ilqr
+from planners.scripted import ConstantSpeed, LaneKeeping
+
+__all__ = [
+    "Agent",
+    "AGENT_SPECS",
+    "BaseAgent",
+    "ConstantSpeedAgent",
+    "FeedbackGameAgent",
+    "ILQRAgent",
+    "LaneKeepingAgent",
+    "OpenLoopGameAgent",
+    "RecedingHorizonAgent",
+    "SB3Agent",
+    "game_of",
+    "make_agent",
+    "reset_agents",
+]
+
+
+@runtime_checkable
+class Agent(Protocol):
+    """What every competitor implements.
+
+    ``reset(seed, index, env_info)``: start a race as car ``index``; ``env_info`` is the
+    :class:`racing_env.RacingParallelEnv` (or the Gymnasium ``RaceEnv``, or just the
+    :class:`racing_env.RaceGame`): from it the agent takes the game (track, vehicles,
+    weights, ``dt``, horizon).
+    ``act(observation, joint_state)``: the normalised action ``(2,)`` in ``[-1, 1]``.
+    ``diagnostics()``: the last step's record (``solve_time`` [s], ``iterations``,
+    ``converged``, ``fallback``, ``error``, ...).
+    """
+
+    name: str
+
+    def reset(self, seed: int | None, index: int, env_info: Any) -> None: ...
+
+    def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray: ...
+
+    def diagnostics(self) -> dict: ...
+
+    def __call__(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray: ...
+
+
+def game_of(env_info: Any):
+    """The :class:`racing_env.RaceGame` of an env (parallel or Gymnasium view) or a game."""
+    from racing_env.game import RaceGame
+
+    if isinstance(env_info, RaceGame):
+        return env_info
+    for attr in ("game", "race", "unwrapped"):
+        inner = getattr(env_info, attr, None)
+        if inner is None or inner is env_info:
+            continue
+        if isinstance(inner, RaceGame):
+            return inner
+        try:
+            return game_of(inner)
+        except TypeError:
+            continue
+    raise TypeError(
+        f"env_info must be a RacingParallelEnv, a RaceEnv or a RaceGame, got {type(env_info).__name__}"
+    )
+
+
+def _empty_record() -> dict:
+    return {
+        "step": 0,
+        "replanned": False,
+        "solve_time": None,
+        "iterations": None,
+        "converged": None,
+        "status": None,
+        "fallback": False,
+        "fallback_kind": None,
+        "error": None,
+    }
+
+
+class BaseAgent:
+    """Common bookkeeping: index, game, jerk limits, the per-step diagnostics history."""
+
+    name = "agent"
+
+    def __init__(self) -> None:
+        self.index: int | None = None
+        self.game = None
+        self.history: list[dict] = []
+        self._last: dict = _empty_record()
+        self._steps = 0
+
+    def reset(self, seed: int | None, index: int, env_info: Any) -> None:
+        game = game_of(env_info)
+        n = game.num_players
+        if not 0 <= int(index) < n:
+            raise ValueError(f"index must be a car index in [0, {n}), got {index!r}")
+        self.seed = seed
+        self.index = int(index)
+        self.game = game
+        self.dt = float(game.dt)
+        self.vehicle = game.vehicles.car(self.index)
+        self.jerk_max = np.array([self.vehicle.jx_max, self.vehicle.jy_max], dtype=np.float64)
+        self.history = []
+        self._last = _empty_record()
+        self._steps = 0
+
+    def _require_reset(self) -> None:
+        if self.index is None:
+            raise RuntimeError(f"{type(self).__name__}.reset(seed, index, env_info) must be called first")
+
+    def _safe_action(self, joint_state: np.ndarray | None) -> np.ndarray:
+        """Brake gently and steer back toward the centre line (finite for any input).
+
+        Longitudinal: jerk toward ``ax = -0.3 rho(V)`` (a third of the grip: firm but leaves
+        room to corner), at most half the jerk limit, zero target at standstill. Lateral: the
+        lane keeper's law toward ``n = 0`` (curvature feed-forward plus a critically damped
+        correction). Falls back to ``[-0.5, 0]`` if the car's own state is not finite.
+        """
+        fixed = np.array([-0.5, 0.0], dtype=np.float32)
+        try:
+            x = np.asarray(joint_state, dtype=np.float64)[self.index]
+        except Exception:  # noqa: BLE001 - any malformed state: the constant braking action
+            return fixed
+        if x.shape != (6,) or not np.all(np.isfinite(x)):
+            return fixed
+        s, v, n, chi, ax, ay = x
+        v_pos = max(v, 0.0)
+        rho = float(self.vehicle.rho(v_pos))
+        ax_des = -0.3 * rho if v_pos > 0.5 else 0.0
+        kappa = float(self.game.track.kappa_at(s))
+        ay_des = kappa * v**2 + 1.0 * (0.0 - n) - 2.0 * v * np.sin(chi)
+        jerk = 5.0 * np.array([ax_des - ax, ay_des - ay])
+        a = jerk / self.jerk_max
+        a[0] = np.clip(a[0], -0.5, 0.5)
+        a = np.clip(a, -1.0, 1.0)
+        return a.astype(np.float32) if np.all(np.isfinite(a)) else fixed
+
+    def _finish(self, action, joint_state, record: dict) -> np.ndarray:
+        a = np.asarray(action, dtype=np.float64).reshape(-1)
+        if a.shape != (2,) or not np.all(np.isfinite(a)):
+            record["fallback"] = True
+            record["fallback_kind"] = "brake"
+            record["error"] = (record.get("error") or "") + "; non-finite action replaced by braking"
+            a = self._safe_action(joint_state).astype(np.float64)
+        a = np.clip(a, -1.0, 1.0).astype(np.float32)
+        record["action"] = a.tolist()
+        self._last = record
+        self.history.append(record)
+        self._steps += 1
+        return a
+
+    def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def __call__(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        return self.act(observation, joint_state)
+
+    def diagnostics(self) -> dict:
+        """The last step's record (a copy)."""
+        return dict(self._last)
+
+    def summary(self) -> dict:
+        """Aggregates over the steps since reset: re-plans, solve-time percentiles, fallbacks."""
+        times = np.array([r["solve_time"] for r in self.history if r.get("solve_time") is not None])
+        iters = [r["iterations"] for r in self.history if r.get("iterations") is not None]
+        out = {
+            "steps": len(self.history),
+            "replans": int(sum(bool(r.get("replanned")) for r in self.history)),
+            "fallbacks": int(sum(bool(r.get("fallback")) for r in self.history)),
+        }
+        if times.size:
+            out.update(
+                solve_time_median=float(np.median(times)),
+                solve_time_p95=float(np.percentile(times, 95)),
+                solve_time_max=float(times.max()),
+                iterations_mean=float(np.mean(iters)) if iters else None,
+            )
+        return out
+
+
+# --------------------------------------------------------------------------------------
+# Receding-horizon game planners.
+# --------------------------------------------------------------------------------------
+
+
+def _weights_for(game, index: int, belief) -> Any:
+    """The game's weights with the agent's belief about the others (``None``: the truth).
+
+    ``belief`` is one ``CostWeights`` (scalars) assumed for every opponent (the agent keeps
+    its own true weights), a sequence of N ``CostWeights`` (one per car, used as given), or a
+    stacked ``CostWeights`` with ``(N,)`` fields.
+    """
+    from racing_env.costs import CostWeights, stack_weights
+
+    if belief is None:
+        return game.weights
+    n = game.num_players
+    if isinstance(belief, CostWeights):
+        if np.ndim(belief.r_jx) == 0:  # one belief for every opponent, own weights kept
+            names = [f.name for f in dataclasses.fields(CostWeights)]
+            own = CostWeights(**{k: float(np.asarray(getattr(game.weights, k))[index]) for k in names})
+            return stack_weights([own if j == index else belief for j in range(n)])
+        if np.shape(belief.r_jx) != (n,):
+            raise ValueError(f"stacked belief_weights must have fields of shape ({n},)")
+        return belief
+    belief = list(belief)
+    if len(belief) != n:
+        raise ValueError(f"belief_weights needs {n} CostWeights (one per car), got {len(belief)}")
+    return stack_weights(belief)
+
+
+class RecedingHorizonAgent(BaseAgent):
+    """Re-plans a game (or iLQR) solution from the current joint state.
+
+    Args:
+        max_iterations: solver iteration cap per re-plan.
+        replan_every: re-plan every this many steps (1: every step); in between the stored
+            plan is followed (with its feedback law for the feedback game).
+        belief_weights: the agent's belief of the cost weights (see :func:`_weights_for`);
+            default the game's true weights.
+        pad: how the shifted warm start is padded at the end: ``"repeat"`` the last input
+            or ``"zeros"``.
+        warm_start: warm start from the previous solution (else zeros every re-plan).
+        require_converged: treat a non-converged solve as a failure (fallback); by default
+            the last iterate is used (it is a dynamically feasible, finite plan).
+        solver_options: further :class:`planners.ilq.SolverOptions` fields.
+    """
+
+    name = "receding-horizon"
+    feedback = False
+
+    def __init__(
+        self,
+        max_iterations: int = 30,
+        replan_every: int = 1,
+        belief_weights=None,
+        pad: str = "repeat",
+        warm_start: bool = True,
+        require_converged: bool = False,
+        **solver_options: Any,
+    ) -> None:
+        super().__init__()
+        if int(replan_every) < 1:
+            raise ValueError(f"replan_every must be >= 1, got {replan_every!r}")
+        if pad not in ("repeat", "zeros"):
+            raise ValueError(f"pad must be 'repeat' or 'zeros', got {pad!r}")
+        self.max_iterations = int(max_iterations)
+        self.replan_every = int(replan_every)
+        self.belief_weights = belief_weights
+        self.pad = pad
+        self.warm_start = bool(warm_start)
+        self.require_converged = bool(require_converged)
+        self.solver_options = dict(solver_options)
+
+    def reset(self, seed: int | None, index: int, env_info: Any) -> None:
+        super().reset(seed, index, env_info)
+        self.planning_game = self.game.replace(
+            weights=_weights_for(self.game, self.index, self.belief_weights)
+        )
+        self._plan: dict | None = None  # {"us": (T,N,2), "xs": (T+1,N,6), "K": (T,N,2,6N) | None}
+        self._age = 0  # steps since the stored plan was made
+
+    # the solve itself (subclasses) -> (us, xs, K or None, result)
+    def _solve(self, x0: np.ndarray, init: np.ndarray | None):
+        raise NotImplementedError
+
+    def _shifted(self, us: np.ndarray, by: int) -> np.ndarray:
+        T = us.shape[0]
+        by = min(by, T)
+        out = np.empty_like(us)
+        out[: T - by] = us[by:]
+        fill = us[-1] if self.pad == "repeat" else np.zeros_like(us[-1])
+        out[T - by :] = fill
+        return out
+
+    def _follow(self, x: np.ndarray, t: int) -> np.ndarray | None:
+        """The ego's physical jerk at ``t`` steps into the stored plan (None if exhausted)."""
+        plan = self._plan
+        if plan is None or t >= plan["us"].shape[0]:
+            return None
+        u = plan["us"][t, self.index].copy()
+        if self.feedback and plan["K"] is not None:
+            dx = (x - plan["xs"][t]).reshape(-1)
+            if np.all(np.isfinite(dx)):
+                u = u - plan["K"][t, self.index] @ dx
+        return u
+
+    def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        self._require_reset()
+        x = np.asarray(joint_state, dtype=np.float64)
+        record = _empty_record()
+        record["step"] = self._steps
+        if self._plan is None or self._age + 1 >= self.replan_every or self._age + 1 >= self._plan["us"].shape[0]:
+            record["replanned"] = True
+            init = None
+            if self.warm_start and self._plan is not None:
+                init = self._shifted(self._plan["us"], self._age + 1)
+            error = None
+            t0 = time.perf_counter()
+            try:
+                if x.shape != (self.game.num_players, 6):
+                    raise ValueError(f"joint state must have shape ({self.game.num_players}, 6), got {x.shape}")
+                us, xs, K, res = self._solve(x, init)
+                record["iterations"] = int(res.iterations)
+                record["converged"] = bool(res.converged)
+                record["status"] = ilq.status_message(res.status)
+                parts = [us, xs] + ([K] if K is not None else [])
+                if not all(np.all(np.isfinite(p)) for p in parts):
+                    error = "solver returned non-finite values"
+                elif self.require_converged and not record["converged"]:
+                    error = f"solver did not converge ({record['status']})"
+            except Exception as exc:  # noqa: BLE001 - any solver failure becomes a fallback
+                error = f"{type(exc).__name__}: {exc}"
+                record["traceback"] = traceback.format_exc(limit=3)
+            record["solve_time"] = time.perf_counter() - t0
+            if error is None:
+                self._plan = {"us": us, "xs": xs, "K": K}
+                self._age = 0
+                u = self._follow(x, 0)
+            else:
+                record["fallback"] = True
+                record["error"] = error
+                self._age += 1
+                u = self._follow(x, self._age)
+                if u is not None and np.all(np.isfinite(u)):
+                    record["fallback_kind"] = "previous_plan"
+                else:
+                    self._plan = None
+                    record["fallback_kind"] = "brake"
+                    return self._finish(self._safe_action(x), x, record)
+        else:
+            self._age += 1
+            u = self._follow(x, self._age)
+        return self._finish(np.asarray(u) / self.jerk_max, x, record)
+
+
+class _GameAgent(RecedingHorizonAgent):
+    mode = "feedback"
+
+    def _solve(self, x0, init):
+        res = ilq.solve(
+            self.planning_game,
+            x0,
+            init=init,
+            mode=self.mode,
+            max_iterations=self.max_iterations,
+            **self.solver_options,
+        )
+        us, xs, K = (np.asarray(a) for a in (res.us, res.xs, res.K))
+        return us, xs, (K if self.feedback else None), res
+
+
+class FeedbackGameAgent(_GameAgent):
+    """Feedback Nash iLQGame; between re-plans ``u = u_hat_t - K_t (x - x_hat_t)``."""
+
+    name = "ilqgame-fb"
+    mode = "feedback"
+    feedback = True
+
+
+class OpenLoopGameAgent(_GameAgent):
+    """Open-loop Nash iLQGame; applies the planned ``u_hat_t``."""
+
+    name = "ilqgame-ol"
+    mode = "open_loop"
+    feedback = False
+
+
+class ILQRAgent(RecedingHorizonAgent):
+    """iLQR against constant-velocity predictions of the opponents (``planners.ilqr``)."""
+
+    name = "ilqr"
+    feedback = False
+
+    def _solve(self, x0, init):
+        res = ilqr.solve_ilqr(
+            self.planning_game,
+            x0,
+            ego=self.index,
+            U0=init,
+            max_iterations=self.max_iterations,
+            **self.solver_options,
+        )
+        return np.asarray(res.us), np.asarray(res.xs), None, res
+
+
+# --------------------------------------------------------------------------------------
+# Scripted baselines.
+# --------------------------------------------------------------------------------------
+
+
+class _ScriptedAgent(BaseAgent):
+    controller_class: type = LaneKeeping
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__()
+        self.kwargs = kwargs
+        self.controller = None
+
+    def reset(self, seed: int | None, index: int, env_info: Any) -> None:
+        super().reset(seed, index, env_info)
+        self.controller = self.controller_class(
+            self.game.track, self.index, self.game.vehicles.car(self.index), **self.kwargs
+        )
+
+    def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        self._require_reset()
+        record = _empty_record()
+        record["step"] = self._steps
+        t0 = time.perf_counter()
+        try:
+            a = self.controller(observation, joint_state)
+        except Exception as exc:  # noqa: BLE001
+            record.update(fallback=True, fallback_kind="brake", error=f"{type(exc).__name__}: {exc}")
+            a = self._safe_action(joint_state)
+        record["solve_time"] = time.perf_counter() - t0
+        return self._finish(a, joint_state, record)
+
+
+class LaneKeepingAgent(_ScriptedAgent):
+    """:class:`planners.scripted.LaneKeeping` (kwargs: ``target_speed``, ``target_n``)."""
+
+    name = "lane-keeping"
+    controller_class = LaneKeeping
+
+
+class ConstantSpeedAgent(_ScriptedAgent):
+    """:class:`planners.scripted.ConstantSpeed` (kwargs: ``target_speed``)."""
+
+    name = "constant-speed"
+    controller_class = ConstantSpeed
+
+
+# --------------------------------------------------------------------------------------
+# Reinforcement learning.
+# --------------------------------------------------------------------------------------
+
+SB3_ALGOS = ("ppo", "sac", "td3", "a2c", "ddpg")
+
+
+class SB3Agent(BaseAgent):
+    """A saved stable-baselines3 model acting with ``predict(obs, deterministic=True)``.
+
+    Args:
+        path: the ``.zip`` written by ``model.save``.
+        algo: ``ppo``, ``sac``, ``td3``, ``a2c``, ``ddpg``; ``None`` tries them in this order.
+        device: torch device for the policy (``cpu`` by default).
+    """
+
+    name = "rl"
+
+    def __init__(self, path, algo: str | None = None, device: str = "cpu") -> None:
+        super().__init__()
+        import stable_baselines3 as sb3
+
+        self.path = str(path)
+        if algo is not None and algo.lower() not in SB3_ALGOS:
+            raise ValueError(f"algo must be one of {SB3_ALGOS}, got {algo!r}")
+        candidates = [algo.lower()] if algo else list(SB3_ALGOS)
+        errors = []
+        self.model = None
+        for name in candidates:
+            try:
+                self.model = getattr(sb3, name.upper()).load(self.path, device=device)
+                self.algo = name
+                break
+            except Exception as exc:  # noqa: BLE001 - try the next algorithm
+                errors.append(f"{name}: {type(exc).__name__}: {exc}")
+        if self.model is None:
+            raise ValueError(f"could not load a stable-baselines3 model from {self.path}: " + "; ".join(errors))
+        self.name = f"rl:{self.algo}"
+
+    def reset(self, seed: int | None, index: int, env_info: Any) -> None:
+        super().reset(seed, index, env_info)
+        if seed is not None:
+            try:
+                self.model.set_random_seed(seed)
+            except Exception:  # noqa: BLE001 - seeding is best effort
+                pass
+
+    def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        self._require_reset()
+        record = _empty_record()
+        record["step"] = self._steps
+        t0 = time.perf_counter()
+        try:
+            obs = np.asarray(observation, dtype=np.float32)
+            expected = self.model.observation_space.shape
+            if obs.shape != expected:
+                raise ValueError(
+                    f"observation shape {obs.shape} does not match the model's {expected} "
+                    "(trained with a different number of cars or preview distances?)"
+                )
+            a, _ = self.model.predict(obs, deterministic=True)
+        except Exception as exc:  # noqa: BLE001
+            record.update(fallback=True, fallback_kind="brake", error=f"{type(exc).__name__}: {exc}")
+            a = self._safe_action(joint_state)
+        record["solve_time"] = time.perf_counter() - t0
+        return self._finish(a, joint_state, record)
+
+
+# --------------------------------------------------------------------------------------
+# Factory.
+# --------------------------------------------------------------------------------------
+
+AGENT_SPECS = {
+    "ilqr": ILQRAgent,
+    "ilqgame-ol": OpenLoopGameAgent,
+    "ilqgame-fb": FeedbackGameAgent,
+    "lane-keeping": LaneKeepingAgent,
+    "constant-speed": ConstantSpeedAgent,
+}
+
+
+def make_agent(spec: str, **kwargs: Any) -> Agent:
+    """An agent from a spec: ``ilqr``, ``ilqgame-ol``, ``ilqgame-fb``, ``lane-keeping``,
+    ``constant-speed`` or ``rl:path/to/model.zip`` (``rl:sac:path`` names the algorithm).
+
+    ``kwargs`` go to the agent's constructor. Raises ``ValueError`` for an unknown spec.
+    """
+    valid = list(AGENT_SPECS) + ["rl:<path/to/model.zip>", "rl:<algo>:<path>"]
+    if not isinstance(spec, str):
+        raise ValueError(f"agent spec must be a string, one of {valid}; got {spec!r}")
+    key = spec.strip()
+    if key.lower() in AGENT_SPECS:
+        return AGENT_SPECS[key.lower()](**kwargs)
+    if key.lower().startswith("rl:"):
+        rest = key[3:]
+        head, sep, tail = rest.partition(":")
+        if sep and head.lower() in SB3_ALGOS:
+            kwargs.setdefault("algo", head.lower())
+            rest = tail
+        if not rest:
+            raise ValueError(
+                f"agent spec {spec!r} needs a model path (rl:path/to/model.zip); valid specs: {', '.join(valid)}"
+            )
+        return SB3Agent(rest, **kwargs)
+    raise ValueError(f"unknown agent spec {spec!r}; valid specs: {', '.join(valid)}")
+
+
+def reset_agents(agents: Sequence[Agent], env_info: Any, seed: int | None = None) -> None:
+    """Reset ``agents[i]`` as car ``i`` of ``env_info`` (before ``run_race``)."""
+    for i, agent in enumerate(agents):
+        agent.reset(seed, i, env_info)

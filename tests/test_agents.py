@@ -1,0 +1,273 @@
+"""Agents (planners.agents): races on a built-in and a real track, warm start, fallback,
+the spec parser, diagnostics and a real (tiny) stable-baselines3 model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import racing_env
+from experiments.race import run_race
+from planners import ilq
+from planners.agents import (
+    Agent,
+    ConstantSpeedAgent,
+    FeedbackGameAgent,
+    ILQRAgent,
+    LaneKeepingAgent,
+    OpenLoopGameAgent,
+    SB3Agent,
+    make_agent,
+    reset_agents,
+)
+from racing_env.costs import CostWeights
+
+GAME_SPECS = ["ilqr", "ilqgame-ol", "ilqgame-fb"]
+ALL_SPECS = GAME_SPECS + ["lane-keeping", "constant-speed"]
+
+
+def _race(env, agent, seed=0):
+    rival = make_agent("constant-speed", target_speed=12.0)
+    reset_agents([agent, rival], env, seed)
+    record = run_race(env, [agent, rival], seed=seed)
+    actions = np.array([h["action"] for h in agent.history])
+    return record, actions
+
+
+def _check_race(record, agent, actions):
+    assert len(agent.history) > 10
+    assert np.all(np.isfinite(actions)) and np.all(np.abs(actions) <= 1.0)
+    assert np.all(np.isfinite(record.xs))
+    assert all(h["solve_time"] is not None and h["solve_time"] >= 0 for h in agent.history)
+    assert record.summary[0]["distance"] > 50.0
+    d = agent.diagnostics()
+    assert {"solve_time", "iterations", "converged", "fallback", "error"} <= set(d)
+
+
+@pytest.mark.parametrize("spec", ALL_SPECS)
+def test_short_race_trefoil(spec):
+    env = racing_env.parallel_env(track="trefoil", num_agents=2, race_distance=150.0, max_steps=120)
+    agent = make_agent(spec)
+    record, actions = _race(env, agent)
+    _check_race(record, agent, actions)
+    assert record.summary[0]["finished"]
+    if spec in GAME_SPECS:
+        summary = agent.summary()
+        assert summary["fallbacks"] == 0
+        assert summary["replans"] == len(agent.history)
+        assert record.summary[0]["time_off_track"] == 0.0
+
+
+@pytest.mark.parametrize("spec", ALL_SPECS)
+def test_short_race_monza(spec, shared_tracks):
+    env = racing_env.parallel_env(
+        track=str(shared_tracks / "Monza.csv"), num_agents=2, race_distance=100.0, max_steps=60
+    )
+    agent = make_agent(spec)
+    record, actions = _race(env, agent)
+    _check_race(record, agent, actions)
+    if spec in GAME_SPECS:
+        assert agent.summary()["fallbacks"] == 0
+
+
+def test_crossing_the_line_of_a_closed_track():
+    """s is cumulative over laps: the planner goes on through s = L without special handling."""
+    env = racing_env.parallel_env(track="trefoil", num_agents=2, laps=2, max_steps=40)
+    L = env.track.length
+    x0 = np.array([[L - 30.0, 18.0, 0.0, 0.0, 0.0, 0.0], [L - 45.0, 15.0, 2.0, 0.0, 0.0, 0.0]])
+    agent, rival = FeedbackGameAgent(), ConstantSpeedAgent(target_speed=15.0)
+    reset_agents([agent, rival], env, 0)
+    obs, _ = env.reset(seed=0, options={"x0": x0})
+    for _ in range(30):
+        state = env.state()
+        obs, *_ = env.step({"car_0": agent(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
+    x = env.state()
+    assert x[0, 0] > L + 15  # went through the line, s kept counting
+    assert agent.summary()["fallbacks"] == 0
+    assert abs(x[0, 2]) < 5.0  # still on the 12 m wide track
+
+
+def test_warm_start_reduces_iterations():
+    """The shifted previous plan needs fewer iterations than a cold start from the same states.
+
+    Self-play (the rival plays the same feedback game), so the rival moves as predicted;
+    against a scripted rival the equilibrium moves between steps and the gain is smaller.
+    """
+    env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=8)
+    warm, cold = FeedbackGameAgent(), FeedbackGameAgent(warm_start=False)
+    rival = FeedbackGameAgent()
+    reset_agents([warm, rival], env, 0)
+    cold.reset(0, 0, env)
+    obs, _ = env.reset(seed=0)
+    for _ in range(6):
+        state = env.state()
+        cold(obs["car_0"], state)
+        obs, *_ = env.step({"car_0": warm(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
+    w = [h["iterations"] for h in warm.history]
+    c = [h["iterations"] for h in cold.history]
+    assert w[0] == c[0]  # same cold first solve
+    assert all(wi < w[0] for wi in w[1:]), w
+    assert sum(w[1:]) < 0.7 * sum(c[1:]), (w, c)
+
+
+def test_replan_every_follows_the_plan_in_between():
+    env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=8)
+    agent, rival = FeedbackGameAgent(replan_every=3), ConstantSpeedAgent()
+    reset_agents([agent, rival], env, 0)
+    obs, _ = env.reset(seed=0)
+    for _ in range(7):
+        state = env.state()
+        obs, *_ = env.step({"car_0": agent(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
+    assert [h["replanned"] for h in agent.history] == [True, False, False, True, False, False, True]
+    between = [h for h in agent.history if not h["replanned"]]
+    assert all(h["solve_time"] is None and not h["fallback"] for h in between)
+
+
+@pytest.mark.parametrize("spec", GAME_SPECS)
+def test_fallback_on_nan_state(spec):
+    """A real solver failure: a NaN in the joint state gives non-finite solver output."""
+    env = racing_env.parallel_env(track="trefoil", num_agents=2)
+    agent = make_agent(spec)
+    agent.reset(0, 0, env)
+    obs, _ = env.reset(seed=0)
+    x = env.state()
+    # an opponent's state is NaN: no previous plan -> braking with a lateral correction
+    bad = x.copy()
+    bad[1, 2] = np.nan
+    a = agent.act(obs["car_0"], bad)
+    d = agent.diagnostics()
+    assert np.all(np.isfinite(a)) and np.all(np.abs(a) <= 1)
+    assert d["fallback"] and d["fallback_kind"] == "brake" and d["error"]
+    assert a[0] < 0  # braking
+    # a good solve, then a failing one: the previous plan (shifted) is followed
+    agent.act(obs["car_0"], x)
+    assert not agent.diagnostics()["fallback"]
+    a = agent.act(obs["car_0"], bad)
+    d = agent.diagnostics()
+    assert np.all(np.isfinite(a)) and d["fallback"] and d["fallback_kind"] == "previous_plan"
+    # the own state is NaN: the constant braking action
+    bad[0] = np.nan
+    agent2 = make_agent(spec)
+    agent2.reset(0, 0, env)
+    a = agent2.act(obs["car_0"], bad)
+    np.testing.assert_array_equal(a, np.array([-0.5, 0.0], np.float32))
+
+
+def test_fallback_when_the_solver_raises(monkeypatch):
+    env = racing_env.parallel_env(track="trefoil", num_agents=2, race_distance=120.0, max_steps=200)
+    agent = OpenLoopGameAgent()
+    reset_agents([agent, LaneKeepingAgent()], env, 0)
+    obs, _ = env.reset(seed=0)
+    agent.act(obs["car_0"], env.state())  # a good plan first
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("solver exploded")
+
+    monkeypatch.setattr(ilq, "solve", broken)
+    rival = LaneKeepingAgent()
+    rival.reset(0, 1, env)
+    kinds = []
+    while env.agents:
+        state = env.state()
+        actions = {"car_1": rival(obs["car_1"], state)} if "car_1" in env.agents else {}
+        if "car_0" in env.agents:
+            actions["car_0"] = agent(obs["car_0"], state)
+            d = agent.diagnostics()
+            assert d["fallback"] and "solver exploded" in d["error"]
+            kinds.append(d["fallback_kind"])
+        obs, *_ = env.step(actions)
+    acts = np.array([h["action"] for h in agent.history])
+    assert np.all(np.isfinite(acts))
+    # the stored plan (50 steps) is used up first, then the agent brakes
+    assert kinds[:10] == ["previous_plan"] * 10
+    assert len(kinds) > 60 and kinds[-1] == "brake"
+
+
+def test_belief_weights():
+    env = racing_env.parallel_env(track="trefoil", num_agents=2)
+    agent = FeedbackGameAgent(belief_weights=CostWeights(c_collision=50.0, c_gap=0.0))
+    agent.reset(0, 1, env)
+    w = agent.planning_game.weights
+    assert float(w.c_collision[0]) == 50.0 and float(w.c_gap[0]) == 0.0  # the opponent
+    assert float(w.c_collision[1]) == float(env.game.weights.c_collision[1])  # own: true
+    per_car = [CostWeights(c_gap=1.0), CostWeights(c_gap=0.2)]
+    agent = ILQRAgent(belief_weights=per_car)
+    agent.reset(0, 0, env)
+    np.testing.assert_allclose(np.asarray(agent.planning_game.weights.c_gap), [1.0, 0.2])
+    with pytest.raises(ValueError):
+        ILQRAgent(belief_weights=[CostWeights()]).reset(0, 0, env)
+
+
+def test_make_agent_specs(tmp_path):
+    expected = {
+        "ilqr": ILQRAgent,
+        "ilqgame-ol": OpenLoopGameAgent,
+        "ilqgame-fb": FeedbackGameAgent,
+        "lane-keeping": LaneKeepingAgent,
+        "constant-speed": ConstantSpeedAgent,
+    }
+    for spec, cls in expected.items():
+        agent = make_agent(spec)
+        assert type(agent) is cls and agent.name == spec
+        assert isinstance(agent, Agent)
+    assert make_agent("ilqgame-fb", max_iterations=5, replan_every=2).replan_every == 2
+    for bad in ["ilqgame", "", "rl:", "random"]:
+        with pytest.raises(ValueError, match="ilqgame-fb"):
+            make_agent(bad)
+    with pytest.raises(ValueError, match="could not load"):
+        make_agent(f"rl:{tmp_path / 'missing.zip'}")
+
+
+def test_reset_accepts_game_and_gym_view():
+    env = racing_env.parallel_env(track="straight", num_agents=2)
+    agent = LaneKeepingAgent()
+    agent.reset(None, 1, env.game)
+    assert agent.index == 1 and agent.game is env.game
+    with pytest.raises(ValueError):
+        agent.reset(None, 2, env)
+    with pytest.raises(TypeError):
+        agent.reset(None, 0, object())
+    with pytest.raises(RuntimeError):
+        ConstantSpeedAgent().act(None, env.state())
+    # as an opponent in the Gymnasium view
+    import gymnasium
+
+    gym_env = gymnasium.make("racing_env/Race-v0", opponents=[agent], track="straight", max_steps=5)
+    agent.reset(0, 1, gym_env)
+    gym_env.reset(seed=0)
+    for _ in range(5):
+        gym_env.step(np.zeros(2, np.float32))
+    assert len(agent.history) == 5
+
+
+def test_sb3_agent_real_ppo(tmp_path):
+    import gymnasium
+    from stable_baselines3 import PPO
+
+    train_env = gymnasium.make("racing_env/Race-v0", track="straight", max_steps=64)
+    model = PPO("MlpPolicy", train_env, n_steps=128, batch_size=64, n_epochs=1, seed=0, device="cpu")
+    model.learn(total_timesteps=256)
+    path = tmp_path / "ppo.zip"
+    model.save(path)
+
+    agent = make_agent(f"rl:{path}")
+    assert isinstance(agent, SB3Agent) and agent.algo == "ppo"
+    env = racing_env.parallel_env(track="straight", num_agents=2, max_steps=20)
+    rival = ConstantSpeedAgent()
+    reset_agents([agent, rival], env, 0)
+    record = run_race(env, [agent, rival], seed=0)
+    acts = np.array([h["action"] for h in agent.history])
+    assert record.steps == 20 and acts.shape == (20, 2)
+    assert np.all(np.isfinite(acts)) and np.all(np.abs(acts) <= 1)
+    assert not any(h["fallback"] for h in agent.history)
+    # the same actions as the model's own deterministic predict
+    obs, _ = env.reset(seed=0)
+    expected, _ = model.predict(obs["car_0"], deterministic=True)
+    np.testing.assert_allclose(agent.act(obs["car_0"], env.state()), np.clip(expected, -1, 1), atol=1e-6)
+    # an observation of the wrong size (3 cars) falls back instead of crashing
+    env3 = racing_env.parallel_env(track="straight", num_agents=3)
+    agent.reset(0, 0, env3)
+    obs3, _ = env3.reset(seed=0)
+    a = agent.act(obs3["car_0"], env3.state())
+    assert np.all(np.isfinite(a)) and agent.diagnostics()["fallback"]
+    assert "observation shape" in agent.diagnostics()["error"]

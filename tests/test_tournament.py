@@ -1,0 +1,146 @@
+"""Tournaments: schedule, faulty agents, resume after an interruption, determinism."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from experiments import tournament as tour
+from planners import agents as agents_module
+from planners.agents import LaneKeepingAgent
+
+SHORT = dict(track="straight", race_distance=120.0, grids=1, max_steps=400)
+TIMING_KEYS = ("act_time_mean_s", "act_time_max_s")
+
+
+class RaisingAgent(LaneKeepingAgent):
+    name = "raiser"
+
+    def act(self, observation, joint_state):
+        if self._steps >= 3:
+            raise RuntimeError("planner exploded")
+        return super().act(observation, joint_state)
+
+
+class SlowAgent(LaneKeepingAgent):
+    name = "sleeper"
+
+    def act(self, observation, joint_state):
+        if self._steps >= 2:
+            time.sleep(0.05)
+        return super().act(observation, joint_state)
+
+
+class InterruptingAgent(LaneKeepingAgent):
+    """Stands for Ctrl-C: interrupts the tournament once, in its second race."""
+
+    name = "interrupter"
+    races = 0
+    armed = True
+
+    def reset(self, seed, index, env_info):
+        super().reset(seed, index, env_info)
+        InterruptingAgent.races += 1
+
+    def act(self, observation, joint_state):
+        if InterruptingAgent.armed and InterruptingAgent.races == 2:
+            InterruptingAgent.armed = False
+            raise KeyboardInterrupt
+        return super().act(observation, joint_state)
+
+
+@pytest.fixture
+def extra_specs(monkeypatch):
+    for spec, cls in (("raiser", RaisingAgent), ("sleeper", SlowAgent), ("interrupter", InterruptingAgent)):
+        monkeypatch.setitem(agents_module.AGENT_SPECS, spec, cls)
+
+
+def _strip_timing(record):
+    record = json.loads(json.dumps(record))
+    for car in record["cars"]:
+        for key in TIMING_KEYS:
+            car.pop(key)
+    return record
+
+
+def _without_timing(board):
+    rows = [{k: v for k, v in row.items() if k != "mean_act_time_s"} for row in board["rows"]]
+    return rows, board["head_to_head"]
+
+
+def test_schedule_swaps_positions_for_every_pair_and_grid():
+    """Each pair races once per grid in both starting orders."""
+    config = tour.TournamentConfig(agents=("a", "b", "c"), grids=2)
+    races = tour.schedule(config)
+    assert len(races) == 3 * 2 * 2
+    lineups = {tuple(r["lineup"]) for r in races}
+    assert ("a", "b") in lineups and ("b", "a") in lineups
+    assert len({r["id"] for r in races}) == len(races)
+
+
+def test_bad_configurations_are_refused():
+    """Too few or duplicated agents, and a non-positive budget, raise ValueError."""
+    with pytest.raises(ValueError, match="at least 2"):
+        tour.TournamentConfig(agents=("a",))
+    with pytest.raises(ValueError, match="distinct"):
+        tour.TournamentConfig(agents=("a", "a"))
+    with pytest.raises(ValueError, match="step_budget_s"):
+        tour.TournamentConfig(agents=("a", "b"), step_budget_s=0)
+
+
+def test_raising_and_slow_agents_lose_and_the_tournament_completes(tmp_path, extra_specs):
+    """A raising agent and one over its time budget are placed last with the error recorded."""
+    config = tour.TournamentConfig(agents=("lane-keeping", "raiser", "sleeper"), step_budget_s=0.02, **SHORT)
+    board = tour.run_tournament(config, tmp_path, gif=False, progress=False)
+    records = tour.load_results(tmp_path)
+    assert len(records) == len(tour.schedule(config))
+    for record in records:
+        faulted = [c for c in record["cars"] if c["error"] is not None]
+        clean = [c for c in record["cars"] if c["error"] is None]
+        assert faulted, "every race here has a faulty agent, and the race stops at its first fault"
+        assert all(f["place"] > c["place"] for f in faulted for c in clean)
+        if "lane-keeping" in record["order"]:
+            (rival,) = [c for c in record["cars"] if c["agent"] != "lane-keeping"]
+            expected = "planner exploded" if rival["agent"] == "raiser" else "over the budget"
+            assert expected in rival["error"]
+    rows = {row["agent"]: row for row in board["rows"]}
+    assert rows["lane-keeping"]["wins"] == rows["lane-keeping"]["races"]
+    assert (tmp_path / "summary.csv").exists() and (tmp_path / "head_to_head.png").exists()
+
+
+def test_interrupted_tournament_resumes_without_rerunning_and_matches(tmp_path, extra_specs):
+    """Interrupt mid-way, resume: finished races are kept as written, the table is unchanged."""
+    config = tour.TournamentConfig(agents=("lane-keeping", "constant-speed", "interrupter"), **SHORT)
+    InterruptingAgent.races, InterruptingAgent.armed = 0, True
+    with pytest.raises(KeyboardInterrupt):
+        tour.run_tournament(config, tmp_path / "cut", gif=False, progress=False)
+    before = (tmp_path / "cut" / tour.RESULTS).read_text().splitlines()
+    assert 0 < len(before) < len(tour.schedule(config))
+    resumed = tour.run_tournament(config, tmp_path / "cut", gif=False, progress=False)
+    after = (tmp_path / "cut" / tour.RESULTS).read_text().splitlines()
+    assert after[: len(before)] == before  # finished races were not re-run (timings would differ)
+    assert len(after) == len(tour.schedule(config))
+    InterruptingAgent.armed = False
+    full = tour.run_tournament(config, tmp_path / "full", gif=False, progress=False)
+    assert _without_timing(resumed) == _without_timing(full)
+
+
+def test_same_seed_gives_identical_results(tmp_path):
+    """Two runs of the same tournament give identical races (timings aside)."""
+    config = tour.TournamentConfig(agents=("lane-keeping", "constant-speed"), **SHORT)
+    first = tour.run_tournament(config, tmp_path / "a", gif=True, progress=False)
+    second = tour.run_tournament(config, tmp_path / "b", gif=False, progress=False)
+    records_a = [_strip_timing(r) for r in tour.load_results(tmp_path / "a")]
+    records_b = [_strip_timing(r) for r in tour.load_results(tmp_path / "b")]
+    assert records_a == records_b
+    assert _without_timing(first) == _without_timing(second)
+    assert (tmp_path / "a" / "race.gif").stat().st_size > 0
+
+
+def test_overtakes_count_sign_changes():
+    """Two cars swapping the lead twice make two overtakes."""
+    s = np.array([[0.0, 1.0], [2.0, 1.5], [3.0, 3.5]])
+    assert tour.count_overtakes(s) == 2
