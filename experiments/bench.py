@@ -1,7 +1,7 @@
 """`racing bench`: performance figures as JSON and a table.
 
 Sections: ``env`` (PettingZoo steps per second), ``solvers`` (iLQGame iterations, solves,
-vmapped batches). Compile time is measured apart from run
+vmapped batches), ``agents`` (re-plan times of the game agents). Compile time is measured apart from run
 time; each figure is the median over repeats so a noisy shared machine disturbs it less.
 """
 
@@ -131,7 +131,39 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     return results
 
 
-SECTIONS: dict[str, Callable[[], list[dict[str, Any]]]] = {"env": bench_env, "solvers": bench_solvers}
+def bench_agents(steps: int = 150) -> list[dict[str, Any]]:
+    """Re-plan time of each game agent racing a copy of itself (warm start) on the trefoil.
+
+    Car 0's solve times over ``steps`` steps, the first (compiling) solve excluded.
+    """
+    from planners.agents import make_agent, reset_agents
+    from racing_env import parallel_env
+
+    results = []
+    for spec in ("ilqr", "ilqgame-ol", "ilqgame-fb"):
+        env = parallel_env(track="trefoil", num_agents=2, max_steps=steps)
+        drivers = [make_agent(spec), make_agent(spec)]
+        reset_agents(drivers, env, seed=0)
+        observations, _ = env.reset(seed=0)
+        times, iterations, fallbacks = [], [], 0
+        while env.agents:
+            state = env.state()
+            actions = {a: drivers[i].act(observations[a], state) for i, a in enumerate(env.possible_agents) if a in env.agents}
+            record = drivers[0].diagnostics()
+            if record["solve_time"] is not None:
+                times.append(record["solve_time"])
+                iterations.append(record["iterations"])
+            fallbacks += bool(record["fallback"])
+            observations, *_ = env.step(actions)
+        compile_s, runs = times[0], np.array(times[1:])
+        results.append({"name": f"{spec}_replan", "ms_median": 1e3 * float(np.median(runs)),
+                        "ms_p95": 1e3 * float(np.percentile(runs, 95)), "compile_s": compile_s,
+                        "iterations_median": float(np.median(iterations[1:])), "fallbacks": fallbacks,
+                        "target_ms_p95": 50.0 if spec == "ilqgame-fb" else None})
+    return results
+
+
+SECTIONS: dict[str, Callable[[], list[dict[str, Any]]]] = {"env": bench_env, "solvers": bench_solvers, "agents": bench_agents}
 
 
 def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[str, Any]:

@@ -21,7 +21,7 @@ def test_help_lists_the_subcommands(capsys):
 
 def test_demo_writes_gif_plot_and_result(tmp_path):
     """`racing demo` races two scripted cars to the finish and writes its three outputs."""
-    assert main(["demo", "--out", str(tmp_path), "--track", "straight"]) == 0
+    assert main(["demo", "--scripted", "--out", str(tmp_path), "--track", "straight"]) == 0
     for name in ("race.gif", "trajectories.png", "result.json"):
         assert (tmp_path / name).stat().st_size > 0
     result = json.loads((tmp_path / "result.json").read_text())
@@ -30,9 +30,21 @@ def test_demo_writes_gif_plot_and_result(tmp_path):
     assert all(row["finished"] for row in result["summary"])
 
 
+def test_tournament_cli_runs_and_resumes(tmp_path, capsys):
+    """`racing tournament` with scripted agents writes its outputs; a rerun resumes."""
+    args = ["tournament", "--agents", "lane-keeping", "constant-speed", "--track", "straight",
+            "--race-distance", "120", "--grids", "1", "--no-gif", "--out", str(tmp_path)]
+    assert main(args) == 0
+    lines = (tmp_path / "results.jsonl").read_text().splitlines()
+    assert len(lines) == 2
+    assert main(args) == 0
+    assert (tmp_path / "results.jsonl").read_text().splitlines() == lines
+    assert "resuming: 2 of 2 races" in capsys.readouterr().out
+
+
 def test_bad_track_is_a_clear_error(tmp_path, capsys):
     """An unknown track name exits with status 2 and names the built-in tracks."""
-    assert main(["demo", "--out", str(tmp_path), "--track", "nowhere"]) == 2
+    assert main(["demo", "--scripted", "--out", str(tmp_path), "--track", "nowhere"]) == 2
     assert "trefoil" in capsys.readouterr().err
 
 
