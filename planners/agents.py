@@ -184,6 +184,20 @@ class BaseAgent:
     def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 
+    def _act_guarded(self, policy, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        """Act with ``policy(observation, joint_state)``, timed; braking if it raises."""
+        self._require_reset()
+        record = _empty_record()
+        record["step"] = self._steps
+        t0 = time.perf_counter()
+        try:
+            action = policy(observation, joint_state)
+        except Exception as exc:  # noqa: BLE001 - any policy failure: brake, and say why
+            record.update(fallback=True, fallback_kind="brake", error=f"{type(exc).__name__}: {exc}")
+            action = self._safe_action(joint_state)
+        record["solve_time"] = time.perf_counter() - t0
+        return self._finish(action, joint_state, record)
+
     def __call__(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
         return self.act(observation, joint_state)
 
@@ -436,17 +450,7 @@ class _ScriptedAgent(BaseAgent):
         )
 
     def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
-        self._require_reset()
-        record = _empty_record()
-        record["step"] = self._steps
-        t0 = time.perf_counter()
-        try:
-            a = self.controller(observation, joint_state)
-        except Exception as exc:  # noqa: BLE001
-            record.update(fallback=True, fallback_kind="brake", error=f"{type(exc).__name__}: {exc}")
-            a = self._safe_action(joint_state)
-        record["solve_time"] = time.perf_counter() - t0
-        return self._finish(a, joint_state, record)
+        return self._act_guarded(self.controller, observation, joint_state)
 
 
 class LaneKeepingAgent(_ScriptedAgent):
@@ -510,25 +514,19 @@ class SB3Agent(BaseAgent):
             except Exception:  # noqa: BLE001 - seeding is best effort
                 pass
 
+    def _predict(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        obs = np.asarray(observation, dtype=np.float32)
+        expected = self.model.observation_space.shape
+        if obs.shape != expected:
+            raise ValueError(
+                f"observation shape {obs.shape} does not match the model's {expected} "
+                "(trained with a different number of cars or preview distances?)"
+            )
+        action, _ = self.model.predict(obs, deterministic=True)
+        return action
+
     def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
-        self._require_reset()
-        record = _empty_record()
-        record["step"] = self._steps
-        t0 = time.perf_counter()
-        try:
-            obs = np.asarray(observation, dtype=np.float32)
-            expected = self.model.observation_space.shape
-            if obs.shape != expected:
-                raise ValueError(
-                    f"observation shape {obs.shape} does not match the model's {expected} "
-                    "(trained with a different number of cars or preview distances?)"
-                )
-            a, _ = self.model.predict(obs, deterministic=True)
-        except Exception as exc:  # noqa: BLE001
-            record.update(fallback=True, fallback_kind="brake", error=f"{type(exc).__name__}: {exc}")
-            a = self._safe_action(joint_state)
-        record["solve_time"] = time.perf_counter() - t0
-        return self._finish(a, joint_state, record)
+        return self._act_guarded(self._predict, observation, joint_state)
 
 
 # --------------------------------------------------------------------------------------
