@@ -76,27 +76,13 @@ def _solver_game(num_cars: int):
     return game, np.vstack([x0, third])
 
 
-def _time_call(fn, repeats: int) -> tuple[float, float, Any]:
-    """(first call incl. compile [s], median later call [s], result)."""
-    import jax
-
-    start = time.perf_counter()
-    result = jax.block_until_ready(fn())
-    first = time.perf_counter() - start
-    runs = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        runs.append(time.perf_counter() - start)
-    return first, float(np.median(runs)), result
-
-
 def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     """Per-iteration and per-solve times of feedback/open-loop iLQGame, and a vmapped batch.
 
     Per iteration: a solve capped at 20 iterations with tolerance 0 (so all 20 run), divided
     by 20. Per solve: a cold solve (zero inputs) to convergence.
     """
+    from experiments.timing import time_jax_call
     from planners import ilq
 
     fixed_iterations = 20
@@ -104,12 +90,12 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     for num in (2, 3):
         game, x0 = _solver_game(num)
         for mode in ("feedback", "open_loop"):
-            first, run, _ = _time_call(
+            _, first, run = time_jax_call(
                 lambda: ilq.solve(game, x0, mode=mode, max_iterations=fixed_iterations, tolerance=0.0), repeats
             )
             results.append({"name": f"{mode}_iteration_N{num}_T{game.horizon}", "ms_per_iter": 1e3 * run / fixed_iterations,
                             "compile_s": first - run, "target_ms": 0.25 if (num == 2 and mode == "feedback") else None})
-            first, run, res = _time_call(lambda: ilq.solve(game, x0, mode=mode), repeats)
+            res, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode=mode), repeats)
             results.append({"name": f"{mode}_cold_solve_N{num}_T{game.horizon}", "ms_per_solve": 1e3 * run,
                             "converged": bool(res.converged), "iterations": int(res.iterations),
                             "compile_s": first - run, "target_ms": 50.0 if num == 2 else None})
@@ -118,14 +104,14 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     x0s = np.repeat(x0[None], batch, axis=0)
     x0s[:, 1, 2] += rng.uniform(-0.5, 0.5, batch)  # different lateral offsets of the opponent
     x0s[:, 1, 1] += rng.uniform(-1.0, 1.0, batch)
-    first_b, run_b, res_b = _time_call(lambda: ilq.solve_batch(game, x0s, mode="feedback"), max(1, repeats // 2))
+    res_b, first_b, run_b = time_jax_call(lambda: ilq.solve_batch(game, x0s, mode="feedback"), max(1, repeats // 2))
     ilq.solve(game, x0s[0], mode="feedback")  # compile the single solve before timing
 
     def sequential():
         return [ilq.solve(game, x, mode="feedback").xs for x in x0s]
 
-    _, run_seq, _ = _time_call(sequential, 1)
-    results.append({"name": f"feedback_batch{batch}_vmap", "ms_per_solve": 1e3 * run_b, "compile_s": first_b - run_b,
+    _, _, run_seq = time_jax_call(sequential, 1)
+    results.append({"name": f"feedback_batch{batch}_vmap", "ms_batch": 1e3 * run_b, "compile_s": first_b - run_b,
                     "converged": int(np.sum(np.asarray(res_b.converged))), "sequential_ms": 1e3 * run_seq,
                     "throughput_ratio": run_seq / run_b, "target_ratio": 10.0})
     return results
@@ -190,7 +176,7 @@ def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[st
         table.add_column(column)
     for section, rows in report["results"].items():
         for row in rows:
-            figure = next((f"{row[k]:.4g} {k}" for k in ("steps_per_s", "ms_per_iter", "ms_per_solve", "throughput_ratio", "ms_p95") if k in row), "")
+            figure = next((f"{row[k]:.4g} {k}" for k in ("steps_per_s", "throughput_ratio", "ms_per_iter", "ms_per_solve", "ms_p95") if k in row), "")
             target = next((str(row[k]) for k in row if k.startswith("target") and row[k] is not None), "")
             table.add_row(section, row["name"], figure, f"{row.get('compile_s', float('nan')):.2f}", target)
     console.print(table)

@@ -10,13 +10,12 @@ the same cost weights. Orchestration only: the math lives in ``planners``.
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
 
+from experiments.timing import time_jax_call
 from planners import ilq, ilqr
 from racing_env.costs import CostWeights
 from racing_env.dynamics import N_LAT, S
@@ -54,19 +53,6 @@ def paper_game(weights: CostWeights = PAPER_WEIGHTS, opponent_collision: float |
     return game, scenario.x0
 
 
-def _timed(fn, *args, repeats: int = 3, **kwargs):
-    """(result, compile+first-run seconds, median run seconds after compilation)."""
-    start = time.perf_counter()
-    result = jax.block_until_ready(fn(*args, **kwargs))
-    first = time.perf_counter() - start
-    runs = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args, **kwargs))
-        runs.append(time.perf_counter() - start)
-    return result, first, float(np.median(runs))
-
-
 def trajectory_metrics(game: RaceGame, xs: np.ndarray) -> dict[str, Any]:
     """Lateral extremes, final gap and closest approach of a 2-car trajectory ``(T+1, 2, 6)``."""
     ds = np.asarray(game.track.wrap_ds(xs[:, 1, S] - xs[:, 0, S]))
@@ -99,22 +85,22 @@ def _record(game, x0, method: str, xs, us, converged, iterations, first_s, run_s
 def solve_methods(game: RaceGame, x0: np.ndarray) -> dict[str, dict[str, Any]]:
     """iLQR, feedback and open-loop iLQGame from zero inputs, and open loop from feedback."""
     out = {}
-    res, first, run = _timed(ilqr.solve_ilqr, game, x0, ego=0)
+    res, first, run = time_jax_call(lambda: ilqr.solve_ilqr(game, x0, ego=0))
     out["ilqr"] = _record(game, x0, "iLQR", res.xs, np.zeros((game.horizon, 2, 2)), res.converged, res.iterations, first, run)
     # iLQR's residual is not a Nash quantity (the opponent is a prediction): drop it
     out["ilqr"]["nash_residual"] = None
-    fb, first, run = _timed(ilq.solve, game, x0, mode="feedback")
+    fb, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode="feedback"))
     out["feedback"] = _record(game, x0, "feedback iLQGame", fb.xs, fb.us, fb.converged, fb.iterations, first, run)
-    ol, first, run = _timed(ilq.solve, game, x0, mode="open_loop")
+    ol, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode="open_loop"))
     out["open_loop"] = _record(game, x0, "open-loop iLQGame", ol.xs, ol.us, ol.converged, ol.iterations, first, run)
-    olfb, first, run = _timed(ilq.solve, game, x0, init=fb, mode="open_loop")
+    olfb, first, run = time_jax_call(lambda: ilq.solve(game, x0, init=fb, mode="open_loop"))
     out["open_loop_from_feedback"] = _record(
         game, x0, "open-loop iLQGame from the feedback solution", olfb.xs, olfb.us, olfb.converged, olfb.iterations, first, run
     )
     out["open_loop_from_feedback"]["max_state_change_vs_feedback"] = float(np.max(np.abs(np.asarray(olfb.xs) - np.asarray(fb.xs))))
     guess = left_guess(game.horizon)
     for mode, label in (("open_loop", "open-loop"), ("feedback", "feedback")):
-        res, first, run = _timed(ilq.solve, game, x0, init=guess, mode=mode)
+        res, first, run = time_jax_call(lambda: ilq.solve(game, x0, init=guess, mode=mode))
         out[f"{mode}_from_left_guess"] = _record(
             game, x0, f"{label} iLQGame from a left-steering initial guess", res.xs, res.us, res.converged, res.iterations, first, run
         )
@@ -193,7 +179,7 @@ def run_paper(out: Path) -> dict[str, Any]:
     base_cc = float(np.asarray(PAPER_WEIGHTS.c_collision))
     for ratio in FIG2_RATIOS:
         g2, _ = paper_game(opponent_collision=ratio * base_cc)
-        res, first, run = _timed(ilq.solve, g2, x0, mode="feedback")
+        res, first, run = time_jax_call(lambda: ilq.solve(g2, x0, mode="feedback"))
         rec = _record(g2, x0, f"feedback, c_c^2 = {ratio:g} c_c^1", res.xs, res.us, res.converged, res.iterations, first, run)
         rec["ratio"] = ratio
         fig2.append(rec)

@@ -35,7 +35,12 @@ CONFIG = "tournament.json"
 
 @dataclasses.dataclass(frozen=True)
 class TournamentConfig:
-    """What a tournament races. ``race_distance`` [m] overrides ``laps`` when given."""
+    """What a tournament races. ``race_distance`` [m] overrides ``laps`` when given.
+
+    ``jerk_weight`` is the planners' jerk weight r (R = r I) in the race's game. Racing wants
+    it small: with r = 1 (the solver default, tuned for single solves) a 5 s horizon buys so
+    little progress per unit of jerk that the planners barely accelerate.
+    """
 
     agents: tuple[str, ...]
     track: str = "trefoil"
@@ -47,10 +52,6 @@ class TournamentConfig:
     max_steps: int = 3000
     step_budget_s: float = 1.0
     jerk_weight: float = 0.1
-
-    # The planners' jerk weight r (R = r I) in the race's game. Racing wants it small: with
-    # r = 1 (the solver default, tuned for single solves) a 5 s horizon buys so little
-    # progress per unit of jerk that the planners barely accelerate.
 
     def __post_init__(self) -> None:
         if len(self.agents) < 2:
