@@ -19,8 +19,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         return 0
     from experiments.tournament import TournamentConfig, run_tournament
 
-    config = TournamentConfig(agents=DEMO_AGENTS, track=args.track, race_distance=args.race_distance,
-                              grids=1, seed=args.seed)
+    config = TournamentConfig(agents=DEMO_AGENTS, track=args.track, laps=args.laps,
+                              race_distance=args.race_distance, grids=1, seed=args.seed)
     run_tournament(config, Path(args.out), fresh=True)
     return 0
 
@@ -39,7 +39,7 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
         agents=tuple(a for part in args.agents for a in part.split(",") if a),
         track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
         cars=args.cars, seed=args.seed, max_steps=args.max_steps, step_budget_s=args.step_budget,
-        jerk_weight=args.jerk_weight,
+        **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
     )
     run_tournament(config, Path(args.out), gif=not args.no_gif, fresh=args.fresh)
     return 0
@@ -65,12 +65,12 @@ def build_parser() -> argparse.ArgumentParser:
         "demo",
         help="the main job: a short tournament of iLQR, open-loop and feedback iLQGame and a lane keeper",
         description="A round robin (both starting orders, one start grid) of iLQR, open-loop iLQGame, feedback "
-        "iLQGame and the lane-keeping baseline over --race-distance metres of a built-in circuit: about 1.5 "
-        "minutes on a 2-core laptop. Prints the leaderboard; writes results.jsonl, summary.csv, "
+        "iLQGame and the lane-keeping baseline over one lap (--laps, --race-distance) of a built-in circuit: "
+        "about 4 minutes on a 2-core laptop. Prints the leaderboard; writes results.jsonl, summary.csv, "
         "head_to_head.png and race.gif. --scripted instead races two scripted cars (seconds).",
     )
     demo.add_argument("--out", default="runs/demo", help="output folder (default: runs/demo)")
-    demo.add_argument("--race-distance", type=float, default=500.0, help="race length [m] of the tournament (default: 500)")
+    demo.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps (default: a lap)")
     demo.add_argument("--scripted", action="store_true", help="race two scripted cars (lap race, GIF + trajectory plot)")
     demo.add_argument("--track", default="trefoil", help="built-in track name or TUMFTM CSV path (default: trefoil)")
     demo.add_argument("--laps", type=int, default=1, help="race length in laps (default: 1)")
@@ -98,7 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--seed", type=int, default=0, help="tournament seed (default: 0)")
     tour.add_argument("--max-steps", type=int, default=3000, help="truncate races after this many steps")
     tour.add_argument("--step-budget", type=float, default=1.0, help="per-step time budget of an agent [s] (default: 1)")
-    tour.add_argument("--jerk-weight", type=float, default=0.1, help="planners' jerk weight r in the race game (default: 0.1)")
+    tour.add_argument("--jerk-weight", type=float, default=None,
+                      help="planners' jerk weight r in the race game (default: racing_env.costs.RACING_JERK_WEIGHT, "
+                      "measured to race well)")
     tour.add_argument("--out", default="runs/tournament", help="output folder (default: runs/tournament)")
     tour.add_argument("--no-gif", action="store_true", help="do not render a GIF of the first race")
     tour.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")

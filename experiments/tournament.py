@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from racing_env.config import RaceConfig
-from racing_env.costs import CostWeights
+from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
 from racing_env.env import RacingParallelEnv
 
 RESULTS = "results.jsonl"
@@ -38,8 +38,9 @@ class TournamentConfig:
     """What a tournament races. ``race_distance`` [m] overrides ``laps`` when given.
 
     ``jerk_weight`` is the planners' jerk weight r (R = r I) in the race's game. Racing wants
-    it small: with r = 1 (the solver default, tuned for single solves) a 5 s horizon buys so
-    little progress per unit of jerk that the planners barely accelerate.
+    it small (see :data:`racing_env.costs.RACING_JERK_WEIGHT`, the default, for the
+    measurements behind it): with r = 1, the solver default tuned for single solves, a 5 s
+    horizon buys so little progress per unit of jerk that the planners barely accelerate.
     """
 
     agents: tuple[str, ...]
@@ -51,7 +52,7 @@ class TournamentConfig:
     seed: int = 0
     max_steps: int = 3000
     step_budget_s: float = 1.0
-    jerk_weight: float = 0.1
+    jerk_weight: float = RACING_JERK_WEIGHT
 
     def __post_init__(self) -> None:
         if len(self.agents) < 2:
@@ -170,7 +171,8 @@ def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: i
             "distance": float(final_s[i] - xs[0, i, 0]), "mean_speed": float(np.mean(xs[:, i, 1])),
             "collision_steps": int(contact[i]), "time_off_track": float(off[i] * env.config.dt),
             "act_time_mean_s": float(np.nanmean(times)), "act_time_max_s": float(np.nanmax(times)),
-            "solver_failures": int(summary.get("fallbacks", 0)), "error": faults.get(i),
+            "solver_failures": int(summary.get("fallbacks", 0)),
+            "solver_converged_fraction": summary.get("converged_fraction"), "error": faults.get(i),
         })
     record = {"id": race["id"], "grid": race["grid"], "seed": race["seed"], "steps": step,
               "order": [race["lineup"][i] for i in order], "gap": gap,
@@ -201,7 +203,8 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
     model = PlackettLuce()
     ratings = {n: model.rating(name=n) for n in names}
     h2h = np.zeros((len(names), len(names)), dtype=int)
-    stats = {n: {"races": 0, "wins": 0, "errors": 0, "collision_steps": 0, "act_times": []} for n in names}
+    stats = {n: {"races": 0, "wins": 0, "errors": 0, "collision_steps": 0, "act_times": [], "margins": []}
+             for n in names}
     for record in records:
         order = record["order"]
         teams = [[ratings[n]] for n in order]
@@ -216,6 +219,9 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
             st["errors"] += car["error"] is not None
             st["collision_steps"] += car["collision_steps"]
             st["act_times"].append(car["act_time_mean_s"])
+            others = [c["finish_time"] for c in record["cars"] if c is not car]
+            if car["finish_time"] is not None and all(t is not None for t in others):
+                st["margins"].append(float(np.mean(others)) - car["finish_time"])
     rows = []
     for n in names:
         st = stats[n]
@@ -225,6 +231,8 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
                      "win_rate": st["wins"] / st["races"] if st["races"] else float("nan"),
                      "win_rate_ci95": [lo, hi], "rating_mu": r.mu, "rating_sigma": r.sigma,
                      "rating": r.mu - 3 * r.sigma, "errors": st["errors"], "collision_steps": st["collision_steps"],
+                     # finish-time lead over the mean of the other cars, in races where all finished
+                     "mean_margin_s": float(np.mean(st["margins"])) if st["margins"] else None,
                      "mean_act_time_s": float(np.nanmean(st["act_times"])) if st["act_times"] else float("nan")})
     rows.sort(key=lambda row: -row["rating"])
     return {"rows": rows, "head_to_head": {"agents": names, "wins": h2h.tolist()}}
@@ -313,12 +321,14 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     plot_head_to_head(board["head_to_head"], out / "head_to_head.png")
     (out / "leaderboard.json").write_text(json.dumps(board, indent=2))
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
-    for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "errors", "contact steps", "act [ms]"):
+    for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "margin [s]", "errors",
+                "contact steps", "act [ms]"):
         table.add_column(col)
     for k, row in enumerate(board["rows"], 1):
         lo, hi = row["win_rate_ci95"]
         table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
-                      f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", str(row["errors"]), str(row["collision_steps"]),
+                      f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}", str(row["errors"]),
+                      str(row["collision_steps"]),
                       f"{1e3 * row['mean_act_time_s']:.1f}")
     console.print(table)
     console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'head_to_head.png'}"

@@ -209,10 +209,13 @@ class BaseAgent:
         """Aggregates over the steps since reset: re-plans, solve-time percentiles, fallbacks."""
         times = np.array([r["solve_time"] for r in self.history if r.get("solve_time") is not None])
         iters = [r["iterations"] for r in self.history if r.get("iterations") is not None]
+        converged = [bool(r["converged"]) for r in self.history if r.get("converged") is not None]
         out = {
             "steps": len(self.history),
             "replans": int(sum(bool(r.get("replanned")) for r in self.history)),
             "fallbacks": int(sum(bool(r.get("fallback")) for r in self.history)),
+            # share of re-plans that met the solver's tolerance (the rest use the last iterate)
+            "converged_fraction": float(np.mean(converged)) if converged else None,
         }
         if times.size:
             out.update(
