@@ -18,8 +18,6 @@ import dataclasses
 import itertools
 import json
 import math
-import time
-import traceback
 from pathlib import Path
 from typing import Any
 
@@ -91,8 +89,18 @@ def count_overtakes(s: np.ndarray) -> int:
     return total
 
 
+def _failed_setup(message: str):
+    """A policy standing in for an agent that could not be built or reset."""
+
+    def policy(observation, joint_state):
+        raise RuntimeError(message)
+
+    return policy
+
+
 def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0):
     """Race one lineup; returns ``(record, frames)``. Faults are recorded, never raised."""
+    from experiments.race import run_race
     from planners.agents import make_agent
 
     env = RacingParallelEnv(
@@ -101,60 +109,26 @@ def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: i
                    weights=CostWeights(r_jx=config.jerk_weight, r_jy=config.jerk_weight),
                    render_mode="rgb_array" if render_every else None)
     )
-    names = env.possible_agents
-    faults: dict[int, str] = {}
-    agents = []
+    agents, policies = [], []
     for i, spec in enumerate(race["lineup"]):
         try:
             agent = make_agent(spec)
             agent.reset(race["seed"], i, env)
+            policies.append(agent.act)
         except Exception as err:  # noqa: BLE001 - a broken agent loses, the tournament goes on
-            faults[i] = f"setup: {type(err).__name__}: {err}"
             agent = None
+            policies.append(_failed_setup(f"setup: {type(err).__name__}: {err}"))
         agents.append(agent)
-    observations, _ = env.reset(seed=race["seed"])
-    xs, frames = [env.state()], []
-    act_times = [[] for _ in names]
-    contact = np.zeros(len(names), dtype=int)
-    off = np.zeros(len(names), dtype=int)
-    last_info: dict[str, dict] = {}
-    step = 0
-    while env.agents and not faults:
-        if render_every and step % render_every == 0:
-            frames.append(env.render())
-        state = env.state()
-        actions = {}
-        for agent_name in env.agents:
-            i = names.index(agent_name)
-            start = time.perf_counter()
-            try:
-                actions[agent_name] = agents[i].act(observations[agent_name], state)
-            except Exception as err:  # noqa: BLE001
-                faults[i] = f"step {step}: {type(err).__name__}: {err}\n{traceback.format_exc(limit=3)}"
-                continue
-            elapsed = time.perf_counter() - start
-            if step > 0:
-                act_times[i].append(elapsed)
-                if elapsed > config.step_budget_s:
-                    faults[i] = f"step {step}: took {elapsed:.3f} s, over the budget of {config.step_budget_s} s"
-        if faults:
-            break
-        observations, _, _, _, infos = env.step(actions)
-        for agent_name, info in infos.items():
-            i = names.index(agent_name)
-            contact[i] += info["collided"]
-            off[i] += info["off_track"]
-            last_info[agent_name] = info
-        xs.append(env.state())
-        step += 1
-    xs = np.stack(xs)
+    result = run_race(env, policies, seed=race["seed"], render_every=render_every,
+                      step_budget_s=config.step_budget_s, catch_errors=True)
+    xs, faults = result.xs, result.faults
     final_s = xs[-1, :, 0]
-    finish = [last_info.get(n, {}).get("finish_time") for n in names]
-    # order: finishers by time, then the rest by distance, then faulted cars last
-    def key(i):
+    finish = [car["finish_time"] for car in result.summary]
+
+    def key(i):  # finishers by time, then the rest by distance, faulted cars last
         return (i in faults, finish[i] is None, finish[i] if finish[i] is not None else -final_s[i])
 
-    order = sorted(range(len(names)), key=key)
+    order = sorted(range(config.cars), key=key)
     places = {i: p + 1 for p, i in enumerate(order)}
     winner, second = order[0], order[1]
     if finish[winner] is not None and finish[second] is not None:
@@ -162,25 +136,23 @@ def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: i
     else:
         gap = {"metres": float(final_s[winner] - final_s[second])}
     cars = []
-    for i, spec in enumerate(race["lineup"]):
+    for i, (spec, car) in enumerate(zip(race["lineup"], result.summary)):
         agent = agents[i]
         summary = agent.summary() if agent is not None and hasattr(agent, "summary") else {}
-        times = np.array(act_times[i]) if act_times[i] else np.array([np.nan])
+        times = np.array(result.act_times[i]) if result.act_times[i] else np.array([np.nan])
         cars.append({
-            "agent": spec, "car": names[i], "place": places[i], "finish_time": finish[i],
-            "distance": float(final_s[i] - xs[0, i, 0]), "mean_speed": float(np.mean(xs[:, i, 1])),
-            "collision_steps": int(contact[i]), "time_off_track": float(off[i] * env.config.dt),
+            "agent": spec, "car": car["agent"], "place": places[i], "finish_time": finish[i],
+            "distance": car["distance"], "mean_speed": car["mean_speed"],
+            "collision_steps": car["collision_steps"], "time_off_track": car["time_off_track"],
             "act_time_mean_s": float(np.nanmean(times)), "act_time_max_s": float(np.nanmax(times)),
             "solver_failures": int(summary.get("fallbacks", 0)),
             "solver_converged_fraction": summary.get("converged_fraction"), "error": faults.get(i),
         })
-    record = {"id": race["id"], "grid": race["grid"], "seed": race["seed"], "steps": step,
+    record = {"id": race["id"], "grid": race["grid"], "seed": race["seed"], "steps": result.steps,
               "order": [race["lineup"][i] for i in order], "gap": gap,
               "overtakes": count_overtakes(xs[:, :, 0]), "cars": cars}
-    if render_every:
-        frames.append(env.render())
     env.close()
-    return record, frames
+    return record, result.frames
 
 
 def wilson_interval(wins: int, n: int, z: float = 1.96) -> tuple[float, float]:

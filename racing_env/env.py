@@ -12,7 +12,6 @@ error and leave the environment unchanged.
 
 from __future__ import annotations
 
-import functools
 import warnings
 from typing import Any, Mapping
 
