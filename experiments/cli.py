@@ -38,7 +38,7 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
     config = TournamentConfig(
         agents=tuple(a for part in args.agents for a in part.split(",") if a),
         track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
-        cars=args.cars, seed=args.seed, max_steps=args.max_steps, step_budget_s=args.step_budget,
+        cars=args.cars, seed=args.seed, versus=args.versus, max_steps=args.max_steps, step_budget_s=args.step_budget,
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
     )
     run_tournament(config, Path(args.out), gif=not args.no_gif, fresh=args.fresh)
@@ -94,6 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--laps", type=int, default=1, help="laps on closed tracks (default: 1)")
     tour.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
     tour.add_argument("--grids", type=int, default=2, help="seeded start grids per pairing (default: 2)")
+    tour.add_argument("--versus", default=None, metavar="SPEC",
+                      help="race every other agent against this one only (a gauntlet), not a full round robin")
     tour.add_argument("--cars", type=int, default=2, help="cars per race (default: 2)")
     tour.add_argument("--seed", type=int, default=0, help="tournament seed (default: 0)")
     tour.add_argument("--max-steps", type=int, default=3000, help="truncate races after this many steps")

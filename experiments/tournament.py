@@ -35,6 +35,9 @@ CONFIG = "tournament.json"
 class TournamentConfig:
     """What a tournament races. ``race_distance`` [m] overrides ``laps`` when given.
 
+    ``versus`` (one of ``agents``) races every other agent against that one only (a gauntlet)
+    instead of the full round robin.
+
     ``jerk_weight`` is the planners' jerk weight r (R = r I) in the race's game. Racing wants
     it small (see :data:`racing_env.costs.RACING_JERK_WEIGHT`, the default, for the
     measurements behind it): with r = 1, the solver default tuned for single solves, a 5 s
@@ -51,6 +54,7 @@ class TournamentConfig:
     max_steps: int = 3000
     step_budget_s: float = 1.0
     jerk_weight: float = RACING_JERK_WEIGHT
+    versus: str | None = None
 
     def __post_init__(self) -> None:
         if len(self.agents) < 2:
@@ -63,6 +67,8 @@ class TournamentConfig:
             raise ValueError(f"grids must be >= 1, got {self.grids}")
         if not self.jerk_weight > 0:
             raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight}")
+        if self.versus is not None and self.versus not in self.agents:
+            raise ValueError(f"versus must be one of the agents {list(self.agents)}, got {self.versus!r}")
         if not self.step_budget_s > 0:
             raise ValueError(f"step_budget_s must be > 0 seconds, got {self.step_budget_s}")
 
@@ -71,6 +77,8 @@ def schedule(config: TournamentConfig) -> list[dict[str, Any]]:
     """All races in a fixed order: ``id``, the specs by starting slot, the grid seed."""
     races = []
     for group in itertools.combinations(config.agents, config.cars):
+        if config.versus is not None and config.versus not in group:
+            continue
         for grid in range(config.grids):
             for shift in range(config.cars):
                 lineup = group[shift:] + group[:shift]

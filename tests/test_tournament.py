@@ -85,6 +85,16 @@ def test_schedule_swaps_positions_for_every_pair_and_grid():
     assert len({r["id"] for r in races}) == len(races)
 
 
+def test_versus_schedules_only_races_against_that_agent():
+    """A gauntlet: every other agent meets the named one, in both orders, and nobody else."""
+    config = tour.TournamentConfig(agents=("a", "b", "c"), grids=2, versus="c")
+    races = tour.schedule(config)
+    assert len(races) == 2 * 2 * 2
+    assert all("c" in r["lineup"] for r in races)
+    with pytest.raises(ValueError, match="versus"):
+        tour.TournamentConfig(agents=("a", "b"), versus="z")
+
+
 def test_bad_configurations_are_refused():
     """Too few or duplicated agents, and a non-positive budget, raise ValueError."""
     with pytest.raises(ValueError, match="at least 2"):
@@ -191,10 +201,13 @@ def test_game_agents_beat_the_lane_keeper(tmp_path):
     One start grid, positions swapped: 2 races per planner. Measured margins (finish-time
     lead, README): iLQR 0.85-1.8 s, open loop 0.67-1.9 s, feedback 1.0-1.8 s.
     """
-    for spec in ("ilqr", "ilqgame-ol", "ilqgame-fb"):
-        config = tour.TournamentConfig(agents=(spec, "lane-keeping"), track="trefoil", grids=1)
-        board = tour.run_tournament(config, tmp_path / spec, gif=False, progress=False)
-        rows = {row["agent"]: row for row in board["rows"]}
+    planners = ("ilqr", "ilqgame-ol", "ilqgame-fb")
+    config = tour.TournamentConfig(agents=(*planners, "lane-keeping"), versus="lane-keeping",
+                                   track="trefoil", grids=1)
+    board = tour.run_tournament(config, tmp_path, gif=False, progress=False)
+    rows = {row["agent"]: row for row in board["rows"]}
+    assert rows["lane-keeping"]["races"] == 2 * len(planners)
+    for spec in planners:
         assert rows[spec]["mean_margin_s"] > 0, rows
-        assert rows[spec]["wins"] > rows["lane-keeping"]["wins"], rows
+        assert rows[spec]["wins"] > rows[spec]["races"] / 2, rows
         assert rows[spec]["errors"] == 0
