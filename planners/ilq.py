@@ -30,23 +30,42 @@ One iteration
 -------------
 Around the nominal trajectory ``(x_hat, u_hat)``:
 
-1. linearise the dynamics with ``jax.jacfwd`` (vmapped over the horizon):
+1. linearise the dynamics with ``jax.jacfwd`` (vmapped over the horizon), or with the
+   problem's ``dynamics_jacobians`` hook (a RaceGame differentiates each car's RK4 step
+   alone: the cars do not interact through the dynamics):
    ``dx_{t+1} = A_t dx_t + sum_j B_t^j du_t^j``;
-2. quadratise each player's cost (Hessian/gradient w.r.t. ``[x, u_i]``, vmapped over
-   stages and players): ``Q_t^i, q_t^i`` (state) and ``R_t^{ii}, r_t^{ii}`` (own input).
-   Mixed state-input terms and ``R^{ij}, r^{ij}`` for ``i != j`` are zero (the paper's cost
-   structure; the mixed terms are dropped if a custom cost has them);
-3. regularisation: every ``Q_t^i`` is projected onto the PSD cone (eigenvalues clipped at
-   zero, ``convexify="eig"``, the default; ``"diag"`` makes it diagonally dominant instead,
-   ``"none"`` keeps the exact Hessian), then ``Q_t^i += state_regularization * I`` and
-   ``R_t^{ii} += control_regularization * I``. The collision term makes the exact ``Q^i``
-   indefinite; with it, the local LQ "equilibria" are often saddle points of a player's
-   local problem and the iteration wanders (observed on the paper's scenario). Projection
-   keeps every player's local problem convex, so each LQ solution is a genuine equilibrium
-   of the local game. It does not move open-loop fixed points (they depend on gradients
-   only); it does change feedback ones (``K`` depends on ``Q``), which is the usual price
-   of a regularised feedback iLQGame;
-4. solve the LQ game in deviation coordinates. Feedback: ``du = -K dx - k``. Open loop: the
+2. quadratise each player's cost: ``Q_t^i, q_t^i`` (state) and ``R_t^{ii}, r_t^{ii}`` (own
+   input). Mixed state-input terms and ``R^{ij}, r^{ij}`` for ``i != j`` are zero (the
+   paper's cost structure; the mixed terms are dropped if a custom cost has them). The
+   gradients ``q, r`` are always exact. The curvature, ``convexify``:
+
+   * ``"gauss_newton"`` (the default where the problem has the hooks, as every RaceGame
+     does): the problem writes player i's stage cost as ``sum_k rho_k(r_k(x, u_i))`` and
+     returns ``r_k``, ``rho_k'`` and a curvature weight ``h_k >= 0``; then
+     ``[Q, .; ., R] = J' diag(h) J`` and ``[q; r] = J' rho'`` with ``J = d r / d[x, u_i]``,
+     one forward-mode pass, PSD by construction. For the racing costs: the squared
+     hinges ``c max(z, 0)^2`` (track, ax and gg limits) get their exact outer curvature
+     ``2 c 1{z > 0}`` (the inner curvature of ``z`` is dropped), the jerk term is exact,
+     the terminal cost is linear, and each collision term gets the PSD part of its exact
+     Hessian in its natural coordinates ``(ds / l, dn / w)`` (see
+     :func:`_race_stage_gauss_newton`). No eigendecomposition is needed;
+   * ``"eig"`` (the default otherwise): exact Hessians (``jax.hessian``, vmapped over
+     stages and players), every ``Q_t^i`` projected onto the PSD cone (eigenvalues
+     clipped at zero); ``"diag"`` makes it diagonally dominant instead; ``"none"`` keeps
+     the exact Hessian;
+3. regularisation: ``Q_t^i += state_regularization * I`` and
+   ``R_t^{ii} += control_regularization * I``. Why convexify: the collision term makes the
+   exact ``Q^i`` indefinite; with it, the local LQ "equilibria" are often saddle points of
+   a player's local problem and the iteration wanders (observed on the paper's scenario).
+   A PSD ``Q^i`` keeps every player's local problem convex, so each LQ solution is a
+   genuine equilibrium of the local game. The curvature does not move open-loop fixed
+   points (they depend on gradients only); it does change feedback ones (``K`` depends
+   on ``Q``), which is the usual price of a regularised feedback iLQGame: the Gauss-Newton
+   and the eig-projected feedback solutions of the paper's scene differ by about 1 cm;
+4. solve the LQ game in deviation coordinates. Feedback: ``du = -K dx - k``, by
+   :func:`~planners.lq_game.solve_feedback_own` (the own-input structure and PSD ``Q``
+   make its block elimination safe; with ``convexify="none"`` the general pivoting
+   :func:`~planners.lq_game.solve_feedback`). Open loop: the
    LQ game starts at ``dx_0 = x_0 - x_hat_0 = 0``, so :func:`~planners.lq_game.solve_open_loop`
    is called with a ZERO initial deviation and its inputs ``du_t = -k_t`` are the whole
    update; ``K = 0``. With ``dx_0 = 0`` the open-loop equilibrium is linear in the
@@ -73,7 +92,7 @@ Step-size control (``step_control="trust_region"``, the default)
    ``eta = 1`` and the plain trust region run into limit cycles (e.g. period 7). A step
    whose state change points against a decaying sum of the previous unit steps (memory
    ``damping_memory``) reveals an overshoot: the next iteration starts at
-   ``eta * step_decay``; otherwise it starts at ``min(initial_step, eta / step_decay)``.
+   ``eta * step_decay``; otherwise it starts again at ``initial_step``.
    Near a stable fixed point this settles on a step that contracts (full steps where the
    iteration allows them).
 Why no Armijo backtracking on costs: a game has no single merit function that every
@@ -172,6 +191,15 @@ class GameProblem:
         terminal_cost: ``(params, i, x (n,)) -> ()``.
         num_players, state_dim, input_dim, horizon: ``N, n, m, T`` (static ints).
         params: pytree of arrays passed to the functions (traced inside the solver).
+        stage_gauss_newton: optional ``(params, t, i, x, u_i) -> (r (k,), g (k,), h (k,))``:
+            player i's stage cost written as ``sum_k rho_k(r_k(x, u_i))`` with scalar outer
+            functions ``rho_k``; ``g_k = rho_k'(r_k)`` and a curvature weight ``h_k >= 0``
+            (``rho_k''(r_k)`` where that is non-negative). Enables the Gauss-Newton
+            quadratisation (module docstring); ``g`` and ``h`` are not differentiated.
+        terminal_gauss_newton: optional ``(params, i, x) -> (r, g, h)``, the same for
+            ``terminal_cost`` (both hooks are needed for Gauss-Newton).
+        dynamics_jacobians: optional ``(params, t, x, u) -> (A (n, n), B (n, N, m))``, the
+            Jacobians of ``dynamics`` (e.g. exploiting structure); default ``jax.jacfwd``.
 
     The functions are compared by identity for jit caching: define them once (module
     level), not as fresh lambdas per call, to avoid recompiling.
@@ -185,6 +213,13 @@ class GameProblem:
     input_dim: int
     horizon: int
     params: Any = None
+    stage_gauss_newton: Callable[..., tuple[Array, Array, Array]] | None = None
+    terminal_gauss_newton: Callable[..., tuple[Array, Array, Array]] | None = None
+    dynamics_jacobians: Callable[..., tuple[Array, Array]] | None = None
+
+    @property
+    def has_gauss_newton(self) -> bool:
+        return self.stage_gauss_newton is not None and self.terminal_gauss_newton is not None
 
     def replace(self, **changes) -> "GameProblem":
         return dataclasses.replace(self, **changes)
@@ -201,6 +236,9 @@ jax.tree_util.register_dataclass(
         "state_dim",
         "input_dim",
         "horizon",
+        "stage_gauss_newton",
+        "terminal_gauss_newton",
+        "dynamics_jacobians",
     ],
 )
 
@@ -219,11 +257,91 @@ def _race_terminal_cost(game, i, x):
     return game.terminal_cost(i, x.reshape(game.num_players, -1))
 
 
+def _race_stage_gauss_newton(game, t, i, x, u_i):
+    """Player i's racing stage cost as ``sum_k rho_k(r_k)`` (see ``racing_env.costs``).
+
+    * collision with car j: ``r = a_ij = (ds_ij / l_ij)^2 + (dn_ij / w_ij)^2``,
+      ``rho(a) = c_c exp(2 (1 - a))``. The term's exact Hessian is ``J' H_y J`` in the
+      coordinates ``y = (ds / l, dn / w)`` (linear in x), with
+      ``H_y = c e (16 y y' - 4 I)``, ``e = exp(2 (1 - a))``: indefinite. Its PSD part is
+      ``c e max(16 - 4 / a, 0) y y'``, i.e. the weight ``h = c e max(4 - 1 / a, 0)`` on
+      ``grad a grad a'`` (``grad a = 2 J' y``). Zero for ``a < 1/4`` (deep overlap).
+    * track boundaries, ax limit, gg limit: ``r = z``, ``rho(z) = c max(z, 0)^2``;
+      ``h = 2 c 1{z > 0}``, the exact outer curvature (Gauss-Newton: the inner curvature of
+      ``z`` is dropped, e.g. of ``ax_max(V)`` and of the norm ``|(ax, ay)|``).
+    * jerk: ``r = u_i``, ``rho = r_j u^2``, exact.
+    """
+    del t
+    from racing_env.costs import _NORM_EPS
+    from racing_env.dynamics import AX, AY, N_LAT, S, V
+
+    N = game.num_players
+    X = x.reshape(N, -1)
+    vehicles, weights, track = game.vehicles, game.weights, game.track
+    s, v, n = X[:, S], X[:, V], X[:, N_LAT]
+    ds = track.wrap_ds(s - s[i])
+    dn = n - n[i]
+    lengths, widths = jnp.asarray(vehicles.length), jnp.asarray(vehicles.width)
+    length = 0.5 * (lengths[i] + lengths)
+    width = 0.5 * (widths[i] + widths)
+    a = (ds / length) ** 2 + (dn / width) ** 2  # (N,), a_ii = 0
+    others = (jnp.arange(N) != i).astype(x.dtype)
+    ce = jnp.asarray(weights.c_collision)[i] * jnp.exp(2.0 * (1.0 - a)) * others
+    g_col = -2.0 * ce
+    h_col = ce * jnp.maximum(4.0 * a - 1.0, 0.0) / jnp.maximum(a, 0.25)
+
+    half_width = 0.5 * widths[i]
+    ax_i, ay_i = X[i, AX], X[i, AY]
+    z = jnp.stack(
+        [
+            n[i] - (track.width_left_at(s[i]) - half_width),
+            -n[i] - (track.width_right_at(s[i]) - half_width),
+            ax_i - vehicles.ax_max(v)[i],
+            jnp.sqrt(ax_i**2 + ay_i**2 + _NORM_EPS) - vehicles.rho(v)[i],
+        ]
+    )
+    c_track, c_ax, c_acc = (jnp.asarray(w)[i] for w in (weights.c_track, weights.c_ax, weights.c_acc))
+    c = jnp.stack([c_track, c_track, c_ax, c_acc])
+    rj = jnp.asarray(weights.jerk_weights)[i]
+    r = jnp.concatenate([a, z, u_i])
+    g = jnp.concatenate([g_col, 2.0 * c * jnp.maximum(z, 0.0), 2.0 * rj * u_i])
+    h = jnp.concatenate([h_col, 2.0 * c * (z > 0), 2.0 * rj])
+    return r, g, h
+
+
+def _race_terminal_gauss_newton(game, i, x):
+    """``-s_i + c_g sum_{j != i} s_j``: linear in the cars' arc lengths (zero curvature)."""
+    from racing_env.dynamics import S
+
+    N = game.num_players
+    s = x.reshape(N, -1)[:, S]
+    own = jnp.arange(N) == i
+    g = jnp.where(own, -1.0, jnp.asarray(game.weights.c_gap)[i]).astype(x.dtype)
+    return s, g, jnp.zeros_like(s)
+
+
+def _race_dynamics_jacobians(game, t, x, u):
+    """Per-car Jacobians of the RK4 step (the cars do not interact through the dynamics):
+    ``A`` is block diagonal, ``B^j`` is non-zero in car j's rows only."""
+    del t
+    from racing_env.dynamics import rk4_step
+
+    N, m = u.shape
+    X = x.reshape(N, -1)
+    step = lambda xi, ui: rk4_step(xi, ui, game.dt, game.track.kappa_at)
+    Ai, Bi = jax.vmap(jax.jacfwd(step, argnums=(0, 1)))(X, u)  # (N, 6, 6), (N, 6, m)
+    eye = jnp.eye(N, dtype=x.dtype)
+    A = (eye[:, None, :, None] * Ai[:, :, None, :]).reshape(x.shape[0], x.shape[0])
+    B = (eye[:, None, :, None] * Bi[:, :, None, :]).reshape(x.shape[0], N, m)
+    return A, B
+
+
 def problem_from_race_game(game) -> GameProblem:
     """Adapt a :class:`racing_env.RaceGame`: flat joint state ``x (6 N,)``, inputs ``(N, 2)``.
 
     The game is the problem's ``params``, so solving games that differ only in weights,
-    vehicles or track arrays (same shapes) re-uses the compiled solver.
+    vehicles or track arrays (same shapes) re-uses the compiled solver. The problem has
+    the Gauss-Newton hooks of the racing costs and per-car dynamics Jacobians.
     """
     return GameProblem(
         dynamics=_race_dynamics,
@@ -234,6 +352,9 @@ def problem_from_race_game(game) -> GameProblem:
         input_dim=game.input_dim,
         horizon=game.horizon,
         params=game,
+        stage_gauss_newton=_race_stage_gauss_newton,
+        terminal_gauss_newton=_race_terminal_gauss_newton,
+        dynamics_jacobians=_race_dynamics_jacobians,
     )
 
 
@@ -259,7 +380,7 @@ def _as_problem(problem_or_game) -> tuple[GameProblem, bool]:
 
 _MODES = ("feedback", "open_loop")
 _STEP_CONTROLS = ("trust_region", "none")
-_CONVEXIFY = ("eig", "diag", "none")
+_CONVEXIFY = ("auto", "gauss_newton", "eig", "diag", "none")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -282,8 +403,12 @@ class SolverOptions:
             reverses the recent direction of travel (trust-region mode only).
         damping_memory: decay in ``[0, 1)`` of the running sum of past step directions.
         state_regularization: ``lambda_x >= 0`` added to the diagonal of every ``Q_t^i``.
-        convexify: ``"eig"`` (project every ``Q_t^i`` onto the PSD cone), ``"diag"`` (make it
-            diagonally dominant: cheaper, more conservative) or ``"none"``.
+        convexify: ``"gauss_newton"`` (PSD Gauss-Newton quadratisation from the problem's
+            ``stage_gauss_newton``/``terminal_gauss_newton`` hooks; every RaceGame has them),
+            ``"eig"`` (exact Hessians, every ``Q_t^i`` projected onto the PSD cone),
+            ``"diag"`` (exact Hessians made diagonally dominant: more conservative),
+            ``"none"`` (exact Hessians), or ``"auto"`` (the default): ``"gauss_newton"``
+            where the problem has the hooks, else ``"eig"``.
         control_regularization: ``lambda_u >= 0`` added to the diagonal of every ``R_t^{ii}``.
     """
 
@@ -298,7 +423,7 @@ class SolverOptions:
     oscillation_damping: bool = True
     damping_memory: float = 0.8
     state_regularization: float = 0.0
-    convexify: str = "eig"
+    convexify: str = "auto"
     control_regularization: float = 0.0
 
     def __post_init__(self) -> None:
@@ -409,7 +534,10 @@ def total_costs(problem: GameProblem, xs: Array, us: Array) -> Array:
 def _linearize(problem: GameProblem, xs: Array, us: Array) -> tuple[Array, Array]:
     """``A (T, n, n)`` and ``B (T, N, n, m)`` along the nominal trajectory."""
     params = problem.params
-    jac = jax.jacfwd(lambda t, x, u: problem.dynamics(params, t, x, u), argnums=(1, 2))
+    if problem.dynamics_jacobians is not None:
+        jac = lambda t, x, u: problem.dynamics_jacobians(params, t, x, u)
+    else:
+        jac = jax.jacfwd(lambda t, x, u: problem.dynamics(params, t, x, u), argnums=(1, 2))
     A, B = jax.vmap(jac)(jnp.arange(us.shape[0]), xs[:-1], us)  # B (T, n, N, m)
     return A, jnp.transpose(B, (0, 2, 1, 3))
 
@@ -425,11 +553,42 @@ def _hess_grad(fun: Callable[[Array], Array], z: Array) -> tuple[Array, Array]:
     return jax.jacfwd(grad_twice, has_aux=True)(z)
 
 
-def _quadratize(problem: GameProblem, xs: Array, us: Array):
-    """Per-player ``Q (T+1, N, n, n)``, ``q (T+1, N, n)``, ``Rii (T, N, m, m)``, ``rii (T, N, m)``."""
+def _gauss_newton_terms(fun: Callable, z: Array) -> tuple[Array, Array]:
+    """Gauss-Newton Hessian ``J' diag(h) J`` and exact gradient ``J' g`` of
+    ``sum_k rho_k(r_k(z))``, where ``fun(z) = (r, g, h)`` (one forward-mode pass)."""
+    J, (g, h) = jax.jacfwd(lambda z_: (lambda r, g, h: (r, (g, h)))(*fun(z_)), has_aux=True)(z)
+    h = jax.lax.stop_gradient(jnp.maximum(h, 0.0))
+    return jnp.einsum("ka,k,kb->ab", J, h, J), J.T @ jax.lax.stop_gradient(g)
+
+
+def _quadratize(problem: GameProblem, xs: Array, us: Array, gauss_newton: bool = False):
+    """Per-player ``Q (T+1, N, n, n)``, ``q (T+1, N, n)``, ``Rii (T, N, m, m)``, ``rii (T, N, m)``.
+
+    Exact Hessians, or with ``gauss_newton`` the problem's Gauss-Newton form (PSD). The
+    gradients are exact either way.
+    """
     params = problem.params
     n = problem.state_dim
     players = jnp.arange(problem.num_players)
+    if gauss_newton:
+
+        def stage_gn(t, x, u):
+            def player(i, u_i):
+                fun = lambda z: problem.stage_gauss_newton(params, t, i, z[:n], z[n:])
+                H, g = _gauss_newton_terms(fun, jnp.concatenate([x, u_i]))
+                return H[:n, :n], g[:n], H[n:, n:], g[n:]
+
+            return jax.vmap(player)(players, u)
+
+        Q, q, Rii, rii = jax.vmap(stage_gn)(jnp.arange(us.shape[0]), xs[:-1], us)
+        QT, qT = jax.vmap(
+            lambda i: _gauss_newton_terms(
+                lambda x: problem.terminal_gauss_newton(params, i, x), xs[-1]
+            )
+        )(players)
+        Q = jnp.concatenate([Q, QT[None]], axis=0)
+        q = jnp.concatenate([q, qT[None]], axis=0)
+        return Q, q, Rii, rii
 
     def stage(t, x, u):
         def player(i, u_i):
@@ -457,12 +616,26 @@ def _own_to_full(Rii: Array, rii: Array) -> tuple[Array, Array]:
     return R, r
 
 
-def _regularize(Q: Array, Rii: Array, options: SolverOptions) -> tuple[Array, Array]:
-    Q = 0.5 * (Q + jnp.swapaxes(Q, -1, -2))
-    if options.convexify == "eig":
+def _convexify(problem: GameProblem, options: SolverOptions) -> str:
+    """The convexification actually used (``"auto"`` resolved)."""
+    if options.convexify == "auto":
+        return "gauss_newton" if problem.has_gauss_newton else "eig"
+    if options.convexify == "gauss_newton" and not problem.has_gauss_newton:
+        raise ValueError(
+            'convexify="gauss_newton" needs a problem with stage_gauss_newton and '
+            "terminal_gauss_newton hooks (see GameProblem); use \"eig\" or \"auto\""
+        )
+    return options.convexify
+
+
+def _regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str) -> tuple[Array, Array]:
+    # Gauss-Newton Q is PSD by construction (and symmetrised by the LQ solvers).
+    if convexify != "gauss_newton":
+        Q = 0.5 * (Q + jnp.swapaxes(Q, -1, -2))
+    if convexify == "eig":
         w, V = jnp.linalg.eigh(Q)
         Q = jnp.einsum("...ab,...b,...cb->...ac", V, jnp.maximum(w, 0.0), V)
-    elif options.convexify == "diag":
+    elif convexify == "diag":
         diag = jnp.diagonal(Q, axis1=-2, axis2=-1)
         off = jnp.sum(jnp.abs(Q), axis=-1) - jnp.abs(diag)
         Q = Q + jnp.eye(Q.shape[-1], dtype=Q.dtype) * jnp.maximum(off - diag, 0.0)[..., None]
@@ -475,17 +648,24 @@ def _regularize(Q: Array, Rii: Array, options: SolverOptions) -> tuple[Array, Ar
 
 def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions):
     """Linearise, quadratise and solve the local LQ game: ``K (T, N, m, n)``, ``k (T, N, m)``."""
+    convexify = _convexify(problem, options)
     A, B = _linearize(problem, xs, us)
-    Q, q, Rii, rii = _quadratize(problem, xs, us)
-    Q, Rii = _regularize(Q, Rii, options)
-    R, r = _own_to_full(Rii, rii)
-    if options.mode == "feedback":
-        K, k = lq_game.solve_feedback(A, B, Q, q, R, r)
+    Q, q, Rii, rii = _quadratize(problem, xs, us, convexify == "gauss_newton")
+    Q, Rii = _regularize(Q, Rii, options, convexify)
+    if options.mode == "feedback" and convexify != "none":
+        # Every Q^i is PSD: the own-input solver's block elimination is safe.
+        K, k = lq_game.solve_feedback_own(A, B, Q, q, Rii, rii)
+    elif options.mode == "feedback":
+        K, k = lq_game.solve_feedback(A, B, Q, q, *_own_to_full(Rii, rii))
     else:
+        R, r = _own_to_full(Rii, rii)
         # Deviation coordinates: the local game starts at dx_0 = 0, not at x_0.
         k, _ = lq_game.solve_open_loop(A, B, Q, q, R, r, jnp.zeros_like(xs[0]))
         K = jnp.zeros(k.shape + (xs.shape[-1],), k.dtype)
     return K, k
+
+
+_FORWARD_UNROLL = 5
 
 
 def _forward(problem: GameProblem, xs_hat: Array, us_hat: Array, K: Array, k: Array, eta):
@@ -494,11 +674,13 @@ def _forward(problem: GameProblem, xs_hat: Array, us_hat: Array, K: Array, k: Ar
 
     def body(x, inp):
         t, x_hat, u_hat, K_t, k_t = inp
-        u = u_hat - K_t @ (x - x_hat) - eta * k_t
+        # K_t (x - x_hat) as a fused multiply-sum: a dot is a separate XLA:CPU call.
+        u = u_hat - jnp.sum(K_t * (x - x_hat), axis=-1) - eta * k_t
         return problem.dynamics(params, t, x, u), (x, u)
 
     ts = jnp.arange(us_hat.shape[0])
-    xT, (xs, us) = jax.lax.scan(body, xs_hat[0], (ts, xs_hat[:-1], us_hat, K, k))
+    # Unrolling the short sequential loop saves per-iteration loop overhead (~30%).
+    xT, (xs, us) = jax.lax.scan(body, xs_hat[0], (ts, xs_hat[:-1], us_hat, K, k), unroll=_FORWARD_UNROLL)
     return jnp.concatenate([xs, xT[None]], axis=0), us
 
 
@@ -548,11 +730,15 @@ class _Carry(NamedTuple):
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
-def _solve_jit(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions):
-    dtype = jnp.result_type(x0.dtype, us0.dtype, float)
-    x0 = x0.astype(dtype)
-    us0 = us0.astype(dtype)
-    T, N, m = us0.shape
+def _solve_jit(problem: GameProblem, x0: Array, us0: Array | None, options: SolverOptions):
+    """The whole solve. ``x0`` has ``n`` entries in any shape (``xs`` is returned in that
+    shape per stage); ``us0 = None`` starts from zero inputs. Reshapes, casts and the zero
+    start happen here, so a call from :func:`solve` dispatches a single computation."""
+    x_shape = x0.shape
+    T, N, m = problem.horizon, problem.num_players, problem.input_dim
+    dtype = jnp.result_type(x0.dtype, float if us0 is None else us0.dtype, float)
+    x0 = x0.reshape(-1).astype(dtype)
+    us0 = jnp.zeros((T, N, m), dtype) if us0 is None else us0.astype(dtype)
     n = x0.shape[0]
     xs0 = rollout(problem, x0, us0)
     nan_hist = jnp.full((options.max_iterations,), jnp.nan, dtype)
@@ -589,14 +775,17 @@ def _solve_jit(problem: GameProblem, x0: Array, us0: Array, options: SolverOptio
             # Overshoot damping: a step that reverses the recent direction of travel
             # (negative inner product with a decaying sum of the previous unit steps)
             # means the last step was too long for a contraction: halve the next one.
-            # Otherwise let eta grow back towards initial_step.
+            # Otherwise the next search starts again at initial_step: a step cut short by
+            # the trust region says nothing about the next one (typically a soft
+            # constraint just became active and the next proposal is orders of magnitude
+            # smaller), and a trial costs one rollout, a fraction of an LQ solve.
             reversed_ = jnp.vdot(step, c.last_step) < 0
             unit = step / jnp.maximum(jnp.sqrt(jnp.vdot(step, step)), 1e-300)
             step = options.damping_memory * c.last_step + unit
             cap = jnp.where(
                 reversed_,
                 eta * options.step_decay,
-                jnp.minimum(options.initial_step, eta / options.step_decay),
+                jnp.asarray(options.initial_step, dtype),
             )
         else:
             cap = jnp.asarray(options.initial_step, dtype)
@@ -632,7 +821,7 @@ def _solve_jit(problem: GameProblem, x0: Array, us0: Array, options: SolverOptio
     c = jax.lax.while_loop(cond, body, init)
     costs = total_costs(problem, c.xs, c.us)
     return SolverResult(
-        xs=c.xs,
+        xs=c.xs.reshape((T + 1,) + x_shape),
         us=c.us,
         converged=c.status == CONVERGED,
         status=c.status,
@@ -678,7 +867,9 @@ def validate_problem(problem_or_game, x0=None, us0=None, control_regularization:
         game = problem_or_game
         if not _is_concrete(game.weights):
             return
-        w = 2.0 * np.asarray(game.weights.jerk_weights, dtype=float) + control_regularization
+        weights = game.weights  # NumPy only: no device dispatch on every solve
+        jerk = np.stack(np.broadcast_arrays(np.asarray(weights.r_jx, float), np.asarray(weights.r_jy, float)), -1)
+        w = 2.0 * np.atleast_2d(jerk) + control_regularization
         for i in range(w.shape[0]):
             if not np.all(w[i] > 0):
                 raise ValueError(
@@ -730,12 +921,18 @@ def _make_options(options: SolverOptions | None, overrides: dict) -> SolverOptio
     return options
 
 
-def _initial_inputs(problem: GameProblem, init, dtype) -> Array:
+def _as_array(a):
+    """NumPy inputs stay NumPy (the jitted solver takes them as they are, without a
+    separate dispatch); JAX arrays and tracers are kept."""
+    return a if isinstance(a, (jax.Array, jax.core.Tracer)) else np.asarray(a)
+
+
+def _initial_inputs(problem: GameProblem, init):
+    """``None`` (zero inputs, made inside the solver) or the ``(T, N, m)`` inputs of ``init``."""
     shape = (problem.horizon, problem.num_players, problem.input_dim)
     if init is None:
-        return jnp.zeros(shape, dtype)
-    us = getattr(init, "us", init)  # a SolverResult / ILQRResult or an array
-    us = jnp.asarray(us)
+        return None
+    us = _as_array(getattr(init, "us", init))  # a SolverResult / ILQRResult or an array
     if us.shape != shape:
         raise ValueError(f"initial inputs must have shape (T, N, m) = {shape}, got {us.shape}")
     return us
@@ -768,26 +965,25 @@ def solve(
     """
     options = _make_options(options, overrides)
     problem, is_game = _as_problem(problem_or_game)
-    x0 = jnp.asarray(x0)
+    _convexify(problem, options)  # a clear error for an unusable convexification
+    x0 = _as_array(x0)
     if not jnp.issubdtype(x0.dtype, jnp.floating):
         x0 = x0.astype(jnp.result_type(float))
-    x0_flat = x0.reshape(-1)
-    if x0_flat.shape != (problem.state_dim,):
+    if x0.size != problem.state_dim:
         raise ValueError(
             f"x0 must have {problem.state_dim} entries"
             + (f" (shape ({problem.num_players}, 6))" if is_game else "")
             + f", got shape {x0.shape}"
         )
-    us0 = _initial_inputs(problem, init, x0.dtype)
+    if not is_game:
+        x0 = x0.reshape(-1)
+    us0 = _initial_inputs(problem, init)
     if validate:
         if is_game:
             validate_problem(problem_or_game, control_regularization=options.control_regularization)
         else:
-            validate_problem(problem, x0_flat, us0, options.control_regularization)
-    result = _solve_jit(problem, x0_flat, us0, options)
-    if is_game:
-        result = result._replace(xs=result.xs.reshape(result.xs.shape[0], *x0.shape))
-    return result
+            validate_problem(problem, x0, us0, options.control_regularization)
+    return _solve_jit(problem, x0, us0, options)
 
 
 def solve_batch(

@@ -100,6 +100,18 @@ def _ego_terminal_cost(params: _EgoParams, i, x):
     return params.game.terminal_cost(params.ego, joint)
 
 
+def _ego_stage_gauss_newton(params: _EgoParams, t, i, x, u_i):
+    del i
+    joint = _ego_joint(params, t, x).reshape(-1)
+    return ilq._race_stage_gauss_newton(params.game, t, params.ego, joint, u_i)
+
+
+def _ego_terminal_gauss_newton(params: _EgoParams, i, x):
+    del i
+    joint = _ego_joint(params, params.predicted.shape[0] - 1, x).reshape(-1)
+    return ilq._race_terminal_gauss_newton(params.game, params.ego, joint)
+
+
 def ego_problem(game, x0, ego: int = 0) -> ilq.GameProblem:
     """The ego's single-player :class:`planners.ilq.GameProblem` against the prediction."""
     x0 = jnp.asarray(x0)
@@ -123,6 +135,9 @@ def ego_problem(game, x0, ego: int = 0) -> ilq.GameProblem:
         input_dim=game.input_dim,
         horizon=game.horizon,
         params=params,
+        # the game's Gauss-Newton form of the ego's costs, opponents fixed at the prediction
+        stage_gauss_newton=_ego_stage_gauss_newton,
+        terminal_gauss_newton=_ego_terminal_gauss_newton,
     )
 
 

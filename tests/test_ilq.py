@@ -260,3 +260,115 @@ def test_vmapped_batch_matches_individual_solves(game):
         assert int(single.iterations) == int(batch.iterations[b])
         np.testing.assert_allclose(batch.xs[b], single.xs, atol=1e-10)
         np.testing.assert_allclose(batch.us[b], single.us, atol=1e-10)
+
+
+# --------------------------------------------------------------------------------------
+# Gauss-Newton quadratisation (the default for a RaceGame) and the race adapter's hooks.
+# --------------------------------------------------------------------------------------
+
+
+def _random_states(game, rng, count):
+    """Joint states around X0 with constraints active: cars close, off the track, over
+    the ax and gg limits."""
+    scale = np.array([3.0, 4.0, 5.0, 0.2, 8.0, 12.0])
+    return [X0 + rng.normal(size=X0.shape) * scale for _ in range(count)]
+
+
+def test_gauss_newton_hooks_give_exact_gradients_and_psd_hessians(game):
+    problem = ilq.problem_from_race_game(game)
+    n = problem.state_dim
+    rng = np.random.default_rng(3)
+    for X in _random_states(game, rng, 10):
+        x = jnp.asarray(X).reshape(-1)
+        for i in range(2):
+            u_i = jnp.asarray(rng.normal(size=2))
+            z = jnp.concatenate([x, u_i])
+            fun = lambda z: ilq._race_stage_gauss_newton(game, 0, i, z[:n], z[n:])
+            H, g = ilq._gauss_newton_terms(fun, z)
+            exact = jax.grad(lambda z: problem.stage_cost(game, 0, i, z[:n], z[n:]))(z)
+            np.testing.assert_allclose(g, exact, rtol=1e-12, atol=1e-12)
+            H = np.asarray(H)
+            assert np.max(np.abs(H - H.T)) < 1e-12
+            assert np.linalg.eigvalsh(H).min() >= -1e-10 * max(1.0, np.abs(H).max())
+            HT, gT = ilq._gauss_newton_terms(lambda x: ilq._race_terminal_gauss_newton(game, i, x), x)
+            np.testing.assert_allclose(gT, jax.grad(lambda x: problem.terminal_cost(game, i, x))(x))
+            assert np.all(np.asarray(HT) == 0.0)  # the terminal cost is linear
+
+
+def test_gauss_newton_hessian_is_exact_for_the_track_term(game):
+    # Cars far apart (no collision curvature), ax = ay = 0 (limits inactive), the ego over
+    # the left boundary: the only curvature is the track term's, which Gauss-Newton keeps.
+    X = X0.copy()
+    X[1, 0] = 150.0
+    X[0, 1] = 15.0  # below v_max: the ax limit ax_max(V) > 0 = ax is inactive
+    X[0, 2] = 6.5
+    problem = ilq.problem_from_race_game(game)
+    n = problem.state_dim
+    z = jnp.concatenate([jnp.asarray(X).reshape(-1), jnp.array([0.3, -0.2])])
+    fun = lambda z: ilq._race_stage_gauss_newton(game, 0, 0, z[:n], z[n:])
+    H, _ = ilq._gauss_newton_terms(fun, z)
+    exact = jax.hessian(lambda z: problem.stage_cost(game, 0, 0, z[:n], z[n:]))(z)
+    np.testing.assert_allclose(H, exact, atol=1e-10)
+    assert float(exact[2, 2]) > 0  # the track term is active
+
+
+def test_race_dynamics_jacobians_match_jacfwd(game):
+    problem = ilq.problem_from_race_game(game)
+    rng = np.random.default_rng(4)
+    for X in _random_states(game, rng, 3):
+        x, u = jnp.asarray(X).reshape(-1), jnp.asarray(rng.normal(size=(2, 2)))
+        A, B = ilq._race_dynamics_jacobians(game, 0, x, u)
+        A0, B0 = jax.jacfwd(lambda x, u: problem.dynamics(game, 0, x, u), argnums=(0, 1))(x, u)
+        np.testing.assert_allclose(A, A0, atol=1e-14)
+        np.testing.assert_allclose(B, B0, atol=1e-14)
+
+
+def test_gauss_newton_keeps_the_open_loop_fixed_point(game, open_loop):
+    # open_loop uses the default (Gauss-Newton for a RaceGame); the exact-Hessian eig
+    # projection converges to the same first-order Nash point.
+    assert ilq.SolverOptions().convexify == "auto"
+    eig = ilq.solve(game, X0, mode="open_loop", convexify="eig")
+    assert bool(eig.converged) and bool(open_loop.converged)
+    np.testing.assert_allclose(open_loop.xs, eig.xs, atol=1e-5)
+    zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
+    for res in (open_loop, eig):
+        assert np.all(np.asarray(ilq.nash_residual(game, X0, res.us)) <= 1e-4 * zero)
+
+
+def test_feedback_with_gauss_newton_and_eig_projection_agree_closely(game, feedback):
+    eig = ilq.solve(game, X0, mode="feedback", convexify="eig")
+    assert bool(eig.converged) and bool(feedback.converged)
+    # Different PSD curvatures give (slightly) different feedback equilibria.
+    assert float(jnp.max(jnp.abs(feedback.xs - eig.xs))) < 0.2
+
+
+def test_gauss_newton_needs_the_hooks():
+    problem, p, x0, us0 = random_lq_game(seed=5)
+    with pytest.raises(ValueError, match="gauss_newton"):
+        ilq.solve(problem, x0, us0, convexify="gauss_newton")
+    auto = ilq.solve(problem, x0, us0, mode="feedback", step_control="none", max_iterations=2)
+    eig = ilq.solve(problem, x0, us0, mode="feedback", step_control="none", max_iterations=2, convexify="eig")
+    np.testing.assert_array_equal(auto.xs, eig.xs)  # "auto" falls back to eig projection
+
+
+def test_ilqr_gauss_newton_hooks_match_the_ego_costs(game):
+    """iLQR's ego problem: exact gradients, PSD curvature, and the same plan as eig projection."""
+    problem = ego_problem(game, X0, ego=0)
+    assert problem.has_gauss_newton
+    params = problem.params
+    rng = np.random.default_rng(6)
+    for X in _random_states(game, rng, 5):
+        z = jnp.concatenate([jnp.asarray(X[0]), jnp.asarray(rng.normal(size=2))])
+        for t in (0, 17):
+            fun = lambda z: problem.stage_gauss_newton(params, t, 0, z[:6], z[6:])
+            H, g = ilq._gauss_newton_terms(fun, z)
+            exact = jax.grad(lambda z: problem.stage_cost(params, t, 0, z[:6], z[6:]))(z)
+            np.testing.assert_allclose(g, exact, rtol=1e-12, atol=1e-12)
+            assert np.linalg.eigvalsh(np.asarray(H)).min() >= -1e-10 * max(1.0, float(np.abs(H).max()))
+        gT = ilq._gauss_newton_terms(lambda x: problem.terminal_gauss_newton(params, 0, x), z[:6])[1]
+        np.testing.assert_allclose(gT, jax.grad(lambda x: problem.terminal_cost(params, 0, x))(z[:6]))
+    gauss_newton = solve_ilqr(game, X0, ego=0)
+    eig = solve_ilqr(game, X0, ego=0, convexify="eig")
+    assert bool(gauss_newton.converged) and bool(eig.converged)
+    # one player: both are stationary points of the same cost; here they are the same one
+    np.testing.assert_allclose(gauss_newton.xs, eig.xs, atol=1e-4)

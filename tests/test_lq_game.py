@@ -376,3 +376,71 @@ def test_vmap_over_games():
         A_, B_, Q_, q_, R_, r_ = game
         K1, k1 = lqr(A_, B_[:, 0], Q_[:, 0], q_[:, 0], R_[:, 0, 0], r_[:, 0, 0])
         assert rel_gap(K_l[s], K1) < TOL and rel_gap(k_l[s], k1) < TOL
+
+
+# ------------------------------------------------------------------------------------
+# The own-input solver (planners.ilq's structure: R^{ij} = 0 for i != j) and its helpers.
+# ------------------------------------------------------------------------------------
+
+from planners.lq_game import _contract, block_solve, solve_feedback_own  # noqa: E402
+
+
+@pytest.mark.parametrize("N,m", [(1, 2), (2, 1), (2, 2), (3, 2), (2, 3)])
+def test_block_solve_matches_linalg_solve(N, m):
+    rng = np.random.default_rng(N * 10 + m)
+    S = rng.standard_normal((N, m, N, m))
+    for i in range(N):  # PD diagonal blocks, as in the feedback first-order conditions
+        G = rng.standard_normal((m, m))
+        S[i, :, i, :] = G @ G.T + m * np.eye(m)
+    rhs = rng.standard_normal((N, m, 7))
+    X = np.asarray(block_solve(jnp.asarray(S), jnp.asarray(rhs)))
+    ref = np.linalg.solve(S.reshape(N * m, N * m), rhs.reshape(N * m, 7)).reshape(N, m, 7)
+    assert np.max(np.abs(X - ref)) < 1e-10
+
+
+@pytest.mark.parametrize("spec,shapes", [
+    ("iam,iab->imb", [(2, 12, 2), (2, 12, 12)]),
+    ("ba,ibd->iad", [(12, 12), (2, 12, 12)]),
+    ("ba,ibd->iad", [(18, 18), (3, 18, 18)]),  # above the fused-product size: a dot
+    ("ima,iml,ilb->iab", [(2, 2, 5), (2, 2, 2), (2, 2, 5)]),
+    ("jam,jm->a", [(3, 4, 2), (3, 2)]),
+])
+def test_contract_matches_einsum(spec, shapes):
+    rng = np.random.default_rng(len(spec))
+    ops = [jnp.asarray(rng.standard_normal(s)) for s in shapes]
+    np.testing.assert_allclose(_contract(spec, *ops), jnp.einsum(spec, *ops), rtol=1e-12, atol=1e-12)
+
+
+def own_input_game(seed: int, N: int, T: int = 8, n: int = 4, m: int = 2):
+    A, B, Q, q, R, r = random_game(seed, N=N, T=T, n=n, m=m)
+    eye = np.eye(N, dtype=bool)[None, :, :, None, None]
+    R = np.where(eye, R, 0.0)  # no cross-input weights
+    r = np.where(eye[..., 0], r, 0.0)
+    idx = np.arange(N)
+    return (A, B, Q, q, R, r), (A, B, Q, q, R[:, idx, idx], r[:, idx, idx])
+
+
+@pytest.mark.parametrize("N", [1, 2, 3])
+def test_own_input_solver_matches_the_general_one(N):
+    full, own = own_input_game(seed=40 + N, N=N)
+    K_ref, k_ref = solve_feedback(*full)
+    K, k = solve_feedback_own(*own)
+    assert rel_gap(K, K_ref) < 1e-10 and rel_gap(k, k_ref) < 1e-10
+    # ... and it is the feedback Nash equilibrium (best responses, as above).
+    K, k = as_np(K, k)
+    for i in range(N):
+        K_br, k_br = feedback_best_response(full, K, k, i)
+        assert rel_gap(K[:, i], K_br) < TOL and rel_gap(k[:, i], k_br) < TOL
+
+
+def test_own_input_solver_under_vmap_matches_one_by_one():
+    games = [own_input_game(seed=60 + s, N=2)[1] for s in range(3)]
+    stacked = [jnp.asarray(np.stack(a)) for a in zip(*games)]
+    K, k = jax.vmap(solve_feedback_own)(*stacked)  # the batched (dense) formulation
+    for b, game in enumerate(games):
+        K1, k1 = solve_feedback_own(*game)
+        assert rel_gap(K[b], K1) < 1e-10 and rel_gap(k[b], k1) < 1e-10
+    # Partly batched arguments: the same dynamics for every game.
+    K2, _ = jax.vmap(solve_feedback_own, in_axes=(None, 0, 0, 0, 0, 0))(stacked[0][0], *stacked[1:])
+    K_ref, _ = solve_feedback_own(stacked[0][0], *(a[1] for a in stacked[1:]))
+    assert rel_gap(K2[1], K_ref) < 1e-10
