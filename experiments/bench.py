@@ -27,7 +27,8 @@ def _median_rate(run: Callable[[], int], repeats: int) -> tuple[float, list[floa
 
 def bench_env(steps: int = 3000, repeats: int = 3, cars: tuple[int, ...] = (2, 4)) -> list[dict[str, Any]]:
     """PettingZoo ``step`` calls per second (random actions, one core's worth of Python)."""
-    from racing_env import parallel_env
+    from racing_env import CostWeights, parallel_env
+    from racing_env.costs import RACING_JERK_WEIGHT
 
     results = []
     for num in cars:
@@ -76,11 +77,52 @@ def _solver_game(num_cars: int):
     return game, np.vstack([x0, third])
 
 
+def _component_times(game, x0, repeats: int = 5, calls: int = 20) -> dict[str, float]:
+    """Milliseconds per call of the parts of one feedback iteration, each run ``calls`` times
+    inside one jitted loop (so dispatch overhead is excluded) minus a single call."""
+    import jax
+    import jax.numpy as jnp
+
+    from experiments.timing import time_jax_call
+    from planners import ilq, lq_game
+
+    problem = ilq.problem_from_race_game(game)
+    res = ilq.solve(game, x0, mode="feedback", max_iterations=5, tolerance=0.0)
+    xs, us = res.xs.reshape(res.xs.shape[0], -1), res.us
+    A, B = ilq._linearize(problem, xs, us)
+    Q, q, Rii, rii = ilq._quadratize(problem, xs, us, True)
+    parts = {
+        "linearize": lambda xs: ilq._linearize(problem, xs, us),
+        "quadratize_gauss_newton": lambda xs: ilq._quadratize(problem, xs, us, True),
+        "quadratize_exact_eig": lambda xs: ilq._regularize(
+            *ilq._quadratize(problem, xs, us)[::2], ilq.SolverOptions(), "eig"),
+        "lq_feedback": lambda xs: lq_game.solve_feedback_own(A + 0.0 * xs[0, 0], B, Q, q, Rii, rii),
+        "forward_pass": lambda xs: ilq._forward(problem, xs, us, res.K, res.k, 0.5),
+    }
+
+    def looped(fn, count):
+        def body(_, carry):
+            out = fn(xs + carry * 1e-300)  # a data dependency between the calls
+            return carry + 0.0 * sum(jnp.sum(leaf) for leaf in jax.tree_util.tree_leaves(out))
+        return jax.jit(lambda: jax.lax.fori_loop(0, count, body, jnp.zeros((), xs.dtype)))
+
+    times = {}
+    for name, fn in parts.items():
+        many, one = looped(fn, calls + 1), looped(fn, 1)
+        _, _, t_many = time_jax_call(many, repeats)
+        _, _, t_one = time_jax_call(one, repeats)
+        times[name] = 1e3 * (t_many - t_one) / calls
+    return times
+
+
 def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     """Per-iteration and per-solve times of feedback/open-loop iLQGame, and a vmapped batch.
 
     Per iteration: a solve capped at 20 iterations with tolerance 0 (so all 20 run), divided
-    by 20. Per solve: a cold solve (zero inputs) to convergence.
+    by 20. Per solve: a cold solve (zero inputs) to convergence. Components: the parts of
+    one N = 2 feedback iteration, timed inside a jitted loop. Batch: 64 perturbations of the
+    paper's scene solved by one vmapped call vs one by one; a vmapped ``while_loop`` runs
+    until its slowest member converges, so the row reports the members' iterations too.
     """
     from experiments.timing import time_jax_call
     from planners import ilq
@@ -100,6 +142,8 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
                             "converged": bool(res.converged), "iterations": int(res.iterations),
                             "compile_s": first - run, "target_ms": 50.0 if num == 2 else None})
     game, x0 = _solver_game(2)
+    parts = _component_times(game, x0)
+    results.append({"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}})
     rng = np.random.default_rng(0)
     x0s = np.repeat(x0[None], batch, axis=0)
     x0s[:, 1, 2] += rng.uniform(-0.5, 0.5, batch)  # different lateral offsets of the opponent
@@ -113,21 +157,26 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     _, _, run_seq = time_jax_call(sequential, 1)
     results.append({"name": f"feedback_batch{batch}_vmap", "ms_batch": 1e3 * run_b, "compile_s": first_b - run_b,
                     "converged": int(np.sum(np.asarray(res_b.converged))), "sequential_ms": 1e3 * run_seq,
+                    "iterations_mean": float(np.mean(np.asarray(res_b.iterations))),
+                    "iterations_max": int(np.max(np.asarray(res_b.iterations))),
                     "throughput_ratio": run_seq / run_b, "target_ratio": 10.0})
     return results
 
 
 def bench_agents(steps: int = 150) -> list[dict[str, Any]]:
-    """Re-plan time of each game agent racing a copy of itself (warm start) on the trefoil.
+    """Re-plan time of each game agent racing a copy of itself (warm start) on the trefoil,
+    with the tournaments' jerk weight (``RACING_JERK_WEIGHT``).
 
     Car 0's solve times over ``steps`` steps, the first (compiling) solve excluded.
     """
     from planners.agents import make_agent, reset_agents
-    from racing_env import parallel_env
+    from racing_env import CostWeights, parallel_env
+    from racing_env.costs import RACING_JERK_WEIGHT
 
     results = []
     for spec in ("ilqr", "ilqgame-ol", "ilqgame-fb"):
-        env = parallel_env(track="trefoil", num_agents=2, max_steps=steps)
+        env = parallel_env(track="trefoil", num_agents=2, max_steps=steps,
+                           weights=CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT))
         drivers = [make_agent(spec), make_agent(spec)]
         reset_agents(drivers, env, seed=0)
         observations, _ = env.reset(seed=0)

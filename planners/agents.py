@@ -232,6 +232,13 @@ class BaseAgent:
 # --------------------------------------------------------------------------------------
 
 
+REPLAN_TOLERANCE = 1e-3
+"""Convergence tolerance of a re-plan [state units: m, m/s, ...]: a millimetre is plenty for
+a plan that is re-solved 0.1 s later. Measured (feedback iLQGame vs the lane keeper, a lap of
+the trefoil, r = 0.01): with the solver's default 1e-6 two thirds of the re-plans converge
+within 30 iterations (mean 24), with 1e-3 three quarters (mean 20), same race result."""
+
+
 def _weights_for(game, index: int, belief) -> Any:
     """The game's weights with the agent's belief about the others (``None``: the truth).
 
@@ -272,7 +279,8 @@ class RecedingHorizonAgent(BaseAgent):
         warm_start: warm start from the previous solution (else zeros every re-plan).
         require_converged: treat a non-converged solve as a failure (fallback); by default
             the last iterate is used (it is a dynamically feasible, finite plan).
-        solver_options: further :class:`planners.ilq.SolverOptions` fields.
+        solver_options: further :class:`planners.ilq.SolverOptions` fields; the
+            ``tolerance`` defaults to :data:`REPLAN_TOLERANCE`.
     """
 
     name = "receding-horizon"
@@ -299,7 +307,7 @@ class RecedingHorizonAgent(BaseAgent):
         self.pad = pad
         self.warm_start = bool(warm_start)
         self.require_converged = bool(require_converged)
-        self.solver_options = dict(solver_options)
+        self.solver_options = {"tolerance": REPLAN_TOLERANCE, **solver_options}
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
