@@ -110,6 +110,24 @@ def test_warm_start_reduces_iterations():
     assert sum(w[1:]) < 0.7 * sum(c[1:]), (w, c)
 
 
+@pytest.mark.parametrize("spec", ["ilqr", "ilqgame-ol", "ilqgame-fb"])
+def test_only_the_first_action_compiles(spec):
+    """The first re-plan compiles the solver; warm-started re-plans after it must not.
+
+    A horizon no other test uses makes the compile cache cold for this game's shapes.
+    """
+    env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=10, horizon=23)
+    agent, rival = make_agent(spec), LaneKeepingAgent()
+    reset_agents([agent, rival], env, 0)
+    obs, _ = env.reset(seed=0)
+    sizes = []
+    for _ in range(4):
+        state = env.state()
+        obs, *_ = env.step({"car_0": agent(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
+        sizes.append(ilq._solve_jit._cache_size())
+    assert sizes[1:] == [sizes[0]] * 3, sizes
+
+
 def test_replan_every_follows_the_plan_in_between():
     env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=8)
     agent, rival = FeedbackGameAgent(replan_every=3), ConstantSpeedAgent()
