@@ -199,7 +199,7 @@ def test_game_agents_beat_the_lane_keeper(tmp_path):
     """Every game planner beats the lane keeper over a lap of the trefoil, from both slots.
 
     One start grid, positions swapped: 2 races per planner. Measured margins (finish-time
-    lead, README): iLQR 0.85-1.8 s, open loop 0.67-1.9 s, feedback 1.0-1.8 s.
+    lead, README): iLQR +1.82/+0.85 s, open loop +1.86/+0.96 s, feedback +1.80/+1.07 s.
     """
     planners = ("ilqr", "ilqgame-ol", "ilqgame-fb")
     config = tour.TournamentConfig(agents=(*planners, "lane-keeping"), versus="lane-keeping",
