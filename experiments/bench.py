@@ -27,7 +27,8 @@ def _median_rate(run: Callable[[], int], repeats: int) -> tuple[float, list[floa
 
 def bench_env(steps: int = 3000, repeats: int = 3, cars: tuple[int, ...] = (2, 4)) -> list[dict[str, Any]]:
     """PettingZoo ``step`` calls per second (random actions, one core's worth of Python)."""
-    from racing_env import parallel_env
+    from racing_env import CostWeights, parallel_env
+    from racing_env.costs import RACING_JERK_WEIGHT
 
     results = []
     for num in cars:
@@ -159,12 +160,6 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
                     "iterations_mean": float(np.mean(np.asarray(res_b.iterations))),
                     "iterations_max": int(np.max(np.asarray(res_b.iterations))),
                     "throughput_ratio": run_seq / run_b, "target_ratio": 10.0})
-    for chunk in (1, 8):  # the same batch as a compiled loop over chunks (each chunk vmapped)
-        res_c, first_c, run_c = time_jax_call(
-            lambda: ilq.solve_batch(game, x0s, mode="feedback", chunk_size=chunk), max(1, repeats // 2))
-        results.append({"name": f"feedback_batch{batch}_chunk{chunk}", "ms_batch": 1e3 * run_c,
-                        "compile_s": first_c - run_c, "converged": int(np.sum(np.asarray(res_c.converged))),
-                        "sequential_ms": 1e3 * run_seq, "throughput_ratio": run_seq / run_c, "target_ratio": 10.0})
     return results
 
 

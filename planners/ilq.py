@@ -992,24 +992,17 @@ def solve_batch(
     init=None,
     *,
     params_axes=None,
-    chunk_size: int | None = None,
     options: SolverOptions | None = None,
     validate: bool = True,
     **overrides,
 ) -> SolverResult:
-    """:func:`solve` over a batch of initial states ``x0s (B, ...)``, in one compiled call.
+    """:func:`solve` vmapped over a batch of initial states ``x0s (B, ...)``.
 
     ``init``: ``None``, inputs shared by the batch ``(T, N, m)``, or batched ``(B, T, N, m)``
     (or a batched result). ``params_axes``: vmap axes of the problem's ``params`` (a pytree
     prefix, e.g. a RaceGame whose ``weights`` leaves are batched: build the game with
     stacked weights and pass ``params_axes=game.replace(track=None, vehicles=None,
     weights=0)``); ``None`` shares the params. The result has a leading batch axis.
-
-    ``chunk_size``: ``None`` vmaps the whole batch (one ``while_loop`` that runs until the
-    slowest member converges; best on accelerators). An integer ``c`` solves ``c`` members
-    at a time, vmapped, chunk after chunk (``jax.lax.map``); ``1`` is a compiled loop of
-    single solves, each stopping at its own convergence, which is the fastest on a CPU
-    where a single solve is already compute-bound. Chunking needs shared params.
     """
     options = _make_options(options, overrides)
     problem, is_game = _as_problem(problem_or_game)
@@ -1025,32 +1018,14 @@ def solve_batch(
         first = None if us0 is None else (us0 if us_axis is None else us0[0])
         validate_problem(problem, x0s[0].reshape(-1), first, options.control_regularization)
 
-    if chunk_size is not None:
-        if int(chunk_size) < 1:
-            raise ValueError(f"chunk_size must be None or >= 1, got {chunk_size!r}")
-        if params_axes is not None:
-            raise ValueError("chunk_size needs shared params (params_axes=None)")
-        if us0 is not None and us_axis is None:
-            us0 = jnp.broadcast_to(us0, (x0s.shape[0],) + shape)
-        result = _solve_chunked(problem, x0s.reshape(x0s.shape[0], -1), us0, options, int(chunk_size))
-    else:
+    def one(params, x0, us):
+        p = problem.replace(params=params)
+        return solve(p, x0.reshape(-1), us, options=options, validate=False)
 
-        def one(params, x0, us):
-            p = problem.replace(params=params)
-            return solve(p, x0.reshape(-1), us, options=options, validate=False)
-
-        result = jax.vmap(one, in_axes=(params_axes, 0, us_axis))(problem.params, x0s, us0)
+    result = jax.vmap(one, in_axes=(params_axes, 0, us_axis))(problem.params, x0s, us0)
     if is_game:
         result = result._replace(xs=result.xs.reshape(result.xs.shape[:2] + x0s.shape[1:]))
     return result
-
-
-@functools.partial(jax.jit, static_argnames=("options", "chunk_size"))
-def _solve_chunked(problem: GameProblem, x0s: Array, us0s: Array | None, options: SolverOptions, chunk_size: int):
-    """``jax.lax.map`` of single solves over ``x0s (B, n)`` (and ``us0s (B, T, N, m)``)."""
-    if us0s is None:
-        return jax.lax.map(lambda x0: _solve_jit(problem, x0, None, options), x0s, batch_size=chunk_size)
-    return jax.lax.map(lambda a: _solve_jit(problem, a[0], a[1], options), (x0s, us0s), batch_size=chunk_size)
 
 
 @jax.jit
