@@ -27,8 +27,7 @@ def _median_rate(run: Callable[[], int], repeats: int) -> tuple[float, list[floa
 
 def bench_env(steps: int = 3000, repeats: int = 3, cars: tuple[int, ...] = (2, 4)) -> list[dict[str, Any]]:
     """PettingZoo ``step`` calls per second (random actions, one core's worth of Python)."""
-    from racing_env import CostWeights, parallel_env
-    from racing_env.costs import RACING_JERK_WEIGHT
+    from racing_env import parallel_env
 
     results = []
     for num in cars:
