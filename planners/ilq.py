@@ -571,37 +571,22 @@ def _quadratize(problem: GameProblem, xs: Array, us: Array, gauss_newton: bool =
     n = problem.state_dim
     players = jnp.arange(problem.num_players)
     if gauss_newton:
-
-        def stage_gn(t, x, u):
-            def player(i, u_i):
-                fun = lambda z: problem.stage_gauss_newton(params, t, i, z[:n], z[n:])
-                H, g = _gauss_newton_terms(fun, jnp.concatenate([x, u_i]))
-                return H[:n, :n], g[:n], H[n:, n:], g[n:]
-
-            return jax.vmap(player)(players, u)
-
-        Q, q, Rii, rii = jax.vmap(stage_gn)(jnp.arange(us.shape[0]), xs[:-1], us)
-        QT, qT = jax.vmap(
-            lambda i: _gauss_newton_terms(
-                lambda x: problem.terminal_gauss_newton(params, i, x), xs[-1]
-            )
-        )(players)
-        Q = jnp.concatenate([Q, QT[None]], axis=0)
-        q = jnp.concatenate([q, qT[None]], axis=0)
-        return Q, q, Rii, rii
+        terms, stage_fn, terminal_fn = (
+            _gauss_newton_terms, problem.stage_gauss_newton, problem.terminal_gauss_newton
+        )
+    else:
+        terms, stage_fn, terminal_fn = _hess_grad, problem.stage_cost, problem.terminal_cost
 
     def stage(t, x, u):
         def player(i, u_i):
-            fun = lambda z: problem.stage_cost(params, t, i, z[:n], z[n:])
-            H, g = _hess_grad(fun, jnp.concatenate([x, u_i]))
+            fun = lambda z: stage_fn(params, t, i, z[:n], z[n:])
+            H, g = terms(fun, jnp.concatenate([x, u_i]))
             return H[:n, :n], g[:n], H[n:, n:], g[n:]
 
         return jax.vmap(player)(players, u)
 
     Q, q, Rii, rii = jax.vmap(stage)(jnp.arange(us.shape[0]), xs[:-1], us)
-    QT, qT = jax.vmap(
-        lambda i: _hess_grad(lambda x: problem.terminal_cost(params, i, x), xs[-1])
-    )(players)
+    QT, qT = jax.vmap(lambda i: terms(lambda x: terminal_fn(params, i, x), xs[-1]))(players)
     Q = jnp.concatenate([Q, QT[None]], axis=0)
     q = jnp.concatenate([q, qT[None]], axis=0)
     return Q, q, Rii, rii
