@@ -349,10 +349,7 @@ class RecedingHorizonAgent(BaseAgent):
         record["step"] = self._steps
         if self._plan is None or self._age + 1 >= self.replan_every or self._age + 1 >= self._plan["us"].shape[0]:
             record["replanned"] = True
-            # Always an input array (zeros without a plan): a solve from ``None`` traces
-            # another solver variant, and compiling it at the first warm start would blow
-            # a race's per-step time budget.
-            init = np.zeros((self.game.horizon, self.game.num_players, self.game.input_dim))
+            init = None
             if self.warm_start and self._plan is not None:
                 init = self._shifted(self._plan["us"], self._age + 1)
             error = None

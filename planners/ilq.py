@@ -715,15 +715,15 @@ class _Carry(NamedTuple):
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
-def _solve_jit(problem: GameProblem, x0: Array, us0: Array | None, options: SolverOptions):
+def _solve_jit(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions):
     """The whole solve. ``x0`` has ``n`` entries in any shape (``xs`` is returned in that
-    shape per stage); ``us0 = None`` starts from zero inputs. Reshapes, casts and the zero
-    start happen here, so a call from :func:`solve` dispatches a single computation."""
+    shape per stage). Reshapes and casts happen here, so a call from :func:`solve`
+    dispatches a single computation."""
     x_shape = x0.shape
     T, N, m = problem.horizon, problem.num_players, problem.input_dim
-    dtype = jnp.result_type(x0.dtype, float if us0 is None else us0.dtype, float)
+    dtype = jnp.result_type(x0.dtype, us0.dtype, float)
     x0 = x0.reshape(-1).astype(dtype)
-    us0 = jnp.zeros((T, N, m), dtype) if us0 is None else us0.astype(dtype)
+    us0 = us0.astype(dtype)
     n = x0.shape[0]
     xs0 = rollout(problem, x0, us0)
     nan_hist = jnp.full((options.max_iterations,), jnp.nan, dtype)
@@ -912,11 +912,16 @@ def _as_array(a):
     return a if isinstance(a, (jax.Array, jax.core.Tracer)) else np.asarray(a)
 
 
-def _initial_inputs(problem: GameProblem, init):
-    """``None`` (zero inputs, made inside the solver) or the ``(T, N, m)`` inputs of ``init``."""
+def _initial_inputs(problem: GameProblem, init, dtype):
+    """The ``(T, N, m)`` inputs of ``init``; zeros (a NumPy array) for ``None``.
+
+    Zeros are passed like any other initial guess, so cold and warm-started solves share
+    one compiled solver (a receding-horizon agent's first re-plan is cold, the next ones
+    warm: two variants would compile again at the second step).
+    """
     shape = (problem.horizon, problem.num_players, problem.input_dim)
     if init is None:
-        return None
+        return np.zeros(shape, dtype)
     us = _as_array(getattr(init, "us", init))  # a SolverResult / ILQRResult or an array
     if us.shape != shape:
         raise ValueError(f"initial inputs must have shape (T, N, m) = {shape}, got {us.shape}")
@@ -962,7 +967,7 @@ def solve(
         )
     if not is_game:
         x0 = x0.reshape(-1)
-    us0 = _initial_inputs(problem, init)
+    us0 = _initial_inputs(problem, init, x0.dtype)
     if validate:
         if is_game:
             validate_problem(problem_or_game, control_regularization=options.control_regularization)

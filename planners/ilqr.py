@@ -163,7 +163,7 @@ def solve_ilqr(game, x0, ego: int = 0, U0=None, *, options=None, **overrides) ->
     problem = ego_problem(game, x0, ego)
     T = game.horizon
     if U0 is not None:
-        U0 = jnp.asarray(getattr(U0, "us", U0))
+        U0 = ilq._as_array(getattr(U0, "us", U0))  # NumPy stays NumPy: no eager device ops
         if U0.shape == (T, game.num_players, game.input_dim) and game.num_players > 1:
             U0 = U0[:, ego]
         U0 = U0.reshape(T, 1, game.input_dim)
