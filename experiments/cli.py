@@ -46,6 +46,9 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
+    from planners.devices import use_cpu_cores
+
+    use_cpu_cores()  # before any JAX computation: the batch rows use every core
     from experiments.bench import run_bench
 
     only = [s for part in (args.only or []) for s in part.split(",") if s]

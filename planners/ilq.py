@@ -6,7 +6,7 @@ Algorithm 1):
 * feedback iLQGame (``mode="feedback"``): each iteration solves the feedback Nash
   equilibrium of the local LQ game (:func:`planners.lq_game.solve_feedback`);
 * open-loop iLQGame (``mode="open_loop"``): the open-loop Nash equilibrium of the local LQ
-  game (:func:`planners.lq_game.solve_open_loop`), otherwise the same code path;
+  game (:func:`planners.lq_game.solve_open_loop_own`), otherwise the same code path;
 * iLQR: the same solver with ``N = 1`` (see :mod:`planners.ilqr`, which predicts the
   opponents and hands a single-player, time-varying problem to :func:`solve`).
 
@@ -66,8 +66,9 @@ Around the nominal trajectory ``(x_hat, u_hat)``:
    :func:`~planners.lq_game.solve_feedback_own` (the own-input structure and PSD ``Q``
    make its block elimination safe; with ``convexify="none"`` the general pivoting
    :func:`~planners.lq_game.solve_feedback`). Open loop: the
-   LQ game starts at ``dx_0 = x_0 - x_hat_0 = 0``, so :func:`~planners.lq_game.solve_open_loop`
-   is called with a ZERO initial deviation and its inputs ``du_t = -k_t`` are the whole
+   LQ game starts at ``dx_0 = x_0 - x_hat_0 = 0``, so
+   :func:`~planners.lq_game.solve_open_loop_own` is called with a ZERO initial deviation
+   and its inputs ``du_t = -k_t`` are the whole
    update; ``K = 0``. With ``dx_0 = 0`` the open-loop equilibrium is linear in the
    gradients ``(q, r)``, so ``eta * k`` is exactly the equilibrium of the local game with
    its linear terms scaled by ``eta``: a consistent short step towards it;
@@ -643,9 +644,8 @@ def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions)
     elif options.mode == "feedback":
         K, k = lq_game.solve_feedback(A, B, Q, q, *_own_to_full(Rii, rii))
     else:
-        R, r = _own_to_full(Rii, rii)
         # Deviation coordinates: the local game starts at dx_0 = 0, not at x_0.
-        k, _ = lq_game.solve_open_loop(A, B, Q, q, R, r, jnp.zeros_like(xs[0]))
+        k, _ = lq_game.solve_open_loop_own(A, B, Q, q, Rii, rii, jnp.zeros_like(xs[0]))
         K = jnp.zeros(k.shape + (xs.shape[-1],), k.dtype)
     return K, k
 
@@ -982,6 +982,7 @@ def solve_batch(
     init=None,
     *,
     params_axes=None,
+    devices=None,
     options: SolverOptions | None = None,
     validate: bool = True,
     **overrides,
@@ -993,29 +994,92 @@ def solve_batch(
     prefix, e.g. a RaceGame whose ``weights`` leaves are batched: build the game with
     stacked weights and pass ``params_axes=game.replace(track=None, vehicles=None,
     weights=0)``); ``None`` shares the params. The result has a leading batch axis.
+
+    ``devices``: the batch is split evenly across these devices and the parts run in
+    parallel, each part's iterations stopping when its own slowest member is done; the
+    default is every local device of JAX's default backend. On CPU that is one device
+    unless :func:`planners.devices.use_cpu_cores` was called, and with one device the whole
+    batch is one vmapped solve. Every member's result is the same either way. Compiled
+    once per shapes, :class:`SolverOptions`, ``params_axes`` and devices.
     """
     options = _make_options(options, overrides)
     problem, is_game = _as_problem(problem_or_game)
     x0s = jnp.asarray(x0s)
     if not jnp.issubdtype(x0s.dtype, jnp.floating):
         x0s = x0s.astype(jnp.result_type(float))
+    if x0s.ndim < 2 or x0s[0].size != problem.state_dim:
+        raise ValueError(
+            f"x0s must be a batch (B, ...) of initial states with {problem.state_dim} entries "
+            f"each, got shape {x0s.shape}"
+        )
     shape = (problem.horizon, problem.num_players, problem.input_dim)
-    us0 = None if init is None else jnp.asarray(getattr(init, "us", init))
-    us_axis = None if us0 is None or us0.shape == shape else 0
+    us0 = jnp.zeros(shape, x0s.dtype) if init is None else jnp.asarray(getattr(init, "us", init))
+    us_axis = None if us0.shape == shape else 0
+    if us_axis == 0 and us0.shape != (x0s.shape[0],) + shape:
+        raise ValueError(f"init must have shape {shape} or {(x0s.shape[0],) + shape}, got {us0.shape}")
     if validate and is_game and params_axes is None:
         validate_problem(problem_or_game, control_regularization=options.control_regularization)
     elif validate and params_axes is None:
-        first = None if us0 is None else (us0 if us_axis is None else us0[0])
-        validate_problem(problem, x0s[0].reshape(-1), first, options.control_regularization)
+        validate_problem(problem, x0s[0].reshape(-1), us0 if us_axis is None else us0[0],
+                         options.control_regularization)
 
-    def one(params, x0, us):
-        p = problem.replace(params=params)
-        return solve(p, x0.reshape(-1), us, options=options, validate=False)
+    from jax.sharding import Mesh
 
-    result = jax.vmap(one, in_axes=(params_axes, 0, us_axis))(problem.params, x0s, us0)
+    mesh = Mesh(np.asarray(jax.local_devices() if devices is None else list(devices)), ("batch",))
+    result = _solve_split(problem, x0s, us0, leaf_axes=_leaf_axes(params_axes, problem.params),
+                          us_axis=us_axis, options=options, mesh=mesh)
     if is_game:
         result = result._replace(xs=result.xs.reshape(result.xs.shape[:2] + x0s.shape[1:]))
     return result
+
+
+def _leaf_axes(params_axes, params) -> tuple:
+    """The vmap axis (or None) of every leaf of ``params``, from the prefix ``params_axes``."""
+    leaves = jax.tree_util.tree_leaves(params)
+    if params_axes is None:
+        return (None,) * len(leaves)
+    axes, prefix = jax.tree_util.tree_flatten(params_axes, is_leaf=lambda a: a is None or isinstance(a, int))
+    subtrees = prefix.flatten_up_to(params)  # the part of params each prefix axis covers
+    return tuple(axis for axis, sub in zip(axes, subtrees) for _ in jax.tree_util.tree_leaves(sub))
+
+
+@functools.partial(jax.jit, static_argnames=("leaf_axes", "us_axis", "options", "mesh"))
+def _solve_split(problem: GameProblem, x0s: Array, us0: Array, *, leaf_axes, us_axis, options, mesh):
+    """:func:`solve_batch`'s solve with the batch split evenly across ``mesh``'s devices.
+
+    The batch is padded to a multiple of the device count by repeating its last member;
+    every device runs the vmapped solver on its part (``shard_map``: no communication, so
+    each part's while loop ends with its own members) and the padding is cut off again.
+    """
+    from jax.sharding import PartitionSpec
+
+    leaves, treedef = jax.tree_util.tree_flatten(problem.params)
+    size = x0s.shape[0]
+    pad = -size % mesh.size
+
+    def padded(leaf, axis):
+        if axis is None or pad == 0:
+            return leaf
+        last = jax.lax.slice_in_dim(leaf, leaf.shape[axis] - 1, leaf.shape[axis], axis=axis)
+        return jnp.concatenate([leaf] + [last] * pad, axis=axis)
+
+    def spec(leaf, axis):
+        return PartitionSpec() if axis is None else PartitionSpec(*([None] * (axis % leaf.ndim)), "batch")
+
+    def part(leaves, x0s, us0):
+        def one(leaves_, x0, us):
+            p = problem.replace(params=jax.tree_util.tree_unflatten(treedef, leaves_))
+            return solve(p, x0.reshape(-1), us, options=options, validate=False)
+
+        return jax.vmap(one, in_axes=(list(leaf_axes), 0, us_axis))(leaves, x0s, us0)
+
+    leaves = [padded(leaf, axis) for leaf, axis in zip(leaves, leaf_axes)]
+    x0s, us0 = padded(x0s, 0), padded(us0, us_axis)
+    in_specs = ([spec(leaf, axis) for leaf, axis in zip(leaves, leaf_axes)], spec(x0s, 0), spec(us0, us_axis))
+    # check_vma=False: the solver's loop carries start as constants and become per-device.
+    result = jax.shard_map(part, mesh=mesh, in_specs=in_specs, out_specs=PartitionSpec("batch"),
+                           check_vma=False)(leaves, x0s, us0)
+    return jax.tree_util.tree_map(lambda leaf: leaf[:size], result) if pad else result
 
 
 @jax.jit

@@ -1,11 +1,17 @@
-"""Shared test configuration: float64 everywhere and the path to the shared real tracks."""
+"""Shared test configuration: float64 everywhere, two CPU devices and the path to the shared
+real tracks."""
 
 from pathlib import Path
 
 import jax
 import pytest
 
+from planners.devices import use_cpu_cores
+
 jax.config.update("jax_enable_x64", True)
+# Two CPU devices (before any JAX computation): solve_batch splits its batches across them,
+# so every batched-solve test runs the multi-device path. Everything else uses device 0.
+use_cpu_cores(2)
 
 SHARED_TRACKS = Path(__file__).resolve().parents[1].parent / "shared" / "tracks"
 

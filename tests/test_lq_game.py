@@ -382,7 +382,7 @@ def test_vmap_over_games():
 # The own-input solver (planners.ilq's structure: R^{ij} = 0 for i != j) and its helpers.
 # ------------------------------------------------------------------------------------
 
-from planners.lq_game import _contract, block_solve, solve_feedback_own  # noqa: E402
+from planners.lq_game import _contract, block_solve, solve_feedback_own, solve_open_loop_own  # noqa: E402
 
 
 @pytest.mark.parametrize("N,m", [(1, 2), (2, 1), (2, 2), (3, 2), (2, 3)])
@@ -433,14 +433,44 @@ def test_own_input_solver_matches_the_general_one(N):
         assert rel_gap(K[:, i], K_br) < TOL and rel_gap(k[:, i], k_br) < TOL
 
 
-def test_own_input_solver_under_vmap_matches_one_by_one():
-    games = [own_input_game(seed=60 + s, N=2)[1] for s in range(3)]
+@pytest.mark.parametrize("N", [1, 2, 3])
+def test_open_loop_own_input_solver_matches_the_general_one(N):
+    full, own = own_input_game(seed=70 + N, N=N)
+    x0 = random_x0(N)
+    k_ref, xs_ref = solve_open_loop(*full, jnp.asarray(x0))
+    k, xs = solve_open_loop_own(*own, jnp.asarray(x0))
+    assert rel_gap(k, k_ref) < 1e-10 and rel_gap(xs, xs_ref) < 1e-10
+    # ... and it is the open-loop Nash equilibrium: every player's best response (a dense
+    # least-squares oracle, no Woodbury identity) to the others' inputs is its own.
+    k = np.asarray(k)
+    for i in range(N):
+        u_br, _ = open_loop_best_response(full, x0, k, i)
+        assert rel_gap(-k[:, i], u_br) < TOL, (i, rel_gap(-k[:, i], u_br))
+
+
+def test_open_loop_own_input_solver_with_inputs_of_three():
+    """m = 3: the own-input weights are inverted by LAPACK, not in closed form."""
+    full, own = own_input_game(seed=80, N=2, m=3)
+    x0 = jnp.asarray(random_x0(2))
+    k_ref, _ = solve_open_loop(*full, x0)
+    k, _ = solve_open_loop_own(*own, x0)
+    assert rel_gap(k, k_ref) < 1e-10
+
+
+@pytest.mark.parametrize("solver", ["feedback", "open_loop"])
+def test_own_input_solvers_under_vmap_match_one_by_one(solver):
+    """Under vmap the games are solved one after another; unbatched arguments are shared."""
+    games = [own_input_game(seed=90 + s, N=2)[1] for s in range(3)]
+    if solver == "feedback":
+        fn = solve_feedback_own
+    else:
+        x0 = jnp.asarray(random_x0(2))
+        fn = lambda *a: solve_open_loop_own(*a, x0)  # noqa: E731
     stacked = [jnp.asarray(np.stack(a)) for a in zip(*games)]
-    K, k = jax.vmap(solve_feedback_own)(*stacked)  # the batched (dense) formulation
+    batched = jax.vmap(fn)(*stacked)
+    shared_A = jax.vmap(fn, in_axes=(None, 0, 0, 0, 0, 0))(stacked[0][1], *stacked[1:])
     for b, game in enumerate(games):
-        K1, k1 = solve_feedback_own(*game)
-        assert rel_gap(K[b], K1) < 1e-10 and rel_gap(k[b], k1) < 1e-10
-    # Partly batched arguments: the same dynamics for every game.
-    K2, _ = jax.vmap(solve_feedback_own, in_axes=(None, 0, 0, 0, 0, 0))(stacked[0][0], *stacked[1:])
-    K_ref, _ = solve_feedback_own(stacked[0][0], *(a[1] for a in stacked[1:]))
-    assert rel_gap(K2[1], K_ref) < 1e-10
+        for got, want in zip(batched, fn(*game)):
+            assert rel_gap(got[b], want) < 1e-12
+        for got, want in zip(shared_A, fn(stacked[0][1], *game[1:])):
+            assert rel_gap(got[b], want) < 1e-12
