@@ -114,9 +114,34 @@ def _component_times(game, x0, repeats: int = 5, calls: int = 20) -> dict[str, f
     return times
 
 
+def _machine_reference(repeats: int = 5, steps: int = 2000) -> dict[str, Any]:
+    """A fixed workload that does not change with the project's code, to compare solver
+    figures taken on different days (this shared machine's speed varies by 2x or more).
+
+    A jitted scan of ``steps`` dependent steps ``x <- tanh(M x + b)``, ``M`` 12 x 12: a few
+    small XLA:CPU kernels per step, the regime of the solvers' sequential loops.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from experiments.timing import time_jax_call
+
+    rng = np.random.default_rng(0)
+    M = jnp.asarray(rng.normal(size=(12, 12)) / 12.0)
+    b = jnp.asarray(rng.normal(size=12))
+
+    @jax.jit
+    def scan(x0):
+        return jax.lax.scan(lambda x, _: (jnp.tanh(M @ x + b), None), x0, None, length=steps)[0]
+
+    _, first, run = time_jax_call(lambda: scan(b), repeats)
+    return {"name": "machine_reference_scan", "us_per_step": 1e6 * run / steps, "compile_s": first - run}
+
+
 def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     """Per-iteration and per-solve times of feedback/open-loop iLQGame, and a vmapped batch.
 
+    The first row is a machine reference (:func:`_machine_reference`) for comparing days.
     Per iteration: a solve capped at 20 iterations with tolerance 0 (so all 20 run), divided
     by 20. Per solve: a cold solve (zero inputs) to convergence. Components: the parts of
     one N = 2 feedback iteration, timed inside a jitted loop. Batch: 64 perturbations of the
@@ -129,7 +154,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     from planners import ilq
 
     fixed_iterations = 20
-    results = []
+    results = [_machine_reference()]
     for num in (2, 3):
         game, x0 = _solver_game(num)
         for mode in ("feedback", "open_loop"):
@@ -237,7 +262,7 @@ def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[st
         table.add_column(column)
     for section, rows in report["results"].items():
         for row in rows:
-            figure = next((f"{row[k]:.4g} {k}" for k in ("steps_per_s", "throughput_ratio", "ms_per_iter", "ms_per_solve", "ms_p95") if k in row), "")
+            figure = next((f"{row[k]:.4g} {k}" for k in ("steps_per_s", "throughput_ratio", "ms_per_iter", "ms_per_solve", "ms_p95", "us_per_step") if k in row), "")
             target = next((str(row[k]) for k in row if k.startswith("target") and row[k] is not None), "")
             table.add_row(section, row["name"], figure, f"{row.get('compile_s', float('nan')):.2f}", target)
     console.print(table)
