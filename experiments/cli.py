@@ -48,7 +48,10 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from planners.devices import use_cpu_cores
 
-    use_cpu_cores()  # before any JAX computation: the batch rows use every core
+    try:
+        use_cpu_cores()  # before any JAX computation: the batch rows use every core
+    except RuntimeError as err:  # called in a process where JAX already runs (e.g. a notebook)
+        print(f"racing bench: {err}; the batch rows use the devices JAX has", file=sys.stderr)
     from experiments.bench import run_bench
 
     only = [s for part in (args.only or []) for s in part.split(",") if s]
