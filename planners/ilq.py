@@ -1035,9 +1035,8 @@ def solve_batch(
 
 def _leaf_axes(params_axes, params) -> tuple:
     """The vmap axis (or None) of every leaf of ``params``, from the prefix ``params_axes``."""
-    leaves = jax.tree_util.tree_leaves(params)
     if params_axes is None:
-        return (None,) * len(leaves)
+        return (None,) * len(jax.tree_util.tree_leaves(params))
     axes, prefix = jax.tree_util.tree_flatten(params_axes, is_leaf=lambda a: a is None or isinstance(a, int))
     subtrees = prefix.flatten_up_to(params)  # the part of params each prefix axis covers
     return tuple(axis for axis, sub in zip(axes, subtrees) for _ in jax.tree_util.tree_leaves(sub))

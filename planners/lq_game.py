@@ -37,8 +37,6 @@ non-symmetric inputs are thus handled consistently with the cost definition.
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -271,7 +269,7 @@ def block_solve(S: Array, rhs: Array) -> Array:
 def _feedback_own_recursion(A, B, Q, q, Rii, rii):
     """The recursion of :func:`solve_feedback_own` for one game: small products as fused
     element-wise code (:func:`_contract`), the coupled gains by :func:`block_solve`."""
-    N, n, m = B.shape[1], B.shape[2], B.shape[3]
+    N, n = B.shape[1], B.shape[2]
     Q, Rii = _sym(Q), _sym(Rii)
     eye_N = jnp.eye(N, dtype=Rii.dtype)
     c = _contract
