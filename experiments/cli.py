@@ -60,7 +60,20 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _compile_cache_option() -> argparse.ArgumentParser:
+    """``--no-compile-cache``, shared by the commands that compile solvers."""
+    parent = argparse.ArgumentParser(add_help=False)
+    parent.add_argument(
+        "--no-compile-cache", dest="compile_cache", action="store_false",
+        help="do not keep compiled solvers on disk for the next run (default: keep them in "
+        "~/.cache/racing-games/jax, or in the folder RACING_COMPILE_CACHE names; RACING_COMPILE_CACHE=off "
+        "also turns the cache off)",
+    )
+    return parent
+
+
 def build_parser() -> argparse.ArgumentParser:
+    cache = _compile_cache_option()
     parser = argparse.ArgumentParser(
         prog="racing",
         description="racing-games: race game-theoretic planners and RL agents on point-mass cars.",
@@ -68,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser(
-        "demo",
+        "demo", parents=[cache],
         help="the main job: a short tournament of iLQR, open-loop and feedback iLQGame and a lane keeper",
         description="A round robin (both starting orders, one start grid) of iLQR, open-loop iLQGame, feedback "
         "iLQGame and the lane-keeping baseline over one lap (--laps, --race-distance) of a built-in circuit: "
@@ -83,12 +96,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=0, help="start-grid seed (default: 0)")
     demo.set_defaults(func=_cmd_demo)
 
-    paper = sub.add_parser("paper", help="reproduce the paper's Figures 1-2 and claims (PNG figures + paper.json)")
+    paper = sub.add_parser("paper", parents=[cache], help="reproduce the paper's Figures 1-2 and claims (PNG figures + paper.json)")
     paper.add_argument("--out", default="runs/paper", help="output folder (default: runs/paper)")
     paper.set_defaults(func=_cmd_paper)
 
     tour = sub.add_parser(
-        "tournament",
+        "tournament", parents=[cache],
         help="round robin of agents over seeded start grids (resumable; leaderboard, CSV, PNG, GIF)",
         description="Every combination of --cars agents races on --grids start grids, once per rotation of "
         "the starting slots. Results are appended to OUT/results.jsonl as races end; rerunning the same "
@@ -114,7 +127,12 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")
     tour.set_defaults(func=_cmd_tournament)
 
-    bench = sub.add_parser("bench", help="performance figures as JSON (stdout) and a table (stderr)")
+    bench = sub.add_parser(
+        "bench", help="performance figures as JSON (stdout) and a table (stderr)",
+        description="Performance figures as JSON (stdout) and a table (stderr). It does not use the on-disk "
+        "compilation cache, so its compile times are real compilations (unless JAX_COMPILATION_CACHE_DIR is set; "
+        "the report names the cache in use).",
+    )
     bench.add_argument("--only", action="append", help="section(s) to run, e.g. --only env (repeatable or comma-separated)")
     bench.add_argument("--json", help="also write the JSON report to this file")
     bench.set_defaults(func=_cmd_bench)
@@ -125,6 +143,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        if getattr(args, "compile_cache", False):
+            from planners.compile_cache import enable_compile_cache
+
+            enable_compile_cache()
         return args.func(args)
     except (ValueError, KeyError, FileNotFoundError) as err:
         print(f"racing {args.command}: error: {err}", file=sys.stderr)

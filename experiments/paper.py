@@ -170,6 +170,8 @@ def run_paper(out: Path) -> dict[str, Any]:
     from rich.console import Console
     from rich.table import Table
 
+    from planners.compile_cache import compile_cache_dir
+
     console = Console(width=160)
     out.mkdir(parents=True, exist_ok=True)
     game, x0 = paper_game()
@@ -198,6 +200,8 @@ def run_paper(out: Path) -> dict[str, Any]:
         "methods": {k: strip(v) for k, v in methods.items()},
         "figure2": [strip(r) for r in fig2],
         "findings": checks,
+        # where set, compile_and_first_solve_s may be a load of a solver compiled by an earlier run
+        "compile_cache": compile_cache_dir(),
     }
     (out / "paper.json").write_text(json.dumps(report, indent=2))
     table = Table(title="paper scenario")
