@@ -76,13 +76,17 @@ def _solver_game(num_cars: int):
     return game, np.vstack([x0, third])
 
 
-def _component_times(game, x0, repeats: int = 5, calls: int = 20) -> dict[str, float]:
-    """Milliseconds per call of the parts of one feedback iteration, each run ``calls`` times
-    inside one jitted loop (so dispatch overhead is excluded) minus a single call."""
+def _component_times(game, x0, rounds: int = 9, calls: int = 20) -> dict[str, float]:
+    """Milliseconds per call of the parts of one feedback iteration.
+
+    Each part runs ``calls`` times inside one jitted loop, so dispatch is excluded; a loop
+    of one call is subtracted. The parts are timed in turns, ``rounds`` times, and the
+    median of the per-round differences is reported: on a shared machine a slow spell
+    then hits every part alike instead of one part's figure.
+    """
     import jax
     import jax.numpy as jnp
 
-    from experiments.timing import time_jax_call
     from planners import ilq, lq_game
 
     problem = ilq.problem_from_race_game(game)
@@ -105,13 +109,19 @@ def _component_times(game, x0, repeats: int = 5, calls: int = 20) -> dict[str, f
             return carry + 0.0 * sum(jnp.sum(leaf) for leaf in jax.tree_util.tree_leaves(out))
         return jax.jit(lambda: jax.lax.fori_loop(0, count, body, jnp.zeros((), xs.dtype)))
 
-    times = {}
-    for name, fn in parts.items():
-        many, one = looped(fn, calls + 1), looped(fn, 1)
-        _, _, t_many = time_jax_call(many, repeats)
-        _, _, t_one = time_jax_call(one, repeats)
-        times[name] = 1e3 * (t_many - t_one) / calls
-    return times
+    def seconds(fn) -> float:
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        return time.perf_counter() - start
+
+    loops = {name: (looped(fn, calls + 1), looped(fn, 1)) for name, fn in parts.items()}
+    for many, one in loops.values():  # compile
+        jax.block_until_ready((many(), one()))
+    diffs: dict[str, list[float]] = {name: [] for name in parts}
+    for _ in range(rounds):
+        for name, (many, one) in loops.items():
+            diffs[name].append(seconds(many) - seconds(one))
+    return {name: 1e3 * float(np.median(d)) / calls for name, d in diffs.items()}
 
 
 def _machine_reference(repeats: int = 5, steps: int = 2000) -> dict[str, Any]:
@@ -149,6 +159,8 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     ``solve``), on one device and split across every local device (``racing bench`` exposes
     one CPU device per core, see :mod:`planners.devices`); a vmapped ``while_loop`` runs
     until its slowest member converges, so the row reports the members' iterations too.
+    Straggler: a batch in which one member runs to the iteration cap, lock-step against
+    regrouped (:func:`_straggler_row`).
     """
     from experiments.timing import time_jax_call
     from planners import ilq
@@ -170,10 +182,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     game, x0 = _solver_game(2)
     parts = _component_times(game, x0)
     results.append({"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}})
-    rng = np.random.default_rng(0)
-    x0s = np.repeat(x0[None], batch, axis=0)
-    x0s[:, 1, 2] += rng.uniform(-0.5, 0.5, batch)  # different lateral offsets of the opponent
-    x0s[:, 1, 1] += rng.uniform(-1.0, 1.0, batch)
+    x0s = _perturbed_scenes(x0, batch)
     import jax
 
     devices = jax.local_devices()
@@ -197,7 +206,38 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
                     "iterations_max": int(np.max(np.asarray(res_b.iterations))),
                     "throughput_ratio": run_seq / run_b, "throughput_ratio_one_device": run_seq / run_1,
                     "target_ratio": 10.0})
+    results.append(_straggler_row(game, x0, repeats))
     return results
+
+
+def _perturbed_scenes(x0: np.ndarray, batch: int) -> np.ndarray:
+    """``batch`` copies of the paper's scene, the opponent's lateral offset and speed drawn
+    at random (seed 0): ``(batch, 2, 6)``."""
+    rng = np.random.default_rng(0)
+    x0s = np.repeat(x0[None], batch, axis=0)
+    x0s[:, 1, 2] += rng.uniform(-0.5, 0.5, batch)  # different lateral offsets of the opponent
+    x0s[:, 1, 1] += rng.uniform(-1.0, 1.0, batch)
+    return x0s
+
+
+def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> dict[str, Any]:
+    """A batch with a straggler: of these 63 perturbed scenes one does not converge in the
+    100 iterations (the others take 10-17). Lock-step ``solve_batch`` against
+    ``regroup_every=10`` (the members still running regrouped every 10 iterations), both
+    on every local device; compile time (including every regrouped size) apart."""
+    from experiments.timing import time_jax_call
+    from planners import ilq
+
+    x0s = _perturbed_scenes(x0, batch)
+    res, first, run = time_jax_call(lambda: ilq.solve_batch(game, x0s, mode="feedback"), max(1, repeats // 2))
+    res_r, first_r, run_r = time_jax_call(
+        lambda: ilq.solve_batch(game, x0s, mode="feedback", regroup_every=every), max(1, repeats // 2))
+    iterations = np.asarray(res.iterations)
+    return {"name": f"feedback_batch{batch}_straggler_regroup{every}", "ms_lockstep": 1e3 * run,
+            "compile_s_lockstep": first - run, "ms_regrouped": 1e3 * run_r, "compile_s_regrouped": first_r - run_r,
+            "speedup": run / run_r, "converged": int(np.sum(np.asarray(res.converged))),
+            "iterations_median": float(np.median(iterations)), "iterations_max": int(iterations.max()),
+            "same_iterations": bool(np.array_equal(iterations, np.asarray(res_r.iterations)))}
 
 
 def bench_agents(steps: int = 150) -> list[dict[str, Any]]:
@@ -244,13 +284,17 @@ def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[st
 
     import jax
 
+    from planners.compile_cache import compile_cache_dir
+
     names = only or list(SECTIONS)
     unknown = [n for n in names if n not in SECTIONS]
     if unknown:
         raise ValueError(f"unknown bench section(s) {unknown}; choose from {sorted(SECTIONS)}")
     report: dict[str, Any] = {
         "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "jax": jax.__version__, "devices": [str(d) for d in jax.devices()]},
+                    "jax": jax.__version__, "devices": [str(d) for d in jax.devices()],
+                    # compile_s figures are cache loads where a persistent cache already holds the program
+                    "compile_cache": compile_cache_dir()},
         "results": {},
     }
     console = Console(stderr=True)
@@ -262,7 +306,7 @@ def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[st
         table.add_column(column)
     for section, rows in report["results"].items():
         for row in rows:
-            figure = next((f"{row[k]:.4g} {k}" for k in ("steps_per_s", "throughput_ratio", "ms_per_iter", "ms_per_solve", "ms_p95", "us_per_step") if k in row), "")
+            figure = next((f"{row[k]:.4g} {k}" for k in ("steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95", "us_per_step") if k in row), "")
             target = next((str(row[k]) for k in row if k.startswith("target") and row[k] is not None), "")
             table.add_row(section, row["name"], figure, f"{row.get('compile_s', float('nan')):.2f}", target)
     console.print(table)

@@ -121,7 +121,10 @@ only with status ``CONVERGED``.
 Everything inside :func:`solve` is one jitted function (``lax.while_loop`` over
 iterations, ``lax.scan`` only for the recursions and rollouts, ``vmap`` over the horizon for
 derivatives), compiled once per shapes, problem functions and :class:`SolverOptions`.
-It can be vmapped over initial states (and over ``params``); :func:`solve_batch` does that.
+It can be vmapped over initial states (and over ``params``); :func:`solve_batch` does that,
+optionally regrouping the members still running between blocks of iterations
+(``regroup_every``). Internally a solve is :func:`_initial_carry`, :func:`_iterate` in a
+``while_loop``, and :func:`_result`.
 """
 
 from __future__ import annotations
@@ -678,24 +681,28 @@ def _deviation(xs_new: Array, xs_hat: Array) -> Array:
 def _step(problem, xs_hat, us_hat, K, k, eta0, options: SolverOptions):
     """Trust-region step-size search from ``eta0``. Returns ``(xs, us, eta, deviation, ok)``."""
     eta0 = jnp.asarray(eta0, xs_hat.dtype)
-    xs, us = _forward(problem, xs_hat, us_hat, K, k, eta0)
-    dev = _deviation(xs, xs_hat)
     if options.step_control == "none":
+        xs, us = _forward(problem, xs_hat, us_hat, K, k, eta0)
+        dev = _deviation(xs, xs_hat)
         return xs, us, eta0, dev, jnp.isfinite(dev)
 
     radius = options.trust_radius
 
+    # Trial 0 runs at eta0, trial j > 0 at eta0 * step_decay^j. The first trial is a pass of
+    # the loop too, so the compiled solver holds one forward pass instead of two (compile
+    # time; the trials and their results are the same).
     def cond(c):
         _, _, _, dev, trial = c
-        return (dev > radius) & (trial < options.max_backtracks)
+        return (trial == 0) | ((dev > radius) & (trial <= options.max_backtracks))
 
     def body(c):
         _, _, eta, _, trial = c
-        eta = eta * options.step_decay
+        eta = jnp.where(trial == 0, eta, eta * options.step_decay)
         xs, us = _forward(problem, xs_hat, us_hat, K, k, eta)
         return xs, us, eta, _deviation(xs, xs_hat), trial + 1
 
-    xs, us, eta, dev, _ = jax.lax.while_loop(cond, body, (xs, us, eta0, dev, 0))
+    start = (xs_hat, us_hat, eta0, jnp.asarray(jnp.inf, xs_hat.dtype), 0)
+    xs, us, eta, dev, _ = jax.lax.while_loop(cond, body, start)
     return xs, us, eta, dev, dev <= radius
 
 
@@ -714,25 +721,19 @@ class _Carry(NamedTuple):
     k_history: Array
 
 
-@functools.partial(jax.jit, static_argnames=("options",))
-def _solve_jit(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions):
-    """The whole solve. ``x0`` has ``n`` entries in any shape (``xs`` is returned in that
-    shape per stage). Reshapes and casts happen here, so a call from :func:`solve`
-    dispatches a single computation."""
-    x_shape = x0.shape
+def _initial_carry(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions) -> _Carry:
+    """The solver state before the first iteration: ``x0 (n,)``, ``us0 (T, N, m)``."""
     T, N, m = problem.horizon, problem.num_players, problem.input_dim
     dtype = jnp.result_type(x0.dtype, us0.dtype, float)
     x0 = x0.reshape(-1).astype(dtype)
     us0 = us0.astype(dtype)
-    n = x0.shape[0]
     xs0 = rollout(problem, x0, us0)
     nan_hist = jnp.full((options.max_iterations,), jnp.nan, dtype)
-    damping = options.step_control == "trust_region" and options.oscillation_damping
-    init = _Carry(
+    return _Carry(
         it=jnp.asarray(0),
         xs=xs0,
         us=us0,
-        K=jnp.zeros((T, N, m, n), dtype),
+        K=jnp.zeros((T, N, m, x0.shape[0]), dtype),
         k=jnp.zeros((T, N, m), dtype),
         eta=jnp.asarray(0.0, dtype),
         cap=jnp.asarray(options.initial_step, dtype),
@@ -743,75 +744,77 @@ def _solve_jit(problem: GameProblem, x0: Array, us0: Array, options: SolverOptio
         k_history=nan_hist,
     )
 
-    def cond(c: _Carry):
-        return c.status == RUNNING
 
-    def body(c: _Carry):
-        K, k = _lq_step(problem, c.xs, c.us, options)
-        lq_ok = jnp.all(jnp.isfinite(K)) & jnp.all(jnp.isfinite(k))
-        xs, us, eta, dev, step_ok = _step(problem, c.xs, c.us, K, k, c.cap, options)
-        ok = lq_ok & step_ok
-        it = c.it + ok.astype(c.it.dtype)
-        # Convergence measure: the state change of a full step (exact for eta = 1; the
-        # change is linear in eta to first order).
-        measure = dev * (options.initial_step / eta)
-        step = xs - c.xs
-        if damping:
-            # Overshoot damping: a step that reverses the recent direction of travel
-            # (negative inner product with a decaying sum of the previous unit steps)
-            # means the last step was too long for a contraction: halve the next one.
-            # Otherwise the next search starts again at initial_step: a step cut short by
-            # the trust region says nothing about the next one (typically a soft
-            # constraint just became active and the next proposal is orders of magnitude
-            # smaller), and a trial costs one rollout, a fraction of an LQ solve.
-            reversed_ = jnp.vdot(step, c.last_step) < 0
-            unit = step / jnp.maximum(jnp.sqrt(jnp.vdot(step, step)), 1e-300)
-            step = options.damping_memory * c.last_step + unit
-            cap = jnp.where(
-                reversed_,
-                eta * options.step_decay,
-                jnp.asarray(options.initial_step, dtype),
-            )
-        else:
-            cap = jnp.asarray(options.initial_step, dtype)
-        status = jnp.where(
-            ~lq_ok,
-            NON_FINITE,
+def _iterate(problem: GameProblem, c: _Carry, options: SolverOptions) -> _Carry:
+    """One iteration: LQ game around ``(c.xs, c.us)``, step-size search, status update."""
+    damping = options.step_control == "trust_region" and options.oscillation_damping
+    dtype = c.xs.dtype
+    K, k = _lq_step(problem, c.xs, c.us, options)
+    lq_ok = jnp.all(jnp.isfinite(K)) & jnp.all(jnp.isfinite(k))
+    xs, us, eta, dev, step_ok = _step(problem, c.xs, c.us, K, k, c.cap, options)
+    ok = lq_ok & step_ok
+    it = c.it + ok.astype(c.it.dtype)
+    # Convergence measure: the state change of a full step (exact for eta = 1; the
+    # change is linear in eta to first order).
+    measure = dev * (options.initial_step / eta)
+    step = xs - c.xs
+    if damping:
+        # Overshoot damping: a step that reverses the recent direction of travel
+        # (negative inner product with a decaying sum of the previous unit steps)
+        # means the last step was too long for a contraction: halve the next one.
+        # Otherwise the next search starts again at initial_step: a step cut short by
+        # the trust region says nothing about the next one (typically a soft
+        # constraint just became active and the next proposal is orders of magnitude
+        # smaller), and a trial costs one rollout, a fraction of an LQ solve.
+        reversed_ = jnp.vdot(step, c.last_step) < 0
+        unit = step / jnp.maximum(jnp.sqrt(jnp.vdot(step, step)), 1e-300)
+        step = options.damping_memory * c.last_step + unit
+        cap = jnp.where(
+            reversed_,
+            eta * options.step_decay,
+            jnp.asarray(options.initial_step, dtype),
+        )
+    else:
+        cap = jnp.asarray(options.initial_step, dtype)
+    status = jnp.where(
+        ~lq_ok,
+        NON_FINITE,
+        jnp.where(
+            ~step_ok,
+            jnp.where(jnp.isfinite(dev), LINE_SEARCH_FAILED, NON_FINITE),
             jnp.where(
-                ~step_ok,
-                jnp.where(jnp.isfinite(dev), LINE_SEARCH_FAILED, NON_FINITE),
-                jnp.where(
-                    (measure <= options.tolerance) & (eta >= c.cap),
-                    CONVERGED,
-                    jnp.where(it >= options.max_iterations, MAX_ITERATIONS, RUNNING),
-                ),
+                (measure <= options.tolerance) & (eta >= c.cap),
+                CONVERGED,
+                jnp.where(it >= options.max_iterations, MAX_ITERATIONS, RUNNING),
             ),
-        )
-        keep = lambda new, old: jnp.where(ok, new, old)
-        return _Carry(
-            it=it,
-            xs=keep(xs, c.xs),
-            us=keep(us, c.us),
-            K=keep(K, c.K),
-            k=keep(k, c.k),
-            eta=keep(eta, c.eta),
-            cap=keep(cap, c.cap),
-            last_step=keep(step, c.last_step),
-            status=status,
-            history=c.history.at[c.it].set(jnp.where(ok, measure, jnp.nan)),
-            step_history=c.step_history.at[c.it].set(jnp.where(ok, eta, jnp.nan)),
-            k_history=c.k_history.at[c.it].set(jnp.max(jnp.abs(k))),
-        )
+        ),
+    )
+    keep = lambda new, old: jnp.where(ok, new, old)
+    return _Carry(
+        it=it,
+        xs=keep(xs, c.xs),
+        us=keep(us, c.us),
+        K=keep(K, c.K),
+        k=keep(k, c.k),
+        eta=keep(eta, c.eta),
+        cap=keep(cap, c.cap),
+        last_step=keep(step, c.last_step),
+        status=status,
+        history=c.history.at[c.it].set(jnp.where(ok, measure, jnp.nan)),
+        step_history=c.step_history.at[c.it].set(jnp.where(ok, eta, jnp.nan)),
+        k_history=c.k_history.at[c.it].set(jnp.max(jnp.abs(k))),
+    )
 
-    c = jax.lax.while_loop(cond, body, init)
-    costs = total_costs(problem, c.xs, c.us)
+
+def _result(problem: GameProblem, c: _Carry, x_shape: tuple[int, ...]) -> SolverResult:
+    """The :class:`SolverResult` of a finished solver state (states in ``x_shape`` per stage)."""
     return SolverResult(
-        xs=c.xs.reshape((T + 1,) + x_shape),
+        xs=c.xs.reshape((c.xs.shape[0],) + tuple(x_shape)),
         us=c.us,
         converged=c.status == CONVERGED,
         status=c.status,
         iterations=c.it,
-        costs=costs,
+        costs=total_costs(problem, c.xs, c.us),
         eta=c.eta,
         K=c.K,
         k=c.k,
@@ -819,6 +822,27 @@ def _solve_jit(problem: GameProblem, x0: Array, us0: Array, options: SolverOptio
         step_history=c.step_history,
         k_history=c.k_history,
     )
+
+
+def _iterate_while_running(problem: GameProblem, c: _Carry, options: SolverOptions, steps: int | None = None) -> _Carry:
+    """Iterate until the status is no longer RUNNING, or for at most ``steps`` iterations."""
+    if steps is None:
+        return jax.lax.while_loop(lambda c: c.status == RUNNING, lambda c: _iterate(problem, c, options), c)
+    _, c = jax.lax.while_loop(
+        lambda nc: (nc[1].status == RUNNING) & (nc[0] < steps),
+        lambda nc: (nc[0] + 1, _iterate(problem, nc[1], options)),
+        (jnp.asarray(0), c),
+    )
+    return c
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def _solve_jit(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions):
+    """The whole solve. ``x0`` has ``n`` entries in any shape (``xs`` is returned in that
+    shape per stage). Reshapes and casts happen here, so a call from :func:`solve`
+    dispatches a single computation."""
+    c = _initial_carry(problem, x0, us0, options)
+    return _result(problem, _iterate_while_running(problem, c, options), x0.shape)
 
 
 # --------------------------------------------------------------------------------------
@@ -983,6 +1007,7 @@ def solve_batch(
     *,
     params_axes=None,
     devices=None,
+    regroup_every: int | None = None,
     options: SolverOptions | None = None,
     validate: bool = True,
     **overrides,
@@ -1001,6 +1026,14 @@ def solve_batch(
     unless :func:`planners.devices.use_cpu_cores` was called, and with one device the whole
     batch is one vmapped solve. Every member's result is the same either way. Compiled
     once per shapes, :class:`SolverOptions`, ``params_axes`` and devices.
+
+    ``regroup_every``: a vmapped solve computes every member until the slowest one is done,
+    so one member that needs ``max_iterations`` makes the whole batch pay for them. With
+    ``regroup_every=k`` the batch runs ``k`` iterations at a time and, in between, only the
+    members still running go on, gathered into a smaller batch (sizes are powers of two
+    times the device count, and every new size compiles once). Each member's result is the
+    same as without regrouping. Worth it when a few members run much longer than the rest
+    and the process solves many batches (or the compilation cache is on).
     """
     options = _make_options(options, overrides)
     problem, is_game = _as_problem(problem_or_game)
@@ -1012,6 +1045,8 @@ def solve_batch(
             f"x0s must be a batch (B, ...) of initial states with {problem.state_dim} entries "
             f"each, got shape {x0s.shape}"
         )
+    if regroup_every is not None and not (isinstance(regroup_every, (int, np.integer)) and regroup_every >= 1):
+        raise ValueError(f"regroup_every must be None or an integer >= 1, got {regroup_every!r}")
     shape = (problem.horizon, problem.num_players, problem.input_dim)
     us0 = jnp.zeros(shape, x0s.dtype) if init is None else jnp.asarray(getattr(init, "us", init))
     us_axis = None if us0.shape == shape else 0
@@ -1026,11 +1061,51 @@ def solve_batch(
     from jax.sharding import Mesh
 
     mesh = Mesh(np.asarray(jax.local_devices() if devices is None else list(devices)), ("batch",))
-    result = _solve_split(problem, x0s, us0, leaf_axes=_leaf_axes(params_axes, problem.params),
-                          us_axis=us_axis, options=options, mesh=mesh)
-    if is_game:
-        result = result._replace(xs=result.xs.reshape(result.xs.shape[:2] + x0s.shape[1:]))
-    return result
+    leaf_axes = _leaf_axes(params_axes, problem.params)
+    if us_axis is None:
+        us0 = jnp.broadcast_to(us0, (x0s.shape[0],) + shape)
+    batch = (x0s.reshape(x0s.shape[0], -1), us0)
+    if regroup_every is None:
+        result = _map_split("solve", problem, batch, leaf_axes=leaf_axes, options=options, mesh=mesh)
+    else:
+        result = _solve_regrouped(problem, batch, leaf_axes, options, mesh, int(regroup_every))
+    return result._replace(xs=result.xs.reshape(result.xs.shape[:2] + x0s.shape[1:]))
+
+
+def _solve_regrouped(problem: GameProblem, batch, leaf_axes, options, mesh, every: int) -> SolverResult:
+    """:func:`solve_batch` in blocks of ``every`` iterations, each block on the members
+    still running (see ``regroup_every``)."""
+    run = functools.partial(_map_split, leaf_axes=leaf_axes, options=options, mesh=mesh)
+    carry = run("start", problem, batch)
+    batch_size = int(carry.status.shape[0])
+    while True:
+        active = np.flatnonzero(np.asarray(carry.status) == RUNNING)
+        if active.size == 0:
+            break
+        size = mesh.size * 2 ** int(np.ceil(np.log2(max(1.0, active.size / mesh.size))))
+        size = min(size, batch_size + (-batch_size % mesh.size))
+        # Padding repeats the last active member; its copies compute the same values, so
+        # writing them all back is writing that member's result.
+        rows = jnp.asarray(np.concatenate([active, np.repeat(active[-1:], size - active.size)]))
+        part_problem, part = _gather_members(problem, carry, rows, leaf_axes)
+        part = run("continue", part_problem, part, steps=every)
+        carry = _write_members(carry, rows, part)
+    return run("finish", problem, carry)
+
+
+@functools.partial(jax.jit, static_argnames=("leaf_axes",))
+def _gather_members(problem: GameProblem, carry: _Carry, rows: Array, leaf_axes):
+    """The batch members ``rows`` of the solver states and of the batched params."""
+    leaves, treedef = jax.tree_util.tree_flatten(problem.params)
+    leaves = [leaf if axis is None else jnp.take(leaf, rows, axis=axis) for leaf, axis in zip(leaves, leaf_axes)]
+    part = jax.tree_util.tree_map(lambda leaf: leaf[rows], carry)
+    return problem.replace(params=jax.tree_util.tree_unflatten(treedef, leaves)), part
+
+
+@jax.jit
+def _write_members(carry: _Carry, rows: Array, part: _Carry) -> _Carry:
+    """``carry`` with its members ``rows`` replaced by ``part``."""
+    return jax.tree_util.tree_map(lambda whole, new: whole.at[rows].set(new), carry, part)
 
 
 def _leaf_axes(params_axes, params) -> tuple:
@@ -1042,18 +1117,33 @@ def _leaf_axes(params_axes, params) -> tuple:
     return tuple(axis for axis, sub in zip(axes, subtrees) for _ in jax.tree_util.tree_leaves(sub))
 
 
-@functools.partial(jax.jit, static_argnames=("leaf_axes", "us_axis", "options", "mesh"))
-def _solve_split(problem: GameProblem, x0s: Array, us0: Array, *, leaf_axes, us_axis, options, mesh):
-    """:func:`solve_batch`'s solve with the batch split evenly across ``mesh``'s devices.
+def _member(kind: str, problem: GameProblem, args, options: SolverOptions, steps: int | None):
+    """One batch member's share of a batched solve: ``kind`` is ``"solve"`` (``args`` =
+    ``(x0, us0)``, returns a result), ``"start"`` (returns the initial solver state),
+    ``"continue"`` (``args`` = a state; at most ``steps`` iterations) or ``"finish"``."""
+    if kind == "solve":
+        return _solve_jit(problem, *args, options)
+    if kind == "start":
+        return _initial_carry(problem, *args, options)
+    if kind == "continue":
+        return _iterate_while_running(problem, args, options, steps)
+    return _result(problem, args, (args.xs.shape[-1],))
+
+
+@functools.partial(jax.jit, static_argnames=("kind", "leaf_axes", "options", "mesh", "steps"))
+def _map_split(kind: str, problem: GameProblem, batch, *, leaf_axes, options, mesh, steps=None):
+    """:func:`_member` vmapped over axis 0 of every leaf of ``batch`` (and over the params
+    leaves whose ``leaf_axes`` entry is not None), with the batch split evenly across
+    ``mesh``'s devices.
 
     The batch is padded to a multiple of the device count by repeating its last member;
-    every device runs the vmapped solver on its part (``shard_map``: no communication, so
-    each part's while loop ends with its own members) and the padding is cut off again.
+    every device runs the vmapped function on its part (``shard_map``: no communication,
+    so each part's while loops end with its own members) and the padding is cut off again.
     """
     from jax.sharding import PartitionSpec
 
     leaves, treedef = jax.tree_util.tree_flatten(problem.params)
-    size = x0s.shape[0]
+    size = jax.tree_util.tree_leaves(batch)[0].shape[0]
     pad = -size % mesh.size
 
     def padded(leaf, axis):
@@ -1065,19 +1155,20 @@ def _solve_split(problem: GameProblem, x0s: Array, us0: Array, *, leaf_axes, us_
     def spec(leaf, axis):
         return PartitionSpec() if axis is None else PartitionSpec(*([None] * (axis % leaf.ndim)), "batch")
 
-    def part(leaves, x0s, us0):
-        def one(leaves_, x0, us):
+    def part(leaves, batch):
+        def one(leaves_, args):
             p = problem.replace(params=jax.tree_util.tree_unflatten(treedef, leaves_))
-            return solve(p, x0.reshape(-1), us, options=options, validate=False)
+            return _member(kind, p, args, options, steps)
 
-        return jax.vmap(one, in_axes=(list(leaf_axes), 0, us_axis))(leaves, x0s, us0)
+        return jax.vmap(one, in_axes=(list(leaf_axes), 0))(leaves, batch)
 
     leaves = [padded(leaf, axis) for leaf, axis in zip(leaves, leaf_axes)]
-    x0s, us0 = padded(x0s, 0), padded(us0, us_axis)
-    in_specs = ([spec(leaf, axis) for leaf, axis in zip(leaves, leaf_axes)], spec(x0s, 0), spec(us0, us_axis))
+    batch = jax.tree_util.tree_map(lambda leaf: padded(leaf, 0), batch)
+    in_specs = ([spec(leaf, axis) for leaf, axis in zip(leaves, leaf_axes)],
+                jax.tree_util.tree_map(lambda leaf: spec(leaf, 0), batch))
     # check_vma=False: the solver's loop carries start as constants and become per-device.
     result = jax.shard_map(part, mesh=mesh, in_specs=in_specs, out_specs=PartitionSpec("batch"),
-                           check_vma=False)(leaves, x0s, us0)
+                           check_vma=False)(leaves, batch)
     return jax.tree_util.tree_map(lambda leaf: leaf[:size], result) if pad else result
 
 

@@ -270,6 +270,27 @@ def test_vmapped_batch_matches_individual_solves(game, mode, where):
         _assert_same_solution(batch, b, ilq.solve(game, x0s[b], mode=mode))
 
 
+def test_regrouped_batch_matches_individual_solves(game):
+    """regroup_every: blocks of 4 iterations, the members still running (and their own
+    cost weights, params_axes) gathered into a smaller batch in between. The members finish
+    in different blocks (checked), and each result is its single solve."""
+    games = [paper_game([WEIGHTS, WEIGHTS.replace(c_collision=c)]) for c in (1.0, 10.0, 100.0)]
+    stacked = jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *[g.weights for g in games])
+    x0s = np.stack([X0, X0, X0])
+    x0s[0, 1, 2] += 1.0  # the opponent 1 m further left
+    x0s[1, 1, 2] -= 0.5
+    x0s[2, 1, 1] += 1.0  # a faster opponent
+    # Measured: 13, 27 and 24 iterations: three different blocks.
+    batch = ilq.solve_batch(game.replace(weights=stacked), x0s, mode="feedback", regroup_every=4,
+                            params_axes=game.replace(track=None, vehicles=None, weights=0))
+    singles = [ilq.solve(g, x, mode="feedback") for g, x in zip(games, x0s)]
+    blocks = {(int(s.iterations) - 1) // 4 for s in singles}
+    assert len(blocks) == 3, [int(s.iterations) for s in singles]
+    for b in range(3):
+        _assert_same_solution(batch, b, singles[b])
+        np.testing.assert_allclose(batch.costs[b], singles[b].costs, rtol=1e-10)
+
+
 def test_batch_over_cost_weights_and_warm_starts(game):
     """params_axes: the opponent's collision weight (the paper's Figure 2 variation) differs
     per member; batched initial inputs. Split across the two devices."""
@@ -292,6 +313,8 @@ def test_batch_refuses_malformed_inputs(game):
         ilq.solve_batch(game, X0)  # one state, not a batch
     with pytest.raises(ValueError, match="init must have shape"):
         ilq.solve_batch(game, np.stack([X0, X0]), np.zeros((3, 50, 2, 2)))
+    with pytest.raises(ValueError, match="regroup_every"):
+        ilq.solve_batch(game, np.stack([X0, X0]), regroup_every=0)
 
 
 # --------------------------------------------------------------------------------------
