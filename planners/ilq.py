@@ -1045,7 +1045,9 @@ def solve_batch(
             f"x0s must be a batch (B, ...) of initial states with {problem.state_dim} entries "
             f"each, got shape {x0s.shape}"
         )
-    if regroup_every is not None and not (isinstance(regroup_every, (int, np.integer)) and regroup_every >= 1):
+    if regroup_every is not None and not (
+        isinstance(regroup_every, (int, np.integer)) and not isinstance(regroup_every, bool) and regroup_every >= 1
+    ):
         raise ValueError(f"regroup_every must be None or an integer >= 1, got {regroup_every!r}")
     shape = (problem.horizon, problem.num_players, problem.input_dim)
     us0 = jnp.zeros(shape, x0s.dtype) if init is None else jnp.asarray(getattr(init, "us", init))

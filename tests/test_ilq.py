@@ -313,8 +313,9 @@ def test_batch_refuses_malformed_inputs(game):
         ilq.solve_batch(game, X0)  # one state, not a batch
     with pytest.raises(ValueError, match="init must have shape"):
         ilq.solve_batch(game, np.stack([X0, X0]), np.zeros((3, 50, 2, 2)))
-    with pytest.raises(ValueError, match="regroup_every"):
-        ilq.solve_batch(game, np.stack([X0, X0]), regroup_every=0)
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="regroup_every"):
+            ilq.solve_batch(game, np.stack([X0, X0]), regroup_every=bad)
 
 
 # --------------------------------------------------------------------------------------
