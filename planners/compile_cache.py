@@ -70,9 +70,15 @@ def enable_compile_cache(
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        raise ValueError(f"cannot use {str(path)!r} as the compilation cache directory: {error}") from error
+        raise ValueError(
+            f"cannot use {str(path)!r} as the compilation cache directory ({error}); set {ENV_VAR} "
+            "to a writable folder, or to 'off'"
+        ) from error
     if not os.access(path, os.W_OK | os.X_OK):
-        raise ValueError(f"the compilation cache directory {str(path)!r} is not writable")
+        raise ValueError(
+            f"the compilation cache directory {str(path)!r} is not writable; set {ENV_VAR} to a "
+            "writable folder, or to 'off'"
+        )
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
     jax.config.update("jax_compilation_cache_max_size", _MAX_BYTES)
