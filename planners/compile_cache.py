@@ -41,8 +41,9 @@ def default_cache_dir() -> Path | None:
     setting = os.environ.get(ENV_VAR)
     if setting is not None:
         return None if setting.strip().lower() in _OFF else Path(setting).expanduser()
-    if compile_cache_dir() is not None:
-        return Path(compile_cache_dir())
+    configured = compile_cache_dir()
+    if configured is not None:
+        return Path(configured)
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "racing-games" / "jax"
 

@@ -102,9 +102,7 @@ def test_cli_commands_that_compile_solvers_use_the_cache(monkeypatch, argv, enab
 
     calls, ran = [], []
     monkeypatch.setattr(compile_cache, "enable_compile_cache", lambda *a, **k: calls.append(a))
-    parser = cli.build_parser()
-    monkeypatch.setattr(cli, "build_parser", lambda: parser)
-    for action in parser._subparsers._group_actions[0].choices.values():
-        action.set_defaults(func=lambda args: ran.append(args.command) or 0)
+    for command in ("demo", "paper", "tournament", "bench"):  # record the command instead of running it
+        monkeypatch.setattr(cli, f"_cmd_{command}", lambda args: ran.append(args.command) or 0)
     assert cli.main(argv) == 0
     assert ran == [argv[0]] and len(calls) == int(enabled)

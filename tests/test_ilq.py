@@ -270,19 +270,25 @@ def test_vmapped_batch_matches_individual_solves(game, mode, where):
         _assert_same_solution(batch, b, ilq.solve(game, x0s[b], mode=mode))
 
 
+def _collision_weight_batch(game):
+    """The opponent's collision weight c_c^2 = 1, 10, 100 (the paper's Figure 2 variation):
+    the three games, one game with the weights stacked, and its ``params_axes``."""
+    games = [paper_game([WEIGHTS, WEIGHTS.replace(c_collision=c)]) for c in (1.0, 10.0, 100.0)]
+    stacked = jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *[g.weights for g in games])
+    return games, game.replace(weights=stacked), game.replace(track=None, vehicles=None, weights=0)
+
+
 def test_regrouped_batch_matches_individual_solves(game):
     """regroup_every: blocks of 4 iterations, the members still running (and their own
     cost weights, params_axes) gathered into a smaller batch in between. The members finish
     in different blocks (checked), and each result is its single solve."""
-    games = [paper_game([WEIGHTS, WEIGHTS.replace(c_collision=c)]) for c in (1.0, 10.0, 100.0)]
-    stacked = jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *[g.weights for g in games])
+    games, batched_game, params_axes = _collision_weight_batch(game)
     x0s = np.stack([X0, X0, X0])
     x0s[0, 1, 2] += 1.0  # the opponent 1 m further left
     x0s[1, 1, 2] -= 0.5
     x0s[2, 1, 1] += 1.0  # a faster opponent
     # Measured: 13, 27 and 24 iterations: three different blocks.
-    batch = ilq.solve_batch(game.replace(weights=stacked), x0s, mode="feedback", regroup_every=4,
-                            params_axes=game.replace(track=None, vehicles=None, weights=0))
+    batch = ilq.solve_batch(batched_game, x0s, mode="feedback", regroup_every=4, params_axes=params_axes)
     singles = [ilq.solve(g, x, mode="feedback") for g, x in zip(games, x0s)]
     blocks = {(int(s.iterations) - 1) // 4 for s in singles}
     assert len(blocks) == 3, [int(s.iterations) for s in singles]
@@ -294,12 +300,9 @@ def test_regrouped_batch_matches_individual_solves(game):
 def test_batch_over_cost_weights_and_warm_starts(game):
     """params_axes: the opponent's collision weight (the paper's Figure 2 variation) differs
     per member; batched initial inputs. Split across the two devices."""
-    games = [paper_game([WEIGHTS, WEIGHTS.replace(c_collision=c)]) for c in (1.0, 10.0, 100.0)]
-    stacked = jax.tree_util.tree_map(lambda *leaves: np.stack(leaves), *[g.weights for g in games])
-    batched_game = game.replace(weights=stacked)
+    games, batched_game, params_axes = _collision_weight_batch(game)
     inits = np.random.default_rng(5).normal(scale=0.5, size=(3, 50, 2, 2))  # warm starts [m/s^3]
-    batch = ilq.solve_batch(batched_game, np.stack([X0] * 3), inits, mode="feedback",
-                            params_axes=game.replace(track=None, vehicles=None, weights=0))
+    batch = ilq.solve_batch(batched_game, np.stack([X0] * 3), inits, mode="feedback", params_axes=params_axes)
     for b, g in enumerate(games):
         _assert_same_solution(batch, b, ilq.solve(g, X0, inits[b], mode="feedback"))
     # Each member used its own weight (shared weights would give three equal solutions):
