@@ -11,7 +11,7 @@ import json
 import platform
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -25,11 +25,10 @@ def _median_rate(run: Callable[[], int], repeats: int) -> tuple[float, list[floa
     return float(np.median(rates)), rates
 
 
-def bench_env(steps: int = 3000, repeats: int = 3, cars: tuple[int, ...] = (2, 4)) -> list[dict[str, Any]]:
+def bench_env(steps: int = 3000, repeats: int = 3, cars: tuple[int, ...] = (2, 4)) -> Iterator[dict[str, Any]]:
     """PettingZoo ``step`` calls per second (random actions, one core's worth of Python)."""
     from racing_env import parallel_env
 
-    results = []
     for num in cars:
         env = parallel_env(track="trefoil", num_agents=num, max_steps=10**9, laps=1000)
         rng = np.random.default_rng(0)
@@ -46,7 +45,7 @@ def bench_env(steps: int = 3000, repeats: int = 3, cars: tuple[int, ...] = (2, 4
             return steps
 
         rate, rates = _median_rate(run, repeats)
-        results.append(
+        yield (
             {
                 "name": f"env_step_{num}_cars",
                 "cars": num,
@@ -57,7 +56,6 @@ def bench_env(steps: int = 3000, repeats: int = 3, cars: tuple[int, ...] = (2, 4
                 "target_steps_per_s": 5000 if num == 2 else None,
             }
         )
-    return results
 
 
 def _solver_game(num_cars: int):
@@ -148,10 +146,64 @@ def _machine_reference(repeats: int = 5, steps: int = 2000) -> dict[str, Any]:
     return {"name": "machine_reference_scan", "us_per_step": 1e6 * run / steps, "compile_s": first - run}
 
 
-def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
+def _machine_reference_batched(repeats: int = 5, lanes: int = 4096, steps: int = 50) -> dict[str, Any]:
+    """The arithmetic counterpart of :func:`_machine_reference`: the same step
+    ``x <- tanh(M x + b)`` for ``lanes`` independent 12-vectors at once, so each kernel
+    has thousands of rows to work on (the regime of the batched linearisation and of
+    ``solve_batch``). Hosts differ more in this figure than in the scan's, where the
+    fixed cost of each small kernel dominates."""
+    import jax
+    import jax.numpy as jnp
+
+    from experiments.timing import time_jax_call
+
+    rng = np.random.default_rng(0)
+    M = jnp.asarray(rng.normal(size=(12, 12)) / 12.0)
+    b = jnp.asarray(rng.normal(size=12))
+    X = jnp.asarray(rng.normal(size=(lanes, 12)))
+
+    @jax.jit
+    def run(X):
+        return jax.lax.fori_loop(0, steps, lambda _, X: jnp.tanh(X @ M.T + b), X)
+
+    _, first, run_s = time_jax_call(lambda: run(X), repeats)
+    return {"name": "machine_reference_batched", "ns_per_lane_step": 1e9 * run_s / (lanes * steps),
+            "compile_s": first - run_s}
+
+
+def machine_info() -> dict[str, Any]:
+    """What the figures were measured on: CPU model and count, load average at the start
+    (this is a shared machine), Python, JAX and its devices, and any compilation cache."""
+    import os
+
+    import jax
+
+    from planners.compile_cache import compile_cache_dir
+
+    return {"platform": platform.platform(), "cpu": _cpu_model(), "cpu_count": os.cpu_count(),
+            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+            "python": platform.python_version(), "jax": jax.__version__,
+            "devices": [str(d) for d in jax.devices()],
+            # compile_s figures are cache loads where a persistent cache already holds the program
+            "compile_cache": compile_cache_dir()}
+
+
+def _cpu_model() -> str:
+    """The CPU's model name: ``/proc/cpuinfo`` on Linux, else :func:`platform.processor`."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]:
     """Per-iteration and per-solve times of feedback/open-loop iLQGame, and a vmapped batch.
 
-    The first row is a machine reference (:func:`_machine_reference`) for comparing days.
+    The first two rows are machine references (:func:`_machine_reference`,
+    :func:`_machine_reference_batched`) for comparing days; :func:`machine_info` names the CPU.
     Per iteration: a solve capped at 20 iterations with tolerance 0 (so all 20 run), divided
     by 20. Per solve: a cold solve (zero inputs) to convergence. Components: the parts of
     one N = 2 feedback iteration, timed inside a jitted loop. Batch: 64 perturbations of the
@@ -166,22 +218,23 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     from planners import ilq
 
     fixed_iterations = 20
-    results = [_machine_reference()]
+    yield _machine_reference()
+    yield _machine_reference_batched()
     for num in (2, 3):
         game, x0 = _solver_game(num)
         for mode in ("feedback", "open_loop"):
             _, first, run = time_jax_call(
                 lambda: ilq.solve(game, x0, mode=mode, max_iterations=fixed_iterations, tolerance=0.0), repeats
             )
-            results.append({"name": f"{mode}_iteration_N{num}_T{game.horizon}", "ms_per_iter": 1e3 * run / fixed_iterations,
+            yield ({"name": f"{mode}_iteration_N{num}_T{game.horizon}", "ms_per_iter": 1e3 * run / fixed_iterations,
                             "compile_s": first - run, "target_ms": 0.25 if (num == 2 and mode == "feedback") else None})
             res, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode=mode), repeats)
-            results.append({"name": f"{mode}_cold_solve_N{num}_T{game.horizon}", "ms_per_solve": 1e3 * run,
+            yield ({"name": f"{mode}_cold_solve_N{num}_T{game.horizon}", "ms_per_solve": 1e3 * run,
                             "converged": bool(res.converged), "iterations": int(res.iterations),
                             "compile_s": first - run, "target_ms": 50.0 if num == 2 else None})
     game, x0 = _solver_game(2)
     parts = _component_times(game, x0)
-    results.append({"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}})
+    yield ({"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}})
     x0s = _perturbed_scenes(x0, batch)
     import jax
 
@@ -198,7 +251,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
     _, _, run_seq = time_jax_call(sequential, 3)
     res_b, first_b, run_b = batches[len(devices)]
     _, first_1, run_1 = batches[1]
-    results.append({"name": f"feedback_batch{batch}_vmap", "devices": len(devices), "ms_batch": 1e3 * run_b,
+    yield ({"name": f"feedback_batch{batch}_vmap", "devices": len(devices), "ms_batch": 1e3 * run_b,
                     "compile_s": first_b - run_b, "ms_batch_one_device": 1e3 * run_1,
                     "compile_s_one_device": first_1 - run_1,
                     "converged": int(np.sum(np.asarray(res_b.converged))), "sequential_ms": 1e3 * run_seq,
@@ -206,8 +259,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> list[dict[str, Any]]:
                     "iterations_max": int(np.max(np.asarray(res_b.iterations))),
                     "throughput_ratio": run_seq / run_b, "throughput_ratio_one_device": run_seq / run_1,
                     "target_ratio": 10.0})
-    results.append(_straggler_row(game, x0, repeats))
-    return results
+    yield _straggler_row(game, x0, repeats)
 
 
 def _perturbed_scenes(x0: np.ndarray, batch: int) -> np.ndarray:
@@ -240,7 +292,7 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
             "same_iterations": bool(np.array_equal(iterations, np.asarray(res_r.iterations)))}
 
 
-def bench_agents(steps: int = 150) -> list[dict[str, Any]]:
+def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
     """Re-plan time of each game agent racing a copy of itself (warm start) on the trefoil,
     with the tournaments' jerk weight (``RACING_JERK_WEIGHT``).
 
@@ -250,7 +302,6 @@ def bench_agents(steps: int = 150) -> list[dict[str, Any]]:
     from racing_env import CostWeights, parallel_env
     from racing_env.costs import RACING_JERK_WEIGHT
 
-    results = []
     for spec in ("ilqr", "ilqgame-ol", "ilqgame-fb"):
         env = parallel_env(track="trefoil", num_agents=2, max_steps=steps,
                            weights=CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT))
@@ -268,50 +319,72 @@ def bench_agents(steps: int = 150) -> list[dict[str, Any]]:
             fallbacks += bool(record["fallback"])
             observations, *_ = env.step(actions)
         compile_s, runs = times[0], np.array(times[1:])
-        results.append({"name": f"{spec}_replan", "ms_median": 1e3 * float(np.median(runs)),
+        yield ({"name": f"{spec}_replan", "ms_median": 1e3 * float(np.median(runs)),
                         "ms_p95": 1e3 * float(np.percentile(runs, 95)), "compile_s": compile_s,
                         "iterations_median": float(np.median(iterations[1:])), "fallbacks": fallbacks,
                         "target_ms_p95": 50.0 if spec == "ilqgame-fb" else None})
-    return results
 
 
-SECTIONS: dict[str, Callable[[], list[dict[str, Any]]]] = {"env": bench_env, "solvers": bench_solvers, "agents": bench_agents}
+SECTIONS: dict[str, Callable[[], Iterator[dict[str, Any]]]] = {"env": bench_env, "solvers": bench_solvers, "agents": bench_agents}
+
+
+_FIGURE_KEYS = ("steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95",
+                "us_per_step", "ns_per_lane_step")
+
+
+def _figure(row: dict[str, Any]) -> str:
+    """The headline figure of a row, e.g. ``0.697 ms_per_iter``."""
+    return next((f"{row[k]:.4g} {k}" for k in _FIGURE_KEYS if k in row), "")
 
 
 def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[str, Any]:
+    """Run the sections ``only`` (default: all) and return the report.
+
+    Each row is printed (stderr) as soon as it is measured and, with ``out``, the JSON
+    file is rewritten after every row, so an interrupted run keeps what it measured: on
+    Ctrl-C the report gets ``"interrupted": true`` and is returned instead of raising.
+    """
     from rich.console import Console
     from rich.table import Table
-
-    import jax
-
-    from planners.compile_cache import compile_cache_dir
 
     names = only or list(SECTIONS)
     unknown = [n for n in names if n not in SECTIONS]
     if unknown:
         raise ValueError(f"unknown bench section(s) {unknown}; choose from {sorted(SECTIONS)}")
-    report: dict[str, Any] = {
-        "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "jax": jax.__version__, "devices": [str(d) for d in jax.devices()],
-                    # compile_s figures are cache loads where a persistent cache already holds the program
-                    "compile_cache": compile_cache_dir()},
-        "results": {},
-    }
+    report: dict[str, Any] = {"machine": machine_info(), "results": {}}
     console = Console(stderr=True)
-    for name in names:
-        console.print(f"[bold]bench {name}[/] ...")
-        report["results"][name] = SECTIONS[name]()
-    table = Table(title="racing bench")
+
+    def save() -> None:
+        if out is not None:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            partial = out.with_name(out.name + ".partial")
+            partial.write_text(json.dumps(report, indent=2))
+            partial.replace(out)  # never a half-written report
+
+    seconds = report["section_seconds"] = {}
+    try:
+        for name in names:
+            console.print(f"[bold]bench {name}[/] ...")
+            rows = report["results"].setdefault(name, [])
+            start = time.perf_counter()
+            for row in SECTIONS[name]():
+                rows.append(row)
+                seconds[name] = round(time.perf_counter() - start, 1)
+                compile_s = f", compile {row['compile_s']:.2f} s" if "compile_s" in row else ""
+                console.print(f"  {row['name']}: {_figure(row) or 'done'}{compile_s}")
+                save()
+            console.print(f"  ({name}: {seconds.get(name, 0.0):.0f} s)")
+    except KeyboardInterrupt:
+        report["interrupted"] = True
+        save()
+        console.print("[bold red]interrupted[/]: the report holds the rows measured so far")
+    table = Table(title="racing bench" + (" (interrupted)" if report.get("interrupted") else ""))
     for column in ("section", "name", "figure", "compile [s]", "target"):
         table.add_column(column)
     for section, rows in report["results"].items():
         for row in rows:
-            figure = next((f"{row[k]:.4g} {k}" for k in ("steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95", "us_per_step") if k in row), "")
             target = next((str(row[k]) for k in row if k.startswith("target") and row[k] is not None), "")
-            table.add_row(section, row["name"], figure, f"{row.get('compile_s', float('nan')):.2f}", target)
+            table.add_row(section, row["name"], _figure(row), f"{row.get('compile_s', float('nan')):.2f}", target)
     console.print(table)
-    text = json.dumps(report, indent=2)
-    if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(text)
+    save()
     return report

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -57,7 +58,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     only = [s for part in (args.only or []) for s in part.split(",") if s]
     report = run_bench(only or None, Path(args.json) if args.json else None)
     print(json.dumps(report, indent=2))
-    return 0
+    return 130 if report.get("interrupted") else 0
 
 
 def _compile_cache_option() -> argparse.ArgumentParser:
@@ -131,7 +132,10 @@ def build_parser() -> argparse.ArgumentParser:
         "bench", help="performance figures as JSON (stdout) and a table (stderr)",
         description="Performance figures as JSON (stdout) and a table (stderr). It does not use the on-disk "
         "compilation cache, so its compile times are real compilations (unless JAX_COMPILATION_CACHE_DIR is set; "
-        "the report names the cache in use).",
+        "the report names the cache in use). Each row is printed as soon as it is measured; with --json the file "
+        "is rewritten after every row, and Ctrl-C stops the run, keeps the rows measured so far (marked "
+        '"interrupted": true) and exits with status 130. Sections: env, solvers, agents (about 3.5 minutes in all '
+        "on a 2-core machine; the JSON records each section's seconds).",
     )
     bench.add_argument("--only", action="append", help="section(s) to run, e.g. --only env (repeatable or comma-separated)")
     bench.add_argument("--json", help="also write the JSON report to this file")
@@ -153,5 +157,25 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def console_main() -> None:
+    """The ``racing`` executable: :func:`main`, ending at once with status 130 on Ctrl-C.
+
+    An interrupt can arrive while XLA compiles in native code, and a normal interpreter
+    shutdown after that can crash in XLA's teardown (seen here: SIGSEGV after an
+    interrupted ``racing bench``). What the commands keep on interruption is written
+    before they return, so after one the process flushes its output and exits directly.
+    """
+    try:
+        code = main()
+    except KeyboardInterrupt:
+        print("racing: interrupted", file=sys.stderr)
+        code = 130
+    if code == 130:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()

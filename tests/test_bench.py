@@ -1,0 +1,85 @@
+"""`racing bench`'s description of the machine its figures come from."""
+
+import json
+import os
+
+from experiments import bench
+
+
+def test_machine_info_names_the_cpu_and_the_load():
+    info = bench.machine_info()
+    json.dumps(info)  # goes into the JSON report as it is
+    assert info["cpu"] and info["cpu"] != "unknown"
+    assert info["cpu_count"] == os.cpu_count()
+    assert len(info["load_average"]) == 3 and all(v >= 0 for v in info["load_average"])
+    assert info["devices"] and info["compile_cache"] is None  # tests run with the cache off
+
+
+def test_batched_machine_reference_is_a_positive_rate():
+    row = bench._machine_reference_batched(repeats=1, lanes=64, steps=5)
+    assert row["name"] == "machine_reference_batched"
+    assert row["ns_per_lane_step"] > 0 and row["compile_s"] >= 0
+
+
+def test_report_is_saved_after_every_row_and_kept_on_ctrl_c(tmp_path, monkeypatch):
+    """Rows reach the JSON file as they are measured; Ctrl-C keeps them and marks the run."""
+    out = tmp_path / "bench.json"
+    seen_on_disk = []
+
+    def section():
+        yield {"name": "first", "ms_per_iter": 1.5, "compile_s": 0.1}
+        seen_on_disk.append(json.loads(out.read_text())["results"]["fake"])
+        yield {"name": "second", "ms_per_iter": 2.5}
+        raise KeyboardInterrupt
+
+    monkeypatch.setitem(bench.SECTIONS, "fake", section)
+    report = bench.run_bench(["fake"], out)
+    assert seen_on_disk == [[{"name": "first", "ms_per_iter": 1.5, "compile_s": 0.1}]]
+    assert report["interrupted"] is True
+    assert [row["name"] for row in report["results"]["fake"]] == ["first", "second"]
+    assert json.loads(out.read_text()) == report
+    assert not list(tmp_path.glob("*.partial"))
+    assert set(report["section_seconds"]) == {"fake"}
+
+
+def test_cli_exits_130_when_interrupted(monkeypatch, capsys):
+    from experiments.cli import main
+
+    def section():
+        yield {"name": "only", "steps_per_s": 10.0}
+        raise KeyboardInterrupt
+
+    monkeypatch.setitem(bench.SECTIONS, "fake", section)
+    assert main(["bench", "--only", "fake"]) == 130
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["interrupted"] is True and printed["results"]["fake"][0]["name"] == "only"
+
+
+def test_ctrl_c_on_a_real_run_keeps_the_measured_rows(tmp_path):
+    """SIGINT to `racing bench --only env` after its first row: exit status 130, and the
+    JSON file holds that row, marked interrupted."""
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "bench.json"
+    # A shell's background job starts with SIGINT ignored, and the child would inherit
+    # that: it installs Python's own handler first, as an interactive `racing` has.
+    launcher = (
+        "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "from experiments.cli import console_main; console_main()"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", launcher, "bench", "--only", "env", "--json", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    for line in proc.stderr:  # rows are printed as they are measured
+        if "env_step_2_cars:" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    stdout, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 130
+    report = json.loads(out.read_text())
+    assert report["interrupted"] is True
+    assert [row["name"] for row in report["results"]["env"]][0] == "env_step_2_cars"
+    assert json.loads(stdout)["interrupted"] is True
