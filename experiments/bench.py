@@ -74,8 +74,8 @@ def _solver_game(num_cars: int):
     return game, np.vstack([x0, third])
 
 
-def _component_times(game, x0, rounds: int = 9, calls: int = 20) -> dict[str, float]:
-    """Milliseconds per call of the parts of one feedback iteration.
+def _interleaved_ms(parts: dict[str, tuple[Callable, Any]], rounds: int = 9, calls: int = 20) -> dict[str, float]:
+    """Milliseconds per call of each ``fn(arg)`` in ``parts`` (name -> ``(fn, arg)``).
 
     Each part runs ``calls`` times inside one jitted loop, so dispatch is excluded; a loop
     of one call is subtracted. The parts are timed in turns, ``rounds`` times, and the
@@ -85,6 +85,29 @@ def _component_times(game, x0, rounds: int = 9, calls: int = 20) -> dict[str, fl
     import jax
     import jax.numpy as jnp
 
+    def looped(fn, arg, count):
+        def body(_, carry):
+            out = fn(arg + carry * 1e-300)  # a data dependency between the calls
+            return carry + 0.0 * sum(jnp.sum(leaf) for leaf in jax.tree_util.tree_leaves(out))
+        return jax.jit(lambda: jax.lax.fori_loop(0, count, body, jnp.zeros((), arg.dtype)))
+
+    def seconds(fn) -> float:
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        return time.perf_counter() - start
+
+    loops = {name: (looped(fn, arg, calls + 1), looped(fn, arg, 1)) for name, (fn, arg) in parts.items()}
+    for many, one in loops.values():  # compile
+        jax.block_until_ready((many(), one()))
+    diffs: dict[str, list[float]] = {name: [] for name in parts}
+    for _ in range(rounds):
+        for name, (many, one) in loops.items():
+            diffs[name].append(seconds(many) - seconds(one))
+    return {name: 1e3 * float(np.median(d)) / calls for name, d in diffs.items()}
+
+
+def _component_times(game, x0) -> dict[str, float]:
+    """Milliseconds per call of the parts of one feedback iteration (:func:`_interleaved_ms`)."""
     from planners import ilq, lq_game
 
     problem = ilq.problem_from_race_game(game)
@@ -100,26 +123,32 @@ def _component_times(game, x0, rounds: int = 9, calls: int = 20) -> dict[str, fl
         "lq_feedback": lambda xs: lq_game.solve_feedback_own(A + 0.0 * xs[0, 0], B, Q, q, Rii, rii),
         "forward_pass": lambda xs: ilq._forward(problem, xs, us, res.K, res.k, 0.5),
     }
+    return _interleaved_ms({name: (fn, xs) for name, fn in parts.items()})
 
-    def looped(fn, count):
-        def body(_, carry):
-            out = fn(xs + carry * 1e-300)  # a data dependency between the calls
-            return carry + 0.0 * sum(jnp.sum(leaf) for leaf in jax.tree_util.tree_leaves(out))
-        return jax.jit(lambda: jax.lax.fori_loop(0, count, body, jnp.zeros((), xs.dtype)))
 
-    def seconds(fn) -> float:
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        return time.perf_counter() - start
+def _lq_state_size_row(state_dims: tuple[int, ...] = (1, 4, 12, 24), horizon: int = 50) -> dict[str, Any]:
+    """Microseconds per stage of the feedback LQ recursion (N = 2, m = 2) on random games
+    with state size n: the same kernels per stage for every n, so the n = 1 figure is
+    their fixed cost and the growth beyond it is arithmetic (the racing games: n = 12)."""
+    import jax.numpy as jnp
 
-    loops = {name: (looped(fn, calls + 1), looped(fn, 1)) for name, fn in parts.items()}
-    for many, one in loops.values():  # compile
-        jax.block_until_ready((many(), one()))
-    diffs: dict[str, list[float]] = {name: [] for name in parts}
-    for _ in range(rounds):
-        for name, (many, one) in loops.items():
-            diffs[name].append(seconds(many) - seconds(one))
-    return {name: 1e3 * float(np.median(d)) / calls for name, d in diffs.items()}
+    from planners import lq_game
+
+    N, m = 2, 2
+    rng = np.random.default_rng(0)
+    parts = {}
+    for n in state_dims:
+        A = jnp.asarray(np.eye(n) + 0.05 * rng.normal(size=(horizon, n, n)))
+        B = jnp.asarray(0.1 * rng.normal(size=(horizon, N, n, m)))
+        L = rng.normal(size=(horizon + 1, N, n, n))
+        Q = jnp.asarray(np.einsum("tiab,ticb->tiac", L, L) / n)
+        q = jnp.asarray(rng.normal(size=(horizon + 1, N, n)))
+        R = jnp.asarray(np.broadcast_to(np.eye(m), (horizon, N, m, m)))
+        r = jnp.asarray(rng.normal(size=(horizon, N, m)))
+        parts[f"n{n}"] = ((lambda B, Q, q, R, r: lambda A: lq_game.solve_feedback_own(A, B, Q, q, R, r))(B, Q, q, R, r), A)
+    per_call = _interleaved_ms(parts)
+    return {"name": f"lq_feedback_us_per_stage_by_state_size_N{N}",
+            **{name: round(1e3 * ms / horizon, 3) for name, ms in per_call.items()}}
 
 
 def _machine_reference(repeats: int = 5, steps: int = 2000) -> dict[str, Any]:
@@ -206,7 +235,8 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     :func:`_machine_reference_batched`) for comparing days; :func:`machine_info` names the CPU.
     Per iteration: a solve capped at 20 iterations with tolerance 0 (so all 20 run), divided
     by 20. Per solve: a cold solve (zero inputs) to convergence. Components: the parts of
-    one N = 2 feedback iteration, timed inside a jitted loop. Batch: 64 perturbations of the
+    one N = 2 feedback iteration, timed inside a jitted loop, and the LQ recursion's cost per
+    stage against the state size (:func:`_lq_state_size_row`). Batch: 64 perturbations of the
     paper's scene solved by :func:`planners.ilq.solve_batch` vs one by one (64 calls of
     ``solve``), on one device and split across every local device (``racing bench`` exposes
     one CPU device per core, see :mod:`planners.devices`); a vmapped ``while_loop`` runs
@@ -235,6 +265,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     game, x0 = _solver_game(2)
     parts = _component_times(game, x0)
     yield ({"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}})
+    yield _lq_state_size_row()
     x0s = _perturbed_scenes(x0, batch)
     import jax
 
@@ -333,8 +364,13 @@ _FIGURE_KEYS = ("steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms
 
 
 def _figure(row: dict[str, Any]) -> str:
-    """The headline figure of a row, e.g. ``0.697 ms_per_iter``."""
-    return next((f"{row[k]:.4g} {k}" for k in _FIGURE_KEYS if k in row), "")
+    """The headline figure of a row, e.g. ``0.697 ms_per_iter``; for a row of parts (the
+    iteration's components, the LQ cost by state size) every part, e.g. ``n1 1.1, n4 1.3``."""
+    headline = next((f"{row[k]:.4g} {k}" for k in _FIGURE_KEYS if k in row), None)
+    if headline is not None:
+        return headline
+    return ", ".join(f"{k} {v:.3g}" for k, v in row.items()
+                     if k != "name" and not k.startswith("target") and isinstance(v, (int, float)))
 
 
 def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[str, Any]:
@@ -371,7 +407,7 @@ def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[st
                 rows.append(row)
                 seconds[name] = round(time.perf_counter() - start, 1)
                 compile_s = f", compile {row['compile_s']:.2f} s" if "compile_s" in row else ""
-                console.print(f"  {row['name']}: {_figure(row) or 'done'}{compile_s}")
+                console.print(f"  {row['name']}: {_figure(row)}{compile_s}")
                 save()
             console.print(f"  ({name}: {seconds.get(name, 0.0):.0f} s)")
     except KeyboardInterrupt:

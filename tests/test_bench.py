@@ -83,3 +83,15 @@ def test_ctrl_c_on_a_real_run_keeps_the_measured_rows(tmp_path):
     assert report["interrupted"] is True
     assert [row["name"] for row in report["results"]["env"]][0] == "env_step_2_cars"
     assert json.loads(stdout)["interrupted"] is True
+
+
+def test_lq_state_size_row_reports_every_state_size():
+    row = bench._lq_state_size_row(state_dims=(1, 3), horizon=4)
+    assert row["name"] == "lq_feedback_us_per_stage_by_state_size_N2"
+    assert set(row) == {"name", "n1", "n3"}
+    assert row["n1"] > 0 and row["n3"] > 0
+
+
+def test_figure_shows_the_headline_or_every_part():
+    assert bench._figure({"name": "x", "ms_per_iter": 0.6971, "compile_s": 5.0, "target_ms": 0.25}) == "0.6971 ms_per_iter"
+    assert bench._figure({"name": "parts", "linearize": 0.1042, "lq_feedback": 0.19961}) == "linearize 0.104, lq_feedback 0.2"
