@@ -163,7 +163,9 @@ def console_main() -> None:
     An interrupt can arrive while XLA compiles in native code, and a normal interpreter
     shutdown after that can crash in XLA's teardown (seen here: SIGSEGV after an
     interrupted ``racing bench``). What the commands keep on interruption is written
-    before they return, so after one the process flushes its output and exits directly.
+    before they return, so after one the process flushes its output and exits directly;
+    atexit handlers do not run, so a command that starts workers (e.g. a local Ray
+    cluster) must stop them itself on KeyboardInterrupt.
     """
     try:
         code = main()
