@@ -45,17 +45,15 @@ def bench_env(steps: int = 3000, repeats: int = 3, cars: tuple[int, ...] = (2, 4
             return steps
 
         rate, rates = _median_rate(run, repeats)
-        yield (
-            {
-                "name": f"env_step_{num}_cars",
-                "cars": num,
-                "steps_per_s": rate,
-                "us_per_step": 1e6 / rate,
-                "compile_s": compile_s,
-                "repeats": [round(r, 1) for r in rates],
-                "target_steps_per_s": 5000 if num == 2 else None,
-            }
-        )
+        yield {
+            "name": f"env_step_{num}_cars",
+            "cars": num,
+            "steps_per_s": rate,
+            "us_per_step": 1e6 / rate,
+            "compile_s": compile_s,
+            "repeats": [round(r, 1) for r in rates],
+            "target_steps_per_s": 5000 if num == 2 else None,
+        }
 
 
 def _solver_game(num_cars: int):
@@ -151,6 +149,14 @@ def _lq_state_size_row(state_dims: tuple[int, ...] = (1, 4, 12, 24), horizon: in
             **{name: round(1e3 * ms / horizon, 3) for name, ms in per_call.items()}}
 
 
+def _reference_operands(rng: np.random.Generator):
+    """``M (12, 12)`` and ``b (12,)`` of the machine references' step ``x <- tanh(M x + b)``,
+    drawn from ``rng`` (the references seed it with 0, so every run times the same workload)."""
+    import jax.numpy as jnp
+
+    return jnp.asarray(rng.normal(size=(12, 12)) / 12.0), jnp.asarray(rng.normal(size=12))
+
+
 def _machine_reference(repeats: int = 5, steps: int = 2000) -> dict[str, Any]:
     """A fixed workload that does not change with the project's code, to compare solver
     figures taken on different days (this shared machine's speed varies by 2x or more).
@@ -163,9 +169,7 @@ def _machine_reference(repeats: int = 5, steps: int = 2000) -> dict[str, Any]:
 
     from experiments.timing import time_jax_call
 
-    rng = np.random.default_rng(0)
-    M = jnp.asarray(rng.normal(size=(12, 12)) / 12.0)
-    b = jnp.asarray(rng.normal(size=12))
+    M, b = _reference_operands(np.random.default_rng(0))
 
     @jax.jit
     def scan(x0):
@@ -187,8 +191,7 @@ def _machine_reference_batched(repeats: int = 5, lanes: int = 4096, steps: int =
     from experiments.timing import time_jax_call
 
     rng = np.random.default_rng(0)
-    M = jnp.asarray(rng.normal(size=(12, 12)) / 12.0)
-    b = jnp.asarray(rng.normal(size=12))
+    M, b = _reference_operands(rng)
     X = jnp.asarray(rng.normal(size=(lanes, 12)))
 
     @jax.jit
@@ -256,15 +259,15 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
             _, first, run = time_jax_call(
                 lambda: ilq.solve(game, x0, mode=mode, max_iterations=fixed_iterations, tolerance=0.0), repeats
             )
-            yield ({"name": f"{mode}_iteration_N{num}_T{game.horizon}", "ms_per_iter": 1e3 * run / fixed_iterations,
-                            "compile_s": first - run, "target_ms": 0.25 if (num == 2 and mode == "feedback") else None})
+            yield {"name": f"{mode}_iteration_N{num}_T{game.horizon}", "ms_per_iter": 1e3 * run / fixed_iterations,
+                   "compile_s": first - run, "target_ms": 0.25 if (num == 2 and mode == "feedback") else None}
             res, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode=mode), repeats)
-            yield ({"name": f"{mode}_cold_solve_N{num}_T{game.horizon}", "ms_per_solve": 1e3 * run,
-                            "converged": bool(res.converged), "iterations": int(res.iterations),
-                            "compile_s": first - run, "target_ms": 50.0 if num == 2 else None})
+            yield {"name": f"{mode}_cold_solve_N{num}_T{game.horizon}", "ms_per_solve": 1e3 * run,
+                   "converged": bool(res.converged), "iterations": int(res.iterations),
+                   "compile_s": first - run, "target_ms": 50.0 if num == 2 else None}
     game, x0 = _solver_game(2)
     parts = _component_times(game, x0)
-    yield ({"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}})
+    yield {"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}}
     yield _lq_state_size_row()
     x0s = _perturbed_scenes(x0, batch)
     import jax
@@ -282,14 +285,14 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     _, _, run_seq = time_jax_call(sequential, 3)
     res_b, first_b, run_b = batches[len(devices)]
     _, first_1, run_1 = batches[1]
-    yield ({"name": f"feedback_batch{batch}_vmap", "devices": len(devices), "ms_batch": 1e3 * run_b,
-                    "compile_s": first_b - run_b, "ms_batch_one_device": 1e3 * run_1,
-                    "compile_s_one_device": first_1 - run_1,
-                    "converged": int(np.sum(np.asarray(res_b.converged))), "sequential_ms": 1e3 * run_seq,
-                    "iterations_mean": float(np.mean(np.asarray(res_b.iterations))),
-                    "iterations_max": int(np.max(np.asarray(res_b.iterations))),
-                    "throughput_ratio": run_seq / run_b, "throughput_ratio_one_device": run_seq / run_1,
-                    "target_ratio": 10.0})
+    yield {"name": f"feedback_batch{batch}_vmap", "devices": len(devices), "ms_batch": 1e3 * run_b,
+           "compile_s": first_b - run_b, "ms_batch_one_device": 1e3 * run_1,
+           "compile_s_one_device": first_1 - run_1,
+           "converged": int(np.sum(np.asarray(res_b.converged))), "sequential_ms": 1e3 * run_seq,
+           "iterations_mean": float(np.mean(np.asarray(res_b.iterations))),
+           "iterations_max": int(np.max(np.asarray(res_b.iterations))),
+           "throughput_ratio": run_seq / run_b, "throughput_ratio_one_device": run_seq / run_1,
+           "target_ratio": 10.0}
     yield _straggler_row(game, x0, repeats)
 
 
@@ -350,10 +353,10 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
             fallbacks += bool(record["fallback"])
             observations, *_ = env.step(actions)
         compile_s, runs = times[0], np.array(times[1:])
-        yield ({"name": f"{spec}_replan", "ms_median": 1e3 * float(np.median(runs)),
-                        "ms_p95": 1e3 * float(np.percentile(runs, 95)), "compile_s": compile_s,
-                        "iterations_median": float(np.median(iterations[1:])), "fallbacks": fallbacks,
-                        "target_ms_p95": 50.0 if spec == "ilqgame-fb" else None})
+        yield {"name": f"{spec}_replan", "ms_median": 1e3 * float(np.median(runs)),
+               "ms_p95": 1e3 * float(np.percentile(runs, 95)), "compile_s": compile_s,
+               "iterations_median": float(np.median(iterations[1:])), "fallbacks": fallbacks,
+               "target_ms_p95": 50.0 if spec == "ilqgame-fb" else None}
 
 
 SECTIONS: dict[str, Callable[[], Iterator[dict[str, Any]]]] = {"env": bench_env, "solvers": bench_solvers, "agents": bench_agents}
@@ -412,7 +415,6 @@ def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[st
             console.print(f"  ({name}: {seconds.get(name, 0.0):.0f} s)")
     except KeyboardInterrupt:
         report["interrupted"] = True
-        save()
         console.print("[bold red]interrupted[/]: the report holds the rows measured so far")
     table = Table(title="racing bench" + (" (interrupted)" if report.get("interrupted") else ""))
     for column in ("section", "name", "figure", "compile [s]", "target"):
