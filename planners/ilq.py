@@ -138,6 +138,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from planners import lq_game
+from planners.batching import one_at_a_time
 
 Array = jax.Array
 
@@ -617,13 +618,27 @@ def _convexify(problem: GameProblem, options: SolverOptions) -> str:
     return options.convexify
 
 
+def _psd_part_sequential(Q: Array) -> Array:
+    """The PSD part ``V max(w, 0) V'`` of every symmetric ``(n, n)`` block of ``Q (..., n, n)``,
+    one eigendecomposition after another."""
+    def one(M):
+        w, V = jnp.linalg.eigh(M)
+        return (V * jnp.maximum(w, 0.0)) @ V.T
+
+    return jax.lax.map(one, Q.reshape((-1,) + Q.shape[-2:])).reshape(Q.shape)
+
+
+# One LAPACK call per matrix, also in a vmapped batch split across CPU devices: a batched
+# call hangs there (see planners.batching.one_at_a_time).
+_psd_part = one_at_a_time(_psd_part_sequential)
+
+
 def _regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str) -> tuple[Array, Array]:
     # Gauss-Newton Q is PSD by construction (and symmetrised by the LQ solvers).
     if convexify != "gauss_newton":
         Q = 0.5 * (Q + jnp.swapaxes(Q, -1, -2))
     if convexify == "eig":
-        w, V = jnp.linalg.eigh(Q)
-        Q = jnp.einsum("...ab,...b,...cb->...ac", V, jnp.maximum(w, 0.0), V)
+        Q = _psd_part(Q)
     elif convexify == "diag":
         diag = jnp.diagonal(Q, axis1=-2, axis2=-1)
         off = jnp.sum(jnp.abs(Q), axis=-1) - jnp.abs(diag)

@@ -29,7 +29,10 @@ Solvers:
 
 All solvers are pure JAX (``lax.scan`` over time), jitted (compiled once per shape), freely
 composable with ``jit``/``vmap``/``grad``, and do no validation: call :func:`validate_lq_game`
-once, outside ``jit``, on the raw arrays.
+once, outside ``jit``, on the raw arrays. Under ``jax.vmap`` the game solvers run the games
+of the batch one after another (:func:`planners.batching.one_at_a_time`: the fastest batched
+form measured on CPU, and the one whose LAPACK calls cannot deadlock a batch split across
+CPU devices).
 
 Only the symmetric parts of ``Q`` and ``R`` enter the costs, so the solvers symmetrise them;
 non-symmetric inputs are thus handled consistently with the cost definition.
@@ -40,6 +43,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from planners.batching import one_at_a_time
 
 Array = jax.Array
 
@@ -135,7 +140,7 @@ def validate_lq_game(A, B, Q, q, R, r) -> None:
 def solve_feedback(
     A: Array, B: Array, Q: Array, q: Array, R: Array, r: Array
 ) -> tuple[Array, Array]:
-    """Feedback Nash equilibrium of an LQ game.
+    """Feedback Nash equilibrium of an LQ game (under ``jax.vmap``: one game after another).
 
     Backward recursion on each player's value ``V_t^i(x) = 1/2 x'P_t^i x + p_t^i' x + c``.
     At every stage the players' first-order conditions are coupled; they are stacked into
@@ -158,6 +163,11 @@ def solve_feedback(
       ``K (T, N, m, n)`` and ``k (T, N, m)``; equilibrium strategies
       ``u_t^i = -K_t^i x_t - k_t^i``.
     """
+    return _feedback(A, B, Q, q, R, r)
+
+
+def _feedback_recursion(A, B, Q, q, R, r):
+    """The recursion of :func:`solve_feedback` for one game."""
     N, n, m = B.shape[1], B.shape[2], B.shape[3]
     Q, R = _sym(Q), _sym(R)
 
@@ -191,6 +201,11 @@ def solve_feedback(
     stages = (A, B, Q[:-1], q[:-1], R, r)
     _, (K, k) = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True)
     return K, k
+
+
+# One game at a time under vmap: its pivoting solves then stay single LAPACK calls, which
+# a batch split across CPU devices needs (see planners.batching.one_at_a_time).
+_feedback = one_at_a_time(_feedback_recursion)
 
 
 # Products of tiny operands. XLA:CPU emits every dot as a separate library call whose fixed
@@ -302,33 +317,7 @@ def _feedback_own_recursion(A, B, Q, q, Rii, rii):
     return sol[..., :n], sol[..., n]
 
 
-def _one_game_at_a_time(recursion):
-    """Wrap a single-game recursion so that ``jax.vmap`` runs it game after game.
-
-    Measured on a 2-core CPU for the racing games (N = 2, n = 12, T = 50): the fused
-    single-game code in a ``lax.map`` costs what one game costs alone, while the vmapped
-    formulations cost more per game (batched dots and LAPACK calls: 1.3-1.5x; the fused
-    code vmapped, or with the batch as the innermost axis: worse still), because XLA:CPU
-    vectorises none of them across games. Unbatched arguments are shared, not copied.
-    """
-    wrapped = jax.custom_batching.custom_vmap(recursion)
-
-    @wrapped.def_vmap
-    def _rule(axis_size, in_batched, *args):
-        del axis_size
-        batched = tuple(a for a, b in zip(args, in_batched) if b)
-
-        def one(game_args):
-            it = iter(game_args)
-            return recursion(*(next(it) if b else a for a, b in zip(args, in_batched)))
-
-        out = jax.lax.map(one, batched)
-        return out, jax.tree_util.tree_map(lambda _: True, out)
-
-    return wrapped
-
-
-_feedback_own = _one_game_at_a_time(_feedback_own_recursion)
+_feedback_own = one_at_a_time(_feedback_own_recursion)
 
 
 @jax.jit
@@ -396,7 +385,7 @@ def lq_rollout_feedback(
 def solve_open_loop(
     A: Array, B: Array, Q: Array, q: Array, R: Array, r: Array, x0: Array
 ) -> tuple[Array, Array]:
-    """Open-loop Nash equilibrium of an LQ game from the initial state ``x0``.
+    """Open-loop Nash equilibrium of an LQ game from ``x0`` (under ``jax.vmap``: one game after another).
 
     Player ``i``'s stationarity in its own input, with costate ``lambda_t^i``::
 
@@ -423,6 +412,11 @@ def solve_open_loop(
       ``k (T, N, m)`` (equilibrium inputs ``u_t^i = -k_t^i``) and the equilibrium state
       trajectory ``xs (T+1, n)``.
     """
+    return _open_loop(A, B, Q, q, R, r, x0)
+
+
+def _open_loop_recursion(A, B, Q, q, R, r, x0):
+    """The recursions of :func:`solve_open_loop` for one game."""
     n = A.shape[-1]
     Q, R = _sym(Q), _sym(R)
 
@@ -458,6 +452,9 @@ def solve_open_loop(
     _, (xs_next, k) = jax.lax.scan(forward, x0, (A, Lam, c, M_next, m_next, RinvBt, Rinv_r))
     xs = jnp.concatenate([x0[None], xs_next], axis=0)
     return k, xs
+
+
+_open_loop = one_at_a_time(_open_loop_recursion)
 
 
 def _open_loop_own_recursion(A, B, Q, q, Rii, rii, x0):
@@ -497,7 +494,7 @@ def _open_loop_own_recursion(A, B, Q, q, Rii, rii, x0):
     return k, jnp.concatenate([x0[None], xs_next], axis=0)
 
 
-_open_loop_own = _one_game_at_a_time(_open_loop_own_recursion)
+_open_loop_own = one_at_a_time(_open_loop_own_recursion)
 
 
 @jax.jit

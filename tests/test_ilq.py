@@ -270,6 +270,43 @@ def test_vmapped_batch_matches_individual_solves(game, mode, where):
         _assert_same_solution(batch, b, ilq.solve(game, x0s[b], mode=mode))
 
 
+# A batch with one member per CPU core, each on its own CPU device (as many devices as
+# XLA's intra-op threads), solved with the eigen-projection. jaxlib 0.10's batched LAPACK
+# eigh hands parts of its batch to those threads and waits for them; once every thread
+# runs such a call, the process used to hang.
+_EIG_BATCH_CHILD = """
+import json, sys
+from planners.devices import use_cpu_cores
+devices = use_cpu_cores()
+import numpy as np
+from planners import ilq
+from racing_env import CostWeights, RaceGame, VehicleParams
+from racing_env.track import straight
+game = RaceGame.create(straight(length=300.0, width_left=6.0, width_right=6.0, ds=1.0),
+                       [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)], CostWeights(), dt=0.1, horizon=50)
+x0s = np.repeat(np.asarray(json.loads(sys.argv[1]))[None], devices, axis=0)
+x0s[:, 1, 1] += 0.5 * np.arange(devices)  # a different opponent speed per member
+options = dict(mode="open_loop", convexify="eig", max_iterations=3)
+batch = ilq.solve_batch(game, x0s, **options)
+gaps = [float(np.max(np.abs(np.asarray(batch.xs[b]) - np.asarray(ilq.solve(game, x0s[b], **options).xs))))
+        for b in range(devices)]
+print(json.dumps({"devices": devices, "gaps": gaps}))
+"""
+
+
+def test_eig_projection_in_a_batch_on_every_core_does_not_hang():
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _EIG_BATCH_CHILD, json.dumps(X0.tolist())],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report["devices"] >= 1 and len(report["gaps"]) == report["devices"]
+    assert max(report["gaps"]) < 1e-10  # each member is its single solve
+
+
 def _collision_weight_batch(game):
     """The opponent's collision weight c_c^2 = 1, 10, 100 (the paper's Figure 2 variation):
     the three games, one game with the weights stacked, and its ``params_axes``."""
