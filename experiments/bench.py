@@ -373,7 +373,31 @@ def _figure(row: dict[str, Any]) -> str:
     if headline is not None:
         return headline
     return ", ".join(f"{k} {v:.3g}" for k, v in row.items()
-                     if k != "name" and not k.startswith("target") and isinstance(v, (int, float)))
+                     if k != "name" and not k.startswith("target")
+                     and isinstance(v, (int, float)) and not isinstance(v, bool))
+
+
+# A row's target key -> (the figure it bounds, True if the figure must reach at least the target).
+_TARGETS = {
+    "target_steps_per_s": ("steps_per_s", True),
+    "target_ratio": ("throughput_ratio", True),
+    "target_ms_p95": ("ms_p95", False),
+    "target_ms": (("ms_per_iter", "ms_per_solve"), False),
+}
+
+
+def _target_verdict(row: dict[str, Any]) -> tuple[str, bool] | None:
+    """The row's target as text (e.g. ``<= 0.25 ms_per_iter``) and whether the figure meets it;
+    ``None`` for a row without a target."""
+    for key, (figures, at_least) in _TARGETS.items():
+        if row.get(key) is None:
+            continue
+        figures = (figures,) if isinstance(figures, str) else figures
+        figure = next(f for f in figures if f in row)
+        target = row[key]
+        met = row[figure] >= target if at_least else row[figure] <= target
+        return f"{'>=' if at_least else '<='} {target:g} {figure}", bool(met)
+    return None
 
 
 def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[str, Any]:
@@ -407,10 +431,14 @@ def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[st
             rows = report["results"].setdefault(name, [])
             start = time.perf_counter()
             for row in SECTIONS[name]():
+                verdict = _target_verdict(row)
+                if verdict is not None:
+                    row["target_met"] = verdict[1]
                 rows.append(row)
                 seconds[name] = round(time.perf_counter() - start, 1)
                 compile_s = f", compile {row['compile_s']:.2f} s" if "compile_s" in row else ""
-                console.print(f"  {row['name']}: {_figure(row)}{compile_s}")
+                target = f", target {verdict[0]}: {'met' if verdict[1] else 'MISSED'}" if verdict else ""
+                console.print(f"  {row['name']}: {_figure(row)}{compile_s}{target}")
                 save()
             console.print(f"  ({name}: {seconds.get(name, 0.0):.0f} s)")
     except KeyboardInterrupt:
@@ -418,11 +446,13 @@ def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[st
         console.print("[bold red]interrupted[/]: the report holds the rows measured so far")
     table = Table(title="racing bench" + (" (interrupted)" if report.get("interrupted") else ""))
     for column in ("section", "name", "figure", "compile [s]", "target"):
-        table.add_column(column)
+        table.add_column(column, overflow="fold")
     for section, rows in report["results"].items():
         for row in rows:
-            target = next((str(row[k]) for k in row if k.startswith("target") and row[k] is not None), "")
-            table.add_row(section, row["name"], _figure(row), f"{row.get('compile_s', float('nan')):.2f}", target)
+            verdict = _target_verdict(row)
+            target = "" if verdict is None else f"{verdict[0]}: {'met' if verdict[1] else '[bold red]missed[/]'}"
+            compile_s = f"{row['compile_s']:.2f}" if "compile_s" in row else ""
+            table.add_row(section, row["name"], _figure(row), compile_s, target)
     console.print(table)
     save()
     return report

@@ -67,17 +67,27 @@ def trajectory_metrics(game: RaceGame, xs: np.ndarray) -> dict[str, Any]:
     }
 
 
-def _record(game, x0, method: str, xs, us, converged, iterations, first_s, run_s) -> dict[str, Any]:
-    xs, us = np.asarray(xs), np.asarray(us)
-    residual = np.asarray(ilq.nash_residual(game, x0, us)) if us.shape[1] == game.num_players else None
+def _record(game, x0, method: str, res, first_s: float, run_s: float, nash: bool = True) -> dict[str, Any]:
+    """One method's row of ``paper.json`` from its solver result (``ilq.SolverResult``, or an
+    ``ilqr.ILQRResult``, whose single-player ``plan`` holds the iteration histories).
+
+    ``convergence`` and ``step_sizes`` are the solver's convergence measure (the full-step
+    state change [max abs state entry]) and accepted step size of every iteration.
+    """
+    xs, us = np.asarray(res.xs), np.asarray(res.us)
+    iterations = int(res.iterations)
+    plan = getattr(res, "plan", res)
+    residual = np.asarray(ilq.nash_residual(game, x0, us)) if nash else None
     return {
         "method": method,
-        "converged": bool(converged),
-        "iterations": int(iterations),
+        "converged": bool(res.converged),
+        "iterations": iterations,
         "solve_time_s": run_s,
         "compile_and_first_solve_s": first_s,
         **trajectory_metrics(game, xs),
         "nash_residual": None if residual is None else residual.tolist(),
+        "convergence": np.asarray(plan.history)[:iterations].tolist(),
+        "step_sizes": np.asarray(plan.step_history)[:iterations].tolist(),
         "xs": xs,
     }
 
@@ -86,23 +96,20 @@ def solve_methods(game: RaceGame, x0: np.ndarray) -> dict[str, dict[str, Any]]:
     """iLQR, feedback and open-loop iLQGame from zero inputs, and open loop from feedback."""
     out = {}
     res, first, run = time_jax_call(lambda: ilqr.solve_ilqr(game, x0, ego=0))
-    out["ilqr"] = _record(game, x0, "iLQR", res.xs, np.zeros((game.horizon, 2, 2)), res.converged, res.iterations, first, run)
-    # iLQR's residual is not a Nash quantity (the opponent is a prediction): drop it
-    out["ilqr"]["nash_residual"] = None
+    # iLQR's residual is not a Nash quantity (the opponent is a prediction): not computed
+    out["ilqr"] = _record(game, x0, "iLQR", res, first, run, nash=False)
     fb, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode="feedback"))
-    out["feedback"] = _record(game, x0, "feedback iLQGame", fb.xs, fb.us, fb.converged, fb.iterations, first, run)
+    out["feedback"] = _record(game, x0, "feedback iLQGame", fb, first, run)
     ol, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode="open_loop"))
-    out["open_loop"] = _record(game, x0, "open-loop iLQGame", ol.xs, ol.us, ol.converged, ol.iterations, first, run)
+    out["open_loop"] = _record(game, x0, "open-loop iLQGame", ol, first, run)
     olfb, first, run = time_jax_call(lambda: ilq.solve(game, x0, init=fb, mode="open_loop"))
-    out["open_loop_from_feedback"] = _record(
-        game, x0, "open-loop iLQGame from the feedback solution", olfb.xs, olfb.us, olfb.converged, olfb.iterations, first, run
-    )
+    out["open_loop_from_feedback"] = _record(game, x0, "open-loop iLQGame from the feedback solution", olfb, first, run)
     out["open_loop_from_feedback"]["max_state_change_vs_feedback"] = float(np.max(np.abs(np.asarray(olfb.xs) - np.asarray(fb.xs))))
     guess = left_guess(game.horizon)
     for mode, label in (("open_loop", "open-loop"), ("feedback", "feedback")):
         res, first, run = time_jax_call(lambda: ilq.solve(game, x0, init=guess, mode=mode))
         out[f"{mode}_from_left_guess"] = _record(
-            game, x0, f"{label} iLQGame from a left-steering initial guess", res.xs, res.us, res.converged, res.iterations, first, run
+            game, x0, f"{label} iLQGame from a left-steering initial guess", res, first, run
         )
     return out
 
@@ -165,8 +172,35 @@ def plot_methods(game: RaceGame, panels: list[tuple[str, np.ndarray]], path: Pat
     plt.close(fig)
 
 
+def plot_convergence(records: list[dict[str, Any]], tolerance: float, path: Path) -> None:
+    """Per iteration of every method: the convergence measure (log scale, with the
+    tolerance) and the accepted step size, from the records' ``convergence`` and ``step_sizes``."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8.5, 6.0), sharex=True, height_ratios=(2, 1))
+    for record in records:
+        iterations = np.arange(1, len(record["convergence"]) + 1)
+        (line,) = top.semilogy(iterations, record["convergence"], marker="o", ms=3, lw=1.2, label=record["method"])
+        bottom.plot(iterations, record["step_sizes"], marker="o", ms=3, lw=1.2, color=line.get_color())
+    top.axhline(tolerance, color="0.3", ls="--", lw=1.0)
+    top.annotate(f"tolerance {tolerance:g}", (1, tolerance), textcoords="offset points", xytext=(2, 3), fontsize=8)
+    top.set_ylabel("full-step state change\nmax |x_new - x_hat| [m, m/s, rad, ...]")
+    top.legend(fontsize=7)
+    bottom.set_ylabel("accepted step size eta")
+    bottom.set_xlabel("iteration")
+    bottom.set_ylim(0.0, 1.05)
+    fig.suptitle("Convergence of the solvers on the paper's scene")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
 def run_paper(out: Path) -> dict[str, Any]:
-    """Solve everything, write ``fig1_methods.png``, ``fig2_collision_weight.png``, ``paper.json``."""
+    """Solve everything, write ``fig1_methods.png``, ``fig2_collision_weight.png``,
+    ``fig3_convergence.png`` and ``paper.json``."""
     from rich.console import Console
     from rich.table import Table
 
@@ -182,7 +216,7 @@ def run_paper(out: Path) -> dict[str, Any]:
     for ratio in FIG2_RATIOS:
         g2, _ = paper_game(opponent_collision=ratio * base_cc)
         res, first, run = time_jax_call(lambda: ilq.solve(g2, x0, mode="feedback"))
-        rec = _record(g2, x0, f"feedback, c_c^2 = {ratio:g} c_c^1", res.xs, res.us, res.converged, res.iterations, first, run)
+        rec = _record(g2, x0, f"feedback, c_c^2 = {ratio:g} c_c^1", res, first, run)
         rec["ratio"] = ratio
         fig2.append(rec)
     plot_methods(game, [("a) iLQR (opponent predicted at constant speed and offset)", methods["ilqr"]["xs"]),
@@ -192,6 +226,9 @@ def run_paper(out: Path) -> dict[str, Any]:
                  out / "fig1_methods.png", "Figure 1: same costs, inputs initialised at zero")
     plot_methods(game, [(r["method"], r["xs"]) for r in fig2], out / "fig2_collision_weight.png",
                  "Figure 2: opponent collision weight c_c^2, feedback iLQGame")
+    plot_convergence([methods[k] for k in ("ilqr", "feedback", "open_loop", "open_loop_from_feedback",
+                                           "open_loop_from_left_guess", "feedback_from_left_guess")],
+                     ilq.SolverOptions().tolerance, out / "fig3_convergence.png")
     checks = findings(methods, fig2)
     strip = lambda r: {k: v for k, v in r.items() if k != "xs"}  # noqa: E731
     report = {
@@ -215,5 +252,6 @@ def run_paper(out: Path) -> dict[str, Any]:
     console.print(table)
     for row in checks:
         console.print(f"{'[green]yes[/]' if row['reproduced'] else '[red]no[/]'}  {row['claim']}: {row['evidence']}")
-    console.print(f"wrote {out / 'fig1_methods.png'}, {out / 'fig2_collision_weight.png'}, {out / 'paper.json'}")
+    figures = ", ".join(str(out / name) for name in ("fig1_methods.png", "fig2_collision_weight.png", "fig3_convergence.png"))
+    console.print(f"wrote {figures}, {out / 'paper.json'}")
     return report

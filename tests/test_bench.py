@@ -27,14 +27,15 @@ def test_report_is_saved_after_every_row_and_kept_on_ctrl_c(tmp_path, monkeypatc
     seen_on_disk = []
 
     def section():
-        yield {"name": "first", "ms_per_iter": 1.5, "compile_s": 0.1}
+        yield {"name": "first", "ms_per_iter": 1.5, "compile_s": 0.1, "target_ms": 1.0}
         seen_on_disk.append(json.loads(out.read_text())["results"]["fake"])
         yield {"name": "second", "ms_per_iter": 2.5}
         raise KeyboardInterrupt
 
     monkeypatch.setitem(bench.SECTIONS, "fake", section)
     report = bench.run_bench(["fake"], out)
-    assert seen_on_disk == [[{"name": "first", "ms_per_iter": 1.5, "compile_s": 0.1}]]
+    assert seen_on_disk == [[{"name": "first", "ms_per_iter": 1.5, "compile_s": 0.1, "target_ms": 1.0,
+                              "target_met": False}]]
     assert report["interrupted"] is True
     assert [row["name"] for row in report["results"]["fake"]] == ["first", "second"]
     assert json.loads(out.read_text()) == report
@@ -95,3 +96,12 @@ def test_lq_state_size_row_reports_every_state_size():
 def test_figure_shows_the_headline_or_every_part():
     assert bench._figure({"name": "x", "ms_per_iter": 0.6971, "compile_s": 5.0, "target_ms": 0.25}) == "0.6971 ms_per_iter"
     assert bench._figure({"name": "parts", "linearize": 0.1042, "lq_feedback": 0.19961}) == "linearize 0.104, lq_feedback 0.2"
+
+
+def test_target_verdict_knows_which_way_each_target_points():
+    assert bench._target_verdict({"name": "x", "ms_per_iter": 0.52, "target_ms": 0.25}) == ("<= 0.25 ms_per_iter", False)
+    assert bench._target_verdict({"name": "x", "ms_per_solve": 8.7, "target_ms": 50.0}) == ("<= 50 ms_per_solve", True)
+    assert bench._target_verdict({"name": "x", "throughput_ratio": 1.6, "target_ratio": 10.0}) == (">= 10 throughput_ratio", False)
+    assert bench._target_verdict({"name": "x", "steps_per_s": 5100.0, "target_steps_per_s": 5000}) == (">= 5000 steps_per_s", True)
+    assert bench._target_verdict({"name": "x", "ms_p95": 21.6, "target_ms_p95": 50.0}) == ("<= 50 ms_p95", True)
+    assert bench._target_verdict({"name": "x", "ms_per_iter": 1.9, "target_ms": None}) is None

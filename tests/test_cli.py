@@ -6,7 +6,9 @@ import json
 
 import pytest
 
+from experiments import paper
 from experiments.cli import build_parser, main
+from planners.ilq import SolverOptions
 
 
 def test_help_lists_the_subcommands(capsys):
@@ -59,11 +61,21 @@ def test_paper_reproduction_writes_figures_and_json(tmp_path):
     """`racing paper` solves every method, writes both figures and a complete paper.json."""
     assert main(["paper", "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "paper.json").read_text())
-    for name in ("fig1_methods.png", "fig2_collision_weight.png"):
+    for name in ("fig1_methods.png", "fig2_collision_weight.png", "fig3_convergence.png"):
         assert (tmp_path / name).stat().st_size > 0
     for key in ("ilqr", "feedback", "open_loop", "open_loop_from_feedback"):
         method = report["methods"][key]
         assert {"converged", "iterations", "solve_time_s", "ego_n_min", "final_gap_s", "min_distance"} <= set(method)
+        # one convergence measure and step size per iteration; a converged run ends within tolerance
+        assert len(method["convergence"]) == len(method["step_sizes"]) == method["iterations"]
+        assert method["convergence"][-1] <= SolverOptions().tolerance
     assert report["methods"]["open_loop"]["converged"]
     assert max(report["methods"]["open_loop"]["nash_residual"]) < 1e-4
     assert len(report["findings"]) >= 6
+
+
+def test_convergence_figure_is_written(tmp_path):
+    records = [{"method": "a", "convergence": [1.0, 1e-3, 1e-7], "step_sizes": [0.5, 1.0, 1.0]},
+               {"method": "b", "convergence": [2.0], "step_sizes": [1.0]}]
+    paper.plot_convergence(records, 1e-6, tmp_path / "fig3.png")
+    assert (tmp_path / "fig3.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
