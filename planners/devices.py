@@ -10,6 +10,13 @@ backend starts, i.e. at the first JAX computation of the process, so call
     planners.devices.use_cpu_cores()     # all cores; `racing bench` does this itself
 
 Single solves, the environment and the agents keep running on the first device.
+
+A caveat for custom problems: jaxlib 0.10's CPU LAPACK kernels (``jnp.linalg.eigh`` and
+others) split a batch of matrices over XLA's intra-op threads and wait for the parts, and
+with one device per core every such thread may be running one of those calls at once: the
+batch then hangs. The solvers call LAPACK on one matrix at a time; a ``GameProblem`` whose
+dynamics or costs call ``jnp.linalg`` should do the same
+(:func:`planners.batching.one_at_a_time` keeps a function unbatched under ``vmap``).
 """
 
 from __future__ import annotations
