@@ -101,9 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
         "paper", parents=[cache], help="reproduce the paper's Figures 1-2 and claims (PNG figures + paper.json)",
         description="Solve the scene of the paper's Figure 1 (two cars on a straight, inputs initialised at zero) "
         "with iLQR, open-loop and feedback iLQGame and the variants of Figure 2 and of the paper's claims; write "
-        "fig1_methods.png, fig2_collision_weight.png and paper.json (per method: converged, iterations, solve "
-        "time, each car's lateral extent, final gap, minimum distance, first-order Nash residual). About 35 s "
-        "on a 2-core machine, mostly compilation; about 10 s with the compilation cache filled.")
+        "fig1_methods.png, fig2_collision_weight.png, fig3_convergence.png and paper.json (per method: converged, "
+        "iterations, solve time, each car's lateral extent, final gap, minimum distance, first-order Nash "
+        "residual, the convergence measure and step size of every iteration). About 30 s on a 2-core machine, "
+        "mostly compilation; less with the compilation cache filled.")
     paper.add_argument("--out", default="runs/paper", help="output folder (default: runs/paper)")
     paper.set_defaults(func=_cmd_paper)
 

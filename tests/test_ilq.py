@@ -275,16 +275,14 @@ def test_vmapped_batch_matches_individual_solves(game, mode, where):
 # eigh hands parts of its batch to those threads and waits for them; once every thread
 # runs such a call, the process used to hang.
 _EIG_BATCH_CHILD = """
-import json, sys
+import json
 from planners.devices import use_cpu_cores
 devices = use_cpu_cores()
 import numpy as np
+from experiments.paper import paper_game
 from planners import ilq
-from racing_env import CostWeights, RaceGame, VehicleParams
-from racing_env.track import straight
-game = RaceGame.create(straight(length=300.0, width_left=6.0, width_right=6.0, ds=1.0),
-                       [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)], CostWeights(), dt=0.1, horizon=50)
-x0s = np.repeat(np.asarray(json.loads(sys.argv[1]))[None], devices, axis=0)
+game, x0 = paper_game()
+x0s = np.repeat(x0[None], devices, axis=0)
 x0s[:, 1, 1] += 0.5 * np.arange(devices)  # a different opponent speed per member
 options = dict(mode="open_loop", convexify="eig", max_iterations=3)
 batch = ilq.solve_batch(game, x0s, **options)
@@ -299,8 +297,7 @@ def test_eig_projection_in_a_batch_on_every_core_does_not_hang():
     import subprocess
     import sys
 
-    done = subprocess.run([sys.executable, "-c", _EIG_BATCH_CHILD, json.dumps(X0.tolist())],
-                          capture_output=True, text=True, timeout=300)
+    done = subprocess.run([sys.executable, "-c", _EIG_BATCH_CHILD], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     report = json.loads(done.stdout.strip().splitlines()[-1])
     assert report["devices"] >= 1 and len(report["gaps"]) == report["devices"]

@@ -481,17 +481,12 @@ def test_own_input_solvers_under_vmap_match_one_by_one(solver):
 # ------------------------------------------------------------------------------------
 
 
-def _own_parts(game):
-    A, B, Q, q, R, r = game
-    idx = np.arange(B.shape[1])
-    return A, B, Q, q, R[:, idx, idx], r[:, idx, idx]
-
-
+# name -> (which game it takes: the general arrays or own_input_game's own blocks, solver)
 _SOLVERS = {
-    "feedback": lambda g, x0: solve_feedback(*g),
-    "open_loop": lambda g, x0: solve_open_loop(*g, x0),
-    "feedback_own": lambda g, x0: solve_feedback_own(*_own_parts(g)),
-    "open_loop_own": lambda g, x0: solve_open_loop_own(*_own_parts(g), x0),
+    "feedback": ("general", lambda g, x0: solve_feedback(*g)),
+    "open_loop": ("general", lambda g, x0: solve_open_loop(*g, x0)),
+    "feedback_own": ("own", lambda g, x0: solve_feedback_own(*g)),
+    "open_loop_own": ("own", lambda g, x0: solve_open_loop_own(*g, x0)),
 }
 
 
@@ -501,15 +496,17 @@ def test_gradients_match_central_differences(name):
     of (A, q), by jax.grad (also vmapped) and by a central difference. With step h = 1e-5
     the difference's truncation error is O(h^2) ~ 1e-10 and its rounding error
     ~ 1e-16 / h ~ 1e-11 (relative), so the two agree to 1e-6 unless a derivative is wrong."""
-    game = tuple(jnp.asarray(a) for a in random_game(seed=70, N=2, T=5, n=3, m=2))
+    kind, solver = _SOLVERS[name]
+    arrays = random_game(seed=70, N=2, T=5, n=3, m=2) if kind == "general" else own_input_game(seed=70, N=2, T=5, n=3, m=2)[1]
+    game = tuple(jnp.asarray(a) for a in arrays)  # A, B, Q, q, then the input weights
     x0 = jnp.asarray(random_x0(70, n=3))
     rng = np.random.default_rng(71)
-    weights = [jnp.asarray(rng.standard_normal(o.shape)) for o in _SOLVERS[name](game, x0)]
+    weights = [jnp.asarray(rng.standard_normal(o.shape)) for o in solver(game, x0)]
     dA, dq = (jnp.asarray(rng.standard_normal(game[i].shape)) for i in (0, 3))
 
     def functional(eps):
-        A, B, Q, q, R, r = game
-        outputs = _SOLVERS[name]((A + eps * dA, B, Q, q + eps * dq, R, r), x0)
+        A, B, Q, q, *input_weights = game
+        outputs = solver((A + eps * dA, B, Q, q + eps * dq, *input_weights), x0)
         return sum(jnp.sum(w * o) for w, o in zip(weights, outputs))
 
     h = 1e-5
