@@ -205,7 +205,8 @@ def _machine_reference_batched(repeats: int = 5, lanes: int = 4096, steps: int =
 
 def machine_info() -> dict[str, Any]:
     """What the figures were measured on: CPU model and count, load average at the start
-    (this is a shared machine), Python, JAX and its devices, and any compilation cache."""
+    (this is a shared machine), Python, JAX and its devices, the XLA flags (e.g. whether the
+    solvers' loops were single kernels, :mod:`racing_env.xla_setup`) and any compilation cache."""
     import os
 
     import jax
@@ -216,6 +217,7 @@ def machine_info() -> dict[str, Any]:
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
             "python": platform.python_version(), "jax": jax.__version__,
             "devices": [str(d) for d in jax.devices()],
+            "xla_flags": os.environ.get("XLA_FLAGS", ""),
             # compile_s figures are cache loads where a persistent cache already holds the program
             "compile_cache": compile_cache_dir()}
 

@@ -23,7 +23,8 @@ Solvers:
 * :func:`solve_open_loop`: open-loop Nash equilibrium, ``u_t^i = -k_t^i``, from each player's
   Pontryagin conditions with an affine costate ``lambda_t^i = M_t^i x_t + m_t^i``.
 * :func:`solve_open_loop_own`: the same for own-input costs, without ``n x n`` solves
-  (Woodbury identity, fused small products): the open-loop counterpart of
+  (Woodbury identity, fused small products, the ``(N m) x (N m)`` systems solved by
+  :func:`pivoted_solve` instead of LAPACK): the open-loop counterpart of
   :func:`solve_feedback_own`.
 * :func:`lqr`: plain single-player LQR (an independent oracle for ``N = 1``).
 
@@ -33,6 +34,10 @@ once, outside ``jit``, on the raw arrays. Under ``jax.vmap`` the game solvers ru
 of the batch one after another (:func:`planners.batching.one_at_a_time`: the fastest batched
 form measured on CPU, and the one whose LAPACK calls cannot deadlock a batch split across
 CPU devices).
+
+The own-input solvers call no LAPACK routine for ``N m <= 8``: a loop without such a call
+can be compiled by XLA:CPU into a single kernel (:mod:`racing_env.xla_setup`), which
+removes the fixed cost per operation that otherwise dominates these small recursions.
 
 Only the symmetric parts of ``Q`` and ``R`` enter the costs, so the solvers symmetrise them;
 non-symmetric inputs are thus handled consistently with the cost definition.
@@ -49,9 +54,11 @@ from planners.batching import one_at_a_time
 Array = jax.Array
 
 __all__ = [
+    "block_solve",
     "lq_costs",
     "lq_rollout_feedback",
     "lqr",
+    "pivoted_solve",
     "solve_feedback",
     "solve_feedback_own",
     "solve_open_loop",
@@ -281,6 +288,45 @@ def block_solve(S: Array, rhs: Array) -> Array:
     return M[..., N * m:]
 
 
+# Above this size a LAPACK solve beats the unrolled elimination even inside a loop kernel.
+_PIVOTED_SOLVE_MAX = 8
+
+
+def pivoted_solve(S: Array, rhs: Array) -> Array:
+    """Solve ``S X = rhs`` by Gauss-Jordan elimination with partial (row) pivoting.
+
+    Args:
+      S: ``(p, p)``, any regular matrix. rhs: ``(p, k)``.
+
+    Returns:
+      ``X (p, k)``.
+
+    The same method as LAPACK's LU solve, written as ``p`` unrolled elimination steps of
+    element-wise code for the small systems of the LQ recursions (``p = N m``). A LAPACK
+    call is an XLA custom call, and a loop that contains one cannot be compiled into a
+    single kernel (:mod:`racing_env.xla_setup`); this elimination can. Systems larger than
+    ``_PIVOTED_SOLVE_MAX`` go to ``jnp.linalg.solve``. A singular ``S`` gives non-finite
+    entries.
+    """
+    p = S.shape[-1]
+    if p > _PIVOTED_SOLVE_MAX:
+        return jnp.linalg.solve(S, rhs)
+    M = jnp.concatenate([S, rhs], axis=-1)  # (p, p + k)
+    rows = jnp.arange(p)
+    for j in range(p):
+        # Pivot: the largest |entry| of column j among the rows not yet eliminated; swap
+        # it into row j (one-hot arithmetic: no data-dependent indexing).
+        candidates = jnp.where(rows >= j, jnp.abs(M[:, j]), -1.0)
+        at_pivot = jax.nn.one_hot(jnp.argmax(candidates), p, dtype=M.dtype)[:, None]
+        pivot_row = jnp.sum(at_pivot * M, axis=0)
+        M = M + at_pivot * (M[j] - pivot_row)[None, :]
+        # Eliminate column j from every other row (Gauss-Jordan); the scaled pivot row is row j.
+        pivot_row = pivot_row / pivot_row[j]
+        M = M - jnp.where(rows == j, 0.0, M[:, j])[:, None] * pivot_row[None, :]
+        M = M.at[j].set(pivot_row)
+    return M[:, p:]
+
+
 def _feedback_own_recursion(A, B, Q, q, Rii, rii):
     """The recursion of :func:`solve_feedback_own` for one game: small products as fused
     element-wise code (:func:`_contract`), the coupled gains by :func:`block_solve`."""
@@ -474,7 +520,7 @@ def _open_loop_own_recursion(A, B, Q, q, Rii, rii, x0):
         # the Woodbury identity Lambda^{-1} X = X - Bbar (I + W Bbar)^{-1} W X.
         Ac = jnp.concatenate([A_t, c("jam,jm->a", B_t, g)[:, None]], axis=1)  # [A, c_t]
         S = (eye_Nm + c("imb,jbl->imjl", W, B_t)).reshape(N * m, N * m)
-        Y = jnp.linalg.solve(S, c("imb,bw->imw", W, Ac).reshape(N * m, n + 1))
+        Y = pivoted_solve(S, c("imb,bw->imw", W, Ac).reshape(N * m, n + 1))
         LinvAc = Ac - c("jam,jmw->aw", B_t, Y.reshape(N, m, n + 1))
         LinvA, Linvc = LinvAc[:, :n], LinvAc[:, n]
         M_new = Q_t + c("ba,ibd->iad", A_t, c("ibc,cd->ibd", M, LinvA))
@@ -511,7 +557,8 @@ def solve_open_loop_own(
       ``Bbar = [B^1 .. B^N]`` and ``W^j = (R^{jj})^{-1} B^j' M_{t+1}^j`` stacked, so the
       Woodbury identity gives ``Lambda^{-1} X = X - Bbar (I + W Bbar)^{-1} W X``: one
       ``(N m) x (N m)`` solve per stage instead of an ``n x n`` one (``Lambda`` and
-      ``I + W Bbar`` are regular together, by Sylvester's determinant identity);
+      ``I + W Bbar`` are regular together, by Sylvester's determinant identity), by
+      :func:`pivoted_solve` (no LAPACK call: the recursion compiles into one loop kernel);
     * the ``m x m`` blocks ``R^{jj}`` are inverted in closed form for ``m <= 2``;
     * the forward pass reuses ``Lambda^{-1} A``, ``Lambda^{-1} c`` and
       ``k_t^i = W^i x_{t+1} + (R^{ii})^{-1} (B^i' m_{t+1}^i + r^{ii})``: no solves at all.

@@ -1,11 +1,16 @@
 """racing_env: the race world (track, car model, game definition, PettingZoo/Gymnasium envs).
 
 Importing the package switches JAX to 64-bit floats: the game solvers check Nash conditions
-to 1e-8 and the env must be bit-for-bit deterministic, both of which want float64.
+to 1e-8 and the env must be bit-for-bit deterministic, both of which want float64. It also
+lets XLA:CPU compile each of the solvers' sequential loops into one kernel, if JAX has not
+started yet (:mod:`racing_env.xla_setup`; ``RACING_XLA_LOOP_KERNELS=off`` opts out).
 """
 
 import jax
 
+from racing_env.xla_setup import configure_loop_kernels
+
+configure_loop_kernels()
 jax.config.update("jax_enable_x64", True)
 
 from racing_env.config import RaceConfig, RewardConfig  # noqa: E402

@@ -382,7 +382,14 @@ def test_vmap_over_games():
 # The own-input solver (planners.ilq's structure: R^{ij} = 0 for i != j) and its helpers.
 # ------------------------------------------------------------------------------------
 
-from planners.lq_game import _contract, block_solve, solve_feedback_own, solve_open_loop_own  # noqa: E402
+from planners.lq_game import (  # noqa: E402
+    _PIVOTED_SOLVE_MAX,
+    _contract,
+    block_solve,
+    pivoted_solve,
+    solve_feedback_own,
+    solve_open_loop_own,
+)
 
 
 @pytest.mark.parametrize("N,m", [(1, 2), (2, 1), (2, 2), (3, 2), (2, 3)])
@@ -396,6 +403,31 @@ def test_block_solve_matches_linalg_solve(N, m):
     X = np.asarray(block_solve(jnp.asarray(S), jnp.asarray(rhs)))
     ref = np.linalg.solve(S.reshape(N * m, N * m), rhs.reshape(N * m, 7)).reshape(N, m, 7)
     assert np.max(np.abs(X - ref)) < 1e-10
+
+
+@pytest.mark.parametrize("p", [1, 2, 4, 6, _PIVOTED_SOLVE_MAX])
+def test_pivoted_solve_is_backward_stable_where_elimination_needs_row_swaps(p):
+    rng = np.random.default_rng(p)
+    eps = np.finfo(float).eps
+    for trial in range(50):
+        S = rng.standard_normal((p, p))
+        if p > 1 and trial % 2 == 0:
+            S[0, 0] = 0.0  # elimination without row swaps would divide by zero here
+        rhs = rng.standard_normal((p, 5))
+        X = np.asarray(pivoted_solve(jnp.asarray(S), jnp.asarray(rhs)))
+        # Partial pivoting is backward stable with growth factor <= 2^(p-1): the residual
+        # is at most about p 2^(p-1) eps relative to |S| |X| + |rhs|.
+        residual = np.max(np.abs(S @ X - rhs)) / (np.max(np.abs(S)) * np.max(np.abs(X)) + np.max(np.abs(rhs)))
+        assert residual <= p * 2 ** (p - 1) * eps
+
+
+def test_pivoted_solve_of_a_singular_system_is_not_finite_and_large_ones_use_lapack():
+    X = pivoted_solve(jnp.asarray([[1.0, 2.0], [2.0, 4.0]]), jnp.ones((2, 1)))
+    assert not np.all(np.isfinite(np.asarray(X)))
+    rng = np.random.default_rng(0)
+    p = _PIVOTED_SOLVE_MAX + 1
+    S, rhs = rng.standard_normal((p, p)), rng.standard_normal((p, 2))
+    np.testing.assert_array_equal(pivoted_solve(jnp.asarray(S), jnp.asarray(rhs)), jnp.linalg.solve(S, rhs))
 
 
 @pytest.mark.parametrize("spec,shapes", [
