@@ -6,10 +6,14 @@ runtime runs every operation of a loop body as a separate kernel, and for operan
 few hundred numbers that fixed cost is most of the run time. XLA can instead compile a
 whole loop into one function (its "small while loop" hoisting), but only for loops whose
 memory traffic per iteration is below ``xla_cpu_small_while_loop_byte_threshold``, which
-defaults to about a kilobyte. Raising it to :data:`LOOP_KERNEL_BYTES` makes every loop of
-the solvers a single kernel: the N = 2 feedback LQ recursion runs about twice as fast, and
-so does the forward pass (``racing bench --only solvers``; README, Benchmarks). Results are
-unchanged: the same operations in the same order.
+defaults to about a kilobyte, and that contain no library calls (LAPACK, and the YNNPACK
+fusions jaxlib 0.10 makes of dot products). Raising the limit to :data:`LOOP_KERNEL_BYTES`
+makes every loop of the two-car solvers a single kernel: a feedback iteration runs
+1.5-2.4x as fast (README, Loop kernels). The three-car recursion holds dot products;
+``RACING_XLA_LOOP_KERNELS=dots`` also turns the YNNPACK fusions off
+(:data:`YNN_FUSION_FLAG`, jaxlib 0.10 only), which makes its loops single kernels too
+(1.7-2.7x faster iterations) but doubles every solver's compile time. Results agree to
+rounding: the same operations (with ``dots``, XLA's own code for the dot products).
 
 XLA reads its flags (the ``XLA_FLAGS`` environment variable) once, when JAX's backend
 starts, i.e. at the first JAX computation of the process. :func:`configure_loop_kernels`
@@ -22,9 +26,21 @@ from __future__ import annotations
 import os
 import warnings
 
-__all__ = ["LOOP_KERNEL_BYTES", "LOOP_KERNEL_OPTION", "configure_loop_kernels", "with_loop_kernels"]
+__all__ = [
+    "LOOP_KERNEL_BYTES",
+    "LOOP_KERNEL_OPTION",
+    "YNN_FUSION_FLAG",
+    "configure_loop_kernels",
+    "with_loop_kernels",
+]
 
 LOOP_KERNEL_OPTION = "xla_cpu_small_while_loop_byte_threshold"
+# jaxlib 0.10 hands dot products to YNNPACK as library fusions, which a single-kernel loop
+# cannot contain either; with no YNNPACK fusion types XLA emits the dots itself. Opt-in
+# (RACING_XLA_LOOP_KERNELS=dots): it doubles compile times. Set only for the jaxlib series
+# it was measured on: XLA aborts on a flag its version does not know.
+YNN_FUSION_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
+_YNN_FLAG_JAXLIB = ("0.10.",)
 # 128 MiB per loop iteration: every solver loop up to far larger games than the paper's
 # (the batch of 64 games needs about 10 MB), while loops that stream bigger arrays keep
 # XLA's default multi-kernel execution.
@@ -33,24 +49,37 @@ _EXTRA_OPTIONS_FLAG = "--xla_backend_extra_options="
 _OFF = {"0", "off", "false", "no"}
 
 
-def with_loop_kernels(xla_flags: str, threshold_bytes: int = LOOP_KERNEL_BYTES) -> str:
-    """``xla_flags`` (an ``XLA_FLAGS`` string) with the loop-kernel option added.
+def with_loop_kernels(xla_flags: str, threshold_bytes: int = LOOP_KERNEL_BYTES, no_ynn_fusions: bool = False) -> str:
+    """``xla_flags`` (an ``XLA_FLAGS`` string) with the loop-kernel settings added.
 
-    A value the flags already give for the option is kept. The option joins an existing
-    ``--xla_backend_extra_options=`` list (comma-separated ``key=value`` pairs) or starts one.
+    The threshold option joins an existing ``--xla_backend_extra_options=`` list
+    (comma-separated ``key=value`` pairs) or starts one; with ``no_ynn_fusions``,
+    ``--xla_cpu_experimental_ynn_fusion_type=`` (empty: no YNNPACK fusions) is added too.
+    Values the flags already give for either are kept.
     """
     if threshold_bytes < 0:
         raise ValueError(f"threshold_bytes must be >= 0, got {threshold_bytes}")
-    if LOOP_KERNEL_OPTION in xla_flags:
-        return xla_flags
-    option = f"{LOOP_KERNEL_OPTION}={int(threshold_bytes)}"
     tokens = xla_flags.split()
+    if no_ynn_fusions and not any(t.startswith(YNN_FUSION_FLAG) for t in tokens):
+        tokens.append(YNN_FUSION_FLAG + "=")
+    if LOOP_KERNEL_OPTION in xla_flags:
+        return " ".join(tokens)
+    option = f"{LOOP_KERNEL_OPTION}={int(threshold_bytes)}"
     for k, token in enumerate(tokens):
         if token.startswith(_EXTRA_OPTIONS_FLAG):
             existing = token[len(_EXTRA_OPTIONS_FLAG):]
             tokens[k] = _EXTRA_OPTIONS_FLAG + (f"{existing},{option}" if existing else option)
             return " ".join(tokens)
     return " ".join(tokens + [_EXTRA_OPTIONS_FLAG + option])
+
+
+def _jaxlib_knows_ynn_flag() -> bool:
+    try:
+        import jaxlib
+
+        return jaxlib.__version__.startswith(_YNN_FLAG_JAXLIB)
+    except (ImportError, AttributeError):
+        return False
 
 
 def _backend_started() -> bool:
@@ -68,9 +97,12 @@ def configure_loop_kernels() -> str:
     Returns what happened: ``"set"``, ``"user"`` (the flags already name the option),
     ``"off"`` (``RACING_XLA_LOOP_KERNELS`` is ``off``/``0``/``false``/``no``) or
     ``"too late"`` (JAX already started; a warning says how to get the faster loops).
+    ``RACING_XLA_LOOP_KERNELS=dots`` adds the YNNPACK flag as well (on jaxlib 0.10).
     """
-    if os.environ.get("RACING_XLA_LOOP_KERNELS", "").strip().lower() in _OFF:
+    choice = os.environ.get("RACING_XLA_LOOP_KERNELS", "").strip().lower()
+    if choice in _OFF:
         return "off"
+    no_ynn = choice == "dots" and _jaxlib_knows_ynn_flag()
     flags = os.environ.get("XLA_FLAGS", "")
     if LOOP_KERNEL_OPTION in flags:
         return "user"
@@ -79,10 +111,11 @@ def configure_loop_kernels() -> str:
             "JAX started before racing_env was imported, so XLA:CPU runs the solvers' loops "
             "as many small kernels (about 1.5x slower iterations). Import racing_env or "
             "planners before the first JAX computation, or set XLA_FLAGS="
-            f"'{with_loop_kernels('')}' (RACING_XLA_LOOP_KERNELS=off silences this).",
+            f"'{with_loop_kernels('', no_ynn_fusions=no_ynn)}' "
+            "(RACING_XLA_LOOP_KERNELS=off silences this).",
             RuntimeWarning,
             stacklevel=3,
         )
         return "too late"
-    os.environ["XLA_FLAGS"] = with_loop_kernels(flags)
+    os.environ["XLA_FLAGS"] = with_loop_kernels(flags, no_ynn_fusions=no_ynn)
     return "set"

@@ -8,29 +8,32 @@ import textwrap
 
 import pytest
 
-from racing_env.xla_setup import LOOP_KERNEL_BYTES, LOOP_KERNEL_OPTION, with_loop_kernels
+from racing_env.xla_setup import LOOP_KERNEL_BYTES, LOOP_KERNEL_OPTION, YNN_FUSION_FLAG, with_loop_kernels
 
 OPTION = f"{LOOP_KERNEL_OPTION}={LOOP_KERNEL_BYTES}"
 
 
 def test_flags_gain_the_option():
-    assert with_loop_kernels("") == f"--xla_backend_extra_options={OPTION}"
-    assert with_loop_kernels("--xla_cpu_enable_fast_math=false") == (
-        f"--xla_cpu_enable_fast_math=false --xla_backend_extra_options={OPTION}"
+    assert with_loop_kernels("", no_ynn_fusions=False) == f"--xla_backend_extra_options={OPTION}"
+    assert with_loop_kernels("--xla_cpu_enable_fast_math=false", no_ynn_fusions=True) == (
+        f"--xla_cpu_enable_fast_math=false {YNN_FUSION_FLAG}= --xla_backend_extra_options={OPTION}"
     )
 
 
 def test_an_existing_extra_options_list_is_extended():
     flags = "--xla_dump_to=/tmp/d --xla_backend_extra_options=xla_cpu_disable_slp_vectorizer=true"
-    assert with_loop_kernels(flags) == (
+    assert with_loop_kernels(flags, no_ynn_fusions=False) == (
         "--xla_dump_to=/tmp/d --xla_backend_extra_options="
         f"xla_cpu_disable_slp_vectorizer=true,{OPTION}"
     )
 
 
-def test_a_value_the_user_set_is_kept():
+def test_values_the_user_set_are_kept():
     flags = f"--xla_backend_extra_options={LOOP_KERNEL_OPTION}=0"
     assert with_loop_kernels(flags) == flags
+    assert with_loop_kernels(flags, no_ynn_fusions=True) == f"{flags} {YNN_FUSION_FLAG}="
+    mine = f"{YNN_FUSION_FLAG}=individual"
+    assert with_loop_kernels(mine, no_ynn_fusions=True) == f"{mine} --xla_backend_extra_options={OPTION}"
 
 
 def test_negative_threshold_is_refused():
@@ -50,7 +53,10 @@ _CHILD = textwrap.dedent(
     import jax, numpy as np
     from racing_env.xla_setup import configure_loop_kernels
     rng = np.random.default_rng(0)
-    T, N, n, m = 20, 2, 6, 2
+    # Two players with 6 states: small products only. Three with 18: the recursion's
+    # largest products are dot operations, which jaxlib 0.10 makes YNNPACK fusions.
+    T, m = 10, 2
+    N, n = (3, 18) if sys.argv[2] == "three" else (2, 6)
     L = rng.normal(size=(T + 1, N, n, n))
     game = (np.eye(n) + 0.1 * rng.normal(size=(T, n, n)), 0.3 * rng.normal(size=(T, N, n, m)),
             np.einsum("tiab,ticb->tiac", L, L), rng.normal(size=(T + 1, N, n)),
@@ -67,26 +73,40 @@ _CHILD = textwrap.dedent(
 )
 
 
-def _child(mode: str, **env) -> dict:
+def _child(mode: str, players: str = "two", **env) -> dict:
     environ = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "RACING_XLA_LOOP_KERNELS")}
     environ.update(env)
-    out = subprocess.run([sys.executable, "-c", _CHILD, mode], env=environ, capture_output=True,
+    out = subprocess.run([sys.executable, "-c", _CHILD, mode, players], env=environ, capture_output=True,
                          text=True, timeout=240, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def test_importing_planners_compiles_the_lq_recursion_as_one_kernel_with_the_same_result():
+def _assert_same_gains(a: dict, b: dict) -> None:
+    # The same operations (with "dots", the dots summed by other code): the gains agree to
+    # rounding (float64 eps times the growth of errors through ten stages of the recursion).
     import numpy as np
 
+    for name in ("K", "k"):
+        x, y = np.asarray(a[name]), np.asarray(b[name])
+        assert np.max(np.abs(x - y)) <= 1e-12 * np.max(np.abs(y))
+
+
+def test_importing_planners_compiles_the_lq_recursion_as_one_kernel_with_the_same_result():
     fast = _child("import_first")
     default = _child("import_first", RACING_XLA_LOOP_KERNELS="off")
-    # The import set the option (a second call finds it set); XLA hoisted the recursion's
-    # loop into one kernel, and did not with the opt-out.
+    # The import set the option (a second call finds it set); XLA made the recursion's loop
+    # one kernel, and did not with the opt-out.
     assert fast["status"] == "user" and fast["single_kernel_loop"] and not fast["warnings"]
     assert default["status"] == "off" and not default["single_kernel_loop"]
-    # The same operations in the same order: the gains agree to rounding.
-    np.testing.assert_allclose(fast["K"], default["K"], rtol=0, atol=1e-12)
-    np.testing.assert_allclose(fast["k"], default["k"], rtol=0, atol=1e-12)
+    _assert_same_gains(fast, default)
+
+
+def test_dots_setting_makes_the_three_player_recursion_one_kernel():
+    plain = _child("import_first", "three")
+    dots = _child("import_first", "three", RACING_XLA_LOOP_KERNELS="dots")
+    assert not plain["single_kernel_loop"]  # its dot products are YNNPACK library fusions
+    assert dots["single_kernel_loop"]
+    _assert_same_gains(dots, plain)
 
 
 def test_jax_started_before_the_import_is_reported():
