@@ -202,8 +202,11 @@ def test_game_agents_beat_the_lane_keeper(tmp_path):
     lead, README): iLQR +1.82/+0.85 s, open loop +1.86/+0.96 s, feedback +1.80/+1.07 s.
     """
     planners = ("ilqr", "ilqgame-ol", "ilqgame-fb")
+    # This test is about racing, not speed: the default 1 s budget per action once faulted
+    # a feedback re-plan that took 1.02 s in a stall of this shared machine (its median
+    # re-plan is 6-15 ms). The budget itself is tested with a sleeping agent above.
     config = tour.TournamentConfig(agents=(*planners, "lane-keeping"), versus="lane-keeping",
-                                   track="trefoil", grids=1)
+                                   track="trefoil", grids=1, step_budget_s=30.0)
     board = tour.run_tournament(config, tmp_path, gif=False, progress=False)
     rows = {row["agent"]: row for row in board["rows"]}
     assert rows["lane-keeping"]["races"] == 2 * len(planners)
