@@ -94,7 +94,7 @@ def _backend_started() -> bool:
 def configure_loop_kernels() -> str:
     """Add the loop-kernel option to ``XLA_FLAGS`` if it can still take effect.
 
-    Returns what happened: ``"set"``, ``"user"`` (the flags already name the option),
+    Returns what happened: ``"set"``, ``"user"`` (the flags already hold every setting),
     ``"off"`` (``RACING_XLA_LOOP_KERNELS`` is ``off``/``0``/``false``/``no``) or
     ``"too late"`` (JAX already started; a warning says how to get the faster loops).
     ``RACING_XLA_LOOP_KERNELS=dots`` adds the YNNPACK flag as well (on jaxlib 0.10).
@@ -102,20 +102,19 @@ def configure_loop_kernels() -> str:
     choice = os.environ.get("RACING_XLA_LOOP_KERNELS", "").strip().lower()
     if choice in _OFF:
         return "off"
-    no_ynn = choice == "dots" and _jaxlib_knows_ynn_flag()
     flags = os.environ.get("XLA_FLAGS", "")
-    if LOOP_KERNEL_OPTION in flags:
+    wanted = with_loop_kernels(flags, no_ynn_fusions=choice == "dots" and _jaxlib_knows_ynn_flag())
+    if wanted == flags:
         return "user"
     if _backend_started():
         warnings.warn(
             "JAX started before racing_env was imported, so XLA:CPU runs the solvers' loops "
             "as many small kernels (about 1.5x slower iterations). Import racing_env or "
-            "planners before the first JAX computation, or set XLA_FLAGS="
-            f"'{with_loop_kernels('', no_ynn_fusions=no_ynn)}' "
+            f"planners before the first JAX computation, or set XLA_FLAGS='{wanted}' "
             "(RACING_XLA_LOOP_KERNELS=off silences this).",
             RuntimeWarning,
             stacklevel=3,
         )
         return "too late"
-    os.environ["XLA_FLAGS"] = with_loop_kernels(flags, no_ynn_fusions=no_ynn)
+    os.environ["XLA_FLAGS"] = wanted
     return "set"

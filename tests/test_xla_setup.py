@@ -6,6 +6,7 @@ import subprocess
 import sys
 import textwrap
 
+import numpy as np
 import pytest
 
 from racing_env.xla_setup import LOOP_KERNEL_BYTES, LOOP_KERNEL_OPTION, YNN_FUSION_FLAG, with_loop_kernels
@@ -84,8 +85,6 @@ def _child(mode: str, players: str = "two", **env) -> dict:
 def _assert_same_gains(a: dict, b: dict) -> None:
     # The same operations (with "dots", the dots summed by other code): the gains agree to
     # rounding (float64 eps times the growth of errors through ten stages of the recursion).
-    import numpy as np
-
     for name in ("K", "k"):
         x, y = np.asarray(a[name]), np.asarray(b[name])
         assert np.max(np.abs(x - y)) <= 1e-12 * np.max(np.abs(y))
