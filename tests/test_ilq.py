@@ -371,20 +371,27 @@ def test_gauss_newton_hooks_give_exact_gradients_and_psd_hessians(game):
     problem = ilq.problem_from_race_game(game)
     n = problem.state_dim
     rng = np.random.default_rng(3)
+
+    @jax.jit  # one compilation for all states and players (eager tracing took ~10 s)
+    def terms_and_exact(z, i):
+        fun = lambda z: ilq._race_stage_gauss_newton(game, 0, i, z[:n], z[n:])
+        H, g = ilq._gauss_newton_terms(fun, z)
+        exact = jax.grad(lambda z: problem.stage_cost(game, 0, i, z[:n], z[n:]))(z)
+        x = z[:n]
+        HT, gT = ilq._gauss_newton_terms(lambda x: ilq._race_terminal_gauss_newton(game, i, x), x)
+        exact_T = jax.grad(lambda x: problem.terminal_cost(game, i, x))(x)
+        return H, g, exact, HT, gT, exact_T
+
     for X in _random_states(game, rng, 10):
         x = jnp.asarray(X).reshape(-1)
         for i in range(2):
             u_i = jnp.asarray(rng.normal(size=2))
-            z = jnp.concatenate([x, u_i])
-            fun = lambda z: ilq._race_stage_gauss_newton(game, 0, i, z[:n], z[n:])
-            H, g = ilq._gauss_newton_terms(fun, z)
-            exact = jax.grad(lambda z: problem.stage_cost(game, 0, i, z[:n], z[n:]))(z)
+            H, g, exact, HT, gT, exact_T = terms_and_exact(jnp.concatenate([x, u_i]), i)
             np.testing.assert_allclose(g, exact, rtol=1e-12, atol=1e-12)
             H = np.asarray(H)
             assert np.max(np.abs(H - H.T)) < 1e-12
             assert np.linalg.eigvalsh(H).min() >= -1e-10 * max(1.0, np.abs(H).max())
-            HT, gT = ilq._gauss_newton_terms(lambda x: ilq._race_terminal_gauss_newton(game, i, x), x)
-            np.testing.assert_allclose(gT, jax.grad(lambda x: problem.terminal_cost(game, i, x))(x))
+            np.testing.assert_allclose(gT, exact_T)
             assert np.all(np.asarray(HT) == 0.0)  # the terminal cost is linear
 
 
@@ -399,19 +406,38 @@ def test_gauss_newton_hessian_is_exact_for_the_track_term(game):
     n = problem.state_dim
     z = jnp.concatenate([jnp.asarray(X).reshape(-1), jnp.array([0.3, -0.2])])
     fun = lambda z: ilq._race_stage_gauss_newton(game, 0, 0, z[:n], z[n:])
-    H, _ = ilq._gauss_newton_terms(fun, z)
-    exact = jax.hessian(lambda z: problem.stage_cost(game, 0, 0, z[:n], z[n:]))(z)
+    H, _ = jax.jit(lambda z: ilq._gauss_newton_terms(fun, z))(z)
+    exact = jax.jit(jax.hessian(lambda z: problem.stage_cost(game, 0, 0, z[:n], z[n:])))(z)
     np.testing.assert_allclose(H, exact, atol=1e-10)
     assert float(exact[2, 2]) > 0  # the track term is active
 
 
-def test_race_dynamics_jacobians_match_jacfwd(game):
+def _three_cars_on_the_trefoil() -> tuple[RaceGame, np.ndarray]:
+    """Three cars on a curved, closed track (the straight has kappa = 0 everywhere)."""
+    from racing_env.track import trefoil
+
+    game = RaceGame.create(trefoil(), [VehicleParams()] * 3, CostWeights(), dt=0.1, horizon=5)
+    grid = np.array([[10.0, 15.0, 1.0, 0.05, 1.0, 2.0], [14.0, 16.0, -1.0, -0.1, 0.0, -3.0],
+                     [30.0, 14.0, 0.0, 0.2, -2.0, 4.0]])
+    return game, grid
+
+
+@pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
+def test_race_dynamics_jacobians_match_jacfwd(game, scene):
+    """The per-car hook assembles the joint block-diagonal A and per-player B exactly."""
+    base = X0
+    if scene == "three_cars_trefoil":
+        game, base = _three_cars_on_the_trefoil()
     problem = ilq.problem_from_race_game(game)
     rng = np.random.default_rng(4)
-    for X in _random_states(game, rng, 3):
-        x, u = jnp.asarray(X).reshape(-1), jnp.asarray(rng.normal(size=(2, 2)))
-        A, B = ilq._race_dynamics_jacobians(game, 0, x, u)
-        A0, B0 = jax.jacfwd(lambda x, u: problem.dynamics(game, 0, x, u), argnums=(0, 1))(x, u)
+    scale = np.array([3.0, 4.0, 1.0, 0.2, 8.0, 12.0])
+    hook = jax.jit(lambda x, u: ilq._race_dynamics_jacobians(game, 0, x, u))
+    joint = jax.jit(jax.jacfwd(lambda x, u: problem.dynamics(game, 0, x, u), argnums=(0, 1)))
+    for _ in range(3):
+        X = base + rng.normal(size=base.shape) * scale
+        x, u = jnp.asarray(X).reshape(-1), jnp.asarray(rng.normal(size=(game.num_players, 2)))
+        A, B = hook(x, u)
+        A0, B0 = joint(x, u)
         np.testing.assert_allclose(A, A0, atol=1e-14)
         np.testing.assert_allclose(B, B0, atol=1e-14)
 
@@ -450,16 +476,22 @@ def test_ilqr_gauss_newton_hooks_match_the_ego_costs(game):
     assert problem.has_gauss_newton
     params = problem.params
     rng = np.random.default_rng(6)
+
+    @jax.jit  # one compilation for all states and stages
+    def terms_and_exact(z, t):
+        fun = lambda z: problem.stage_gauss_newton(params, t, 0, z[:6], z[6:])
+        H, g = ilq._gauss_newton_terms(fun, z)
+        exact = jax.grad(lambda z: problem.stage_cost(params, t, 0, z[:6], z[6:]))(z)
+        gT = ilq._gauss_newton_terms(lambda x: problem.terminal_gauss_newton(params, 0, x), z[:6])[1]
+        return H, g, exact, gT, jax.grad(lambda x: problem.terminal_cost(params, 0, x))(z[:6])
+
     for X in _random_states(game, rng, 5):
         z = jnp.concatenate([jnp.asarray(X[0]), jnp.asarray(rng.normal(size=2))])
         for t in (0, 17):
-            fun = lambda z: problem.stage_gauss_newton(params, t, 0, z[:6], z[6:])
-            H, g = ilq._gauss_newton_terms(fun, z)
-            exact = jax.grad(lambda z: problem.stage_cost(params, t, 0, z[:6], z[6:]))(z)
+            H, g, exact, gT, exact_T = terms_and_exact(z, t)
             np.testing.assert_allclose(g, exact, rtol=1e-12, atol=1e-12)
             assert np.linalg.eigvalsh(np.asarray(H)).min() >= -1e-10 * max(1.0, float(np.abs(H).max()))
-        gT = ilq._gauss_newton_terms(lambda x: problem.terminal_gauss_newton(params, 0, x), z[:6])[1]
-        np.testing.assert_allclose(gT, jax.grad(lambda x: problem.terminal_cost(params, 0, x))(z[:6]))
+        np.testing.assert_allclose(gT, exact_T)
     gauss_newton = solve_ilqr(game, X0, ego=0)
     eig = solve_ilqr(game, X0, ego=0, convexify="eig")
     assert bool(gauss_newton.converged) and bool(eig.converged)
