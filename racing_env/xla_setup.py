@@ -12,8 +12,12 @@ makes every loop of the two-car solvers a single kernel: a feedback iteration ru
 1.5-2.4x as fast (README, Loop kernels). The three-car recursion holds dot products;
 ``RACING_XLA_LOOP_KERNELS=dots`` also turns the YNNPACK fusions off
 (:data:`YNN_FUSION_FLAG`, jaxlib 0.10 only), which makes its loops single kernels too
-(1.7-2.7x faster iterations) but doubles every solver's compile time. Results agree to
-rounding: the same operations (with ``dots``, XLA's own code for the dot products).
+(1.7-2.7x faster iterations) but doubles every solver's compile time: the solver's outer
+loop (the iterations) then becomes one kernel too, one large function for LLVM. A
+threshold of your own that the outer loop exceeds but the LQ loops do not (2 MiB for
+three cars and 50 stages) keeps the compile time and most of the three-car gain (README).
+Results agree to rounding: the same operations (with ``dots``, XLA's own code for the dot
+products).
 
 XLA reads its flags (the ``XLA_FLAGS`` environment variable) once, when JAX's backend
 starts, i.e. at the first JAX computation of the process. :func:`configure_loop_kernels`
