@@ -29,7 +29,6 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import interpolate, spatial
 
 ArrayLike = float | np.ndarray | jax.Array
 
@@ -269,6 +268,8 @@ class Track:
         # Candidate segments: a window around each of a few nearest grid points (several,
         # so a point on one leg of a hairpin cannot be captured by the other leg).
         k_nn = min(4, m)
+        from scipy import spatial  # imported on use: SciPy adds ~0.5 s to `import racing_env`
+
         _, nearest = spatial.cKDTree(xy[:m]).query(p, k=k_nn)
         nearest = nearest.reshape(len(p), k_nn)
         window = np.arange(-3, 3)
@@ -427,6 +428,7 @@ def _arc_length_table(
 
 def _arc_length_between(tck: tuple, u0: np.ndarray, u1: np.ndarray) -> np.ndarray:
     """Arc length [m] of the spline between parameters ``u0`` and ``u1`` (short spans)."""
+    from scipy import interpolate
     nodes, weights = np.polynomial.legendre.leggauss(5)
     mid, half = 0.5 * (u0 + u1), 0.5 * (u1 - u0)
     uq = mid[:, None] + half[:, None] * nodes
@@ -484,6 +486,8 @@ def from_centerline(
         raise ValueError(f"from_centerline: ds must be > 0 [m], got {ds!r}")
     if not (np.isfinite(smoothing) and smoothing >= 0):
         raise ValueError(f"from_centerline: smoothing must be >= 0 [m], got {smoothing!r}")
+    from scipy import interpolate
+
     x, y, wr, wl = _clean_centerline(x, y, width_right, width_left, closed)
     num_in = x.shape[0]
 
