@@ -250,6 +250,23 @@ def _contract(spec: str, *operands: Array) -> Array:
     return jnp.sum(product, axis=contracted) if contracted else product
 
 
+def _sandwich(X: Array, M: Array, Y: Array) -> Array:
+    """``X' M^i Y`` for every player: ``X (n, a)``, ``M (N, n, n)``, ``Y (n, d)`` -> ``(N, a, d)``.
+
+    Small products are fused element-wise code (:func:`_contract`). Larger ones (three
+    cars: ``n = 18``) are dots, written with the contracted axis of the left operand
+    leading: jaxlib 0.10's YNNPACK dot fusion does not take that layout, so XLA emits the
+    dots itself and the recursion's loop can still be compiled into one kernel
+    (:mod:`racing_env.xla_setup`; a YNNPACK fusion in the loop body prevents that).
+    """
+    N, n, _ = M.shape
+    if N * n * n * Y.shape[1] <= _FUSED_PRODUCT_MAX:
+        return _contract("ba,ibd->iad", X, _contract("ibc,cd->ibd", M, Y))
+    MY_t = jax.lax.dot_general(Y, M, (((0,), (2,)), ((), ())))  # (d, N, n): (M^i Y)'
+    XMY = jax.lax.dot_general(X, MY_t, (((0,), (2,)), ((), ())))  # (a, d, N)
+    return jnp.transpose(XMY, (2, 0, 1))
+
+
 def _inverse_small(M: Array) -> Array:
     """Inverse of ``(..., m, m)`` blocks: closed form (adjugate / determinant) for m <= 2."""
     m = M.shape[-1]
@@ -348,7 +365,7 @@ def _feedback_own_recursion(A, B, Q, q, Rii, rii):
         beta = -c("jam,jm->a", B_t, k)  # closed-loop drift
         P_new = (
             Q_t
-            + c("ba,ibd->iad", F, c("ibc,cd->ibd", P, F))
+            + _sandwich(F, P, F)
             + c("ima,imb->iab", K, c("iml,ilb->imb", R_t, K))
         )
         p_new = (
@@ -523,7 +540,7 @@ def _open_loop_own_recursion(A, B, Q, q, Rii, rii, x0):
         Y = pivoted_solve(S, c("imb,bw->imw", W, Ac).reshape(N * m, n + 1))
         LinvAc = Ac - c("jam,jmw->aw", B_t, Y.reshape(N, m, n + 1))
         LinvA, Linvc = LinvAc[:, :n], LinvAc[:, n]
-        M_new = Q_t + c("ba,ibd->iad", A_t, c("ibc,cd->ibd", M, LinvA))
+        M_new = Q_t + _sandwich(A_t, M, LinvA)
         m_new = q_t + c("ba,ib->ia", A_t, mm - c("iab,b->ia", M, Linvc))
         return (M_new, m_new), (LinvA, Linvc, W, g)
 

@@ -9,15 +9,13 @@ memory traffic per iteration is below ``xla_cpu_small_while_loop_byte_threshold`
 defaults to about a kilobyte, and that contain no library calls (LAPACK, and the YNNPACK
 fusions jaxlib 0.10 makes of dot products). Raising the limit to :data:`LOOP_KERNEL_BYTES`
 makes every loop of the two-car solvers a single kernel: a feedback iteration runs
-1.5-2.4x as fast (README, Loop kernels). The three-car recursion holds dot products;
-``RACING_XLA_LOOP_KERNELS=dots`` also turns the YNNPACK fusions off
-(:data:`YNN_FUSION_FLAG`, jaxlib 0.10 only), which makes its loops single kernels too
-(1.7-2.7x faster iterations) but doubles every solver's compile time: the solver's outer
-loop (the iterations) then becomes one kernel too, one large function for LLVM. A
-threshold of your own that the outer loop exceeds but the LQ loops do not (2 MiB for
-three cars and 50 stages) keeps the compile time and most of the three-car gain (README).
-Results agree to rounding: the same operations (with ``dots``, XLA's own code for the dot
-products).
+1.5-2.4x as fast (README, Loop kernels). The three-car recursions hold dot products, laid
+out so that YNNPACK does not take them (``planners.lq_game._sandwich``): their loops are
+single kernels too. ``RACING_XLA_LOOP_KERNELS=dots`` also turns every YNNPACK fusion off
+(:data:`YNN_FUSION_FLAG`, jaxlib 0.10 only), so that the solver's outer loop (the
+iterations) becomes one kernel as well: faster three-car iterations again, but one large
+function for LLVM, which doubles every solver's compile time. Results agree to rounding:
+the same operations (with ``dots``, XLA's own code for the dot products).
 
 XLA reads its flags (the ``XLA_FLAGS`` environment variable) once, when JAX's backend
 starts, i.e. at the first JAX computation of the process. :func:`configure_loop_kernels`

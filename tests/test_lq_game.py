@@ -385,6 +385,7 @@ def test_vmap_over_games():
 from planners.lq_game import (  # noqa: E402
     _PIVOTED_SOLVE_MAX,
     _contract,
+    _sandwich,
     block_solve,
     pivoted_solve,
     solve_feedback_own,
@@ -443,6 +444,17 @@ def test_contract_matches_einsum(spec, shapes):
     np.testing.assert_allclose(_contract(spec, *ops), jnp.einsum(spec, *ops), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("N, n", [(2, 12), (3, 18)])  # element-wise; dots in the loop-kernel layout
+def test_sandwich_matches_einsum(N, n):
+    rng = np.random.default_rng(n)
+    X, Y = rng.standard_normal((n, n)), rng.standard_normal((n, n))
+    M = rng.standard_normal((N, n, n))  # not symmetric: no symmetry may be assumed
+    want = np.einsum("ba,ibc,cd->iad", X, M, Y)
+    got = jax.jit(_sandwich)(jnp.asarray(X), jnp.asarray(M), jnp.asarray(Y))
+    # float64 sums of n products of O(1) terms: rounding ~ n * eps * |terms|
+    np.testing.assert_allclose(got, want, rtol=0, atol=n * 1e-14 * np.abs(want).max())
+
+
 def own_input_game(seed: int, N: int, T: int = 8, n: int = 4, m: int = 2):
     A, B, Q, q, R, r = random_game(seed, N=N, T=T, n=n, m=m)
     eye = np.eye(N, dtype=bool)[None, :, :, None, None]
@@ -452,9 +464,10 @@ def own_input_game(seed: int, N: int, T: int = 8, n: int = 4, m: int = 2):
     return (A, B, Q, q, R, r), (A, B, Q, q, R[:, idx, idx], r[:, idx, idx])
 
 
-@pytest.mark.parametrize("N", [1, 2, 3])
-def test_own_input_solver_matches_the_general_one(N):
-    full, own = own_input_game(seed=40 + N, N=N)
+# n = 18 with three players: the recursion's largest products are dots (_sandwich).
+@pytest.mark.parametrize("N, n", [(1, 4), (2, 4), (3, 4), (3, 18)])
+def test_own_input_solver_matches_the_general_one(N, n):
+    full, own = own_input_game(seed=40 + N, N=N, n=n)
     K_ref, k_ref = solve_feedback(*full)
     K, k = solve_feedback_own(*own)
     assert rel_gap(K, K_ref) < 1e-10 and rel_gap(k, k_ref) < 1e-10
@@ -465,10 +478,10 @@ def test_own_input_solver_matches_the_general_one(N):
         assert rel_gap(K[:, i], K_br) < TOL and rel_gap(k[:, i], k_br) < TOL
 
 
-@pytest.mark.parametrize("N", [1, 2, 3])
-def test_open_loop_own_input_solver_matches_the_general_one(N):
-    full, own = own_input_game(seed=70 + N, N=N)
-    x0 = random_x0(N)
+@pytest.mark.parametrize("N, n", [(1, 4), (2, 4), (3, 4), (3, 18)])
+def test_open_loop_own_input_solver_matches_the_general_one(N, n):
+    full, own = own_input_game(seed=70 + N, N=N, n=n)
+    x0 = random_x0(N, n=n)
     k_ref, xs_ref = solve_open_loop(*full, jnp.asarray(x0))
     k, xs = solve_open_loop_own(*own, jnp.asarray(x0))
     assert rel_gap(k, k_ref) < 1e-10 and rel_gap(xs, xs_ref) < 1e-10

@@ -55,7 +55,7 @@ _CHILD = textwrap.dedent(
     from racing_env.xla_setup import configure_loop_kernels
     rng = np.random.default_rng(0)
     # Two players with 6 states: small products only. Three with 18: the recursion's
-    # largest products are dot operations, which jaxlib 0.10 makes YNNPACK fusions.
+    # largest products are dot operations (planners.lq_game._sandwich).
     T, m = 10, 2
     N, n = (3, 18) if sys.argv[2] == "three" else (2, 6)
     L = rng.normal(size=(T + 1, N, n, n))
@@ -100,12 +100,16 @@ def test_importing_planners_compiles_the_lq_recursion_as_one_kernel_with_the_sam
     _assert_same_gains(fast, default)
 
 
-def test_dots_setting_makes_the_three_player_recursion_one_kernel():
+def test_three_player_recursion_with_dot_products_is_one_kernel_too():
+    """Its largest products are dots laid out so that jaxlib 0.10's YNNPACK dot fusion does
+    not take them (a library fusion would keep the loop from becoming one kernel)."""
     plain = _child("import_first", "three")
     dots = _child("import_first", "three", RACING_XLA_LOOP_KERNELS="dots")
-    assert not plain["single_kernel_loop"]  # its dot products are YNNPACK library fusions
-    assert dots["single_kernel_loop"]
-    _assert_same_gains(dots, plain)
+    off = _child("import_first", "three", RACING_XLA_LOOP_KERNELS="off")
+    assert plain["single_kernel_loop"] and dots["single_kernel_loop"]
+    assert not off["single_kernel_loop"]
+    _assert_same_gains(plain, off)
+    _assert_same_gains(dots, off)
 
 
 def test_jax_started_before_the_import_is_reported():
