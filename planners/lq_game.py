@@ -224,21 +224,30 @@ _feedback = one_at_a_time(_feedback_recursion)
 _FUSED_PRODUCT_MAX = 4096
 
 
+def _letter_sizes(spec: str, *operands: Array) -> dict[str, int]:
+    """The size of every index letter of an einsum ``spec`` with these operands."""
+    inputs = spec.split("->")[0].split(",")
+    return {c: d for letters, op in zip(inputs, operands) for c, d in zip(letters, op.shape)}
+
+
+def _is_fused(spec: str, *operands: Array) -> bool:
+    """Whether :func:`_contract` evaluates the product as fused element-wise code: its
+    multiply-adds (the product of all letter sizes) are at most ``_FUSED_PRODUCT_MAX``."""
+    return int(np.prod(list(_letter_sizes(spec, *operands).values()))) <= _FUSED_PRODUCT_MAX
+
+
 def _contract(spec: str, *operands: Array) -> Array:
     """``jnp.einsum(spec, *operands)`` (explicit output, no repeated output letters).
 
     Small products are evaluated as one broadcast product summed over the contracted
     letters (the output letters lead, the contracted ones trail), which XLA fuses.
     """
+    if not _is_fused(spec, *operands):
+        return jnp.einsum(spec, *operands)
     inputs, out = spec.split("->")
     inputs = inputs.split(",")
-    sizes: dict[str, int] = {}
-    for letters, op in zip(inputs, operands):
-        for c, d in zip(letters, op.shape):
-            sizes[c] = d
+    sizes = _letter_sizes(spec, *operands)
     order = list(out) + [c for c in dict.fromkeys("".join(inputs)) if c not in out]
-    if int(np.prod([sizes[c] for c in order])) > _FUSED_PRODUCT_MAX:
-        return jnp.einsum(spec, *operands)
     product = None
     for letters, op in zip(inputs, operands):
         perm = sorted(range(len(letters)), key=lambda k: order.index(letters[k]))
@@ -259,8 +268,7 @@ def _sandwich(X: Array, M: Array, Y: Array) -> Array:
     dots itself and the recursion's loop can still be compiled into one kernel
     (:mod:`racing_env.xla_setup`; a YNNPACK fusion in the loop body prevents that).
     """
-    N, n, _ = M.shape
-    if N * n * n * Y.shape[1] <= _FUSED_PRODUCT_MAX:
+    if _is_fused("ibc,cd->ibd", M, Y):
         return _contract("ba,ibd->iad", X, _contract("ibc,cd->ibd", M, Y))
     MY_t = jax.lax.dot_general(Y, M, (((0,), (2,)), ((), ())))  # (d, N, n): (M^i Y)'
     XMY = jax.lax.dot_general(X, MY_t, (((0,), (2,)), ((), ())))  # (a, d, N)
