@@ -3,14 +3,17 @@
 Importing the package switches JAX to 64-bit floats: the game solvers check Nash conditions
 to 1e-8 and the env must be bit-for-bit deterministic, both of which want float64. It also
 lets XLA:CPU compile each of the solvers' sequential loops into one kernel, if JAX has not
-started yet (:mod:`racing_env.xla_setup`; ``RACING_XLA_LOOP_KERNELS=off`` opts out).
+started yet (:mod:`racing_env.xla_setup`; ``RACING_XLA_LOOP_KERNELS=off`` opts out), and
+runs single-device CPU computations on the calling thread, which makes an env step
+1.3-1.6x as fast (``RACING_INLINE_DISPATCH=off`` keeps JAX's asynchronous dispatch).
 """
 
 import jax
 
-from racing_env.xla_setup import configure_loop_kernels
+from racing_env.xla_setup import configure_inline_dispatch, configure_loop_kernels
 
 configure_loop_kernels()
+configure_inline_dispatch()
 jax.config.update("jax_enable_x64", True)
 
 from racing_env.config import RaceConfig, RewardConfig  # noqa: E402

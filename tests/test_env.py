@@ -357,6 +357,26 @@ def test_spaces_are_cached_and_match_observations(env2):
     assert np.all(env2.action_space("car_0").low == -1.0) and np.all(env2.action_space("car_0").high == 1.0)
 
 
+def test_step_returns_plain_python_values_and_writable_observations(env2):
+    """Rewards, flags and info entries are Python scalars (JSON-ready, no NumPy 0-d arrays);
+    observations are the caller's own arrays (RL code may normalise them in place)."""
+    observations, infos = env2.reset(seed=0)
+    for step in range(2):
+        if step:
+            observations, rewards, terminations, truncations, infos = env2.step({"car_0": COAST, "car_1": COAST})
+            assert all(type(r) is float for r in rewards.values())
+            assert all(type(f) is bool for f in (*terminations.values(), *truncations.values()))
+        for agent, o in observations.items():
+            assert o.flags.writeable
+            o *= 2.0  # must not touch the env
+        info = infos["car_0"]
+        assert (type(info["s"]), type(info["lap"]), type(info["position"])) == (float, int, int)
+        assert all(type(info[k]) is bool for k in ("collided", "off_track", "finished", "out"))
+        assert all(type(v) is float for v in info["reward_terms"].values())
+    obs_again, *_ = env2.step({"car_0": COAST, "car_1": COAST})
+    assert np.all(np.isfinite(obs_again["car_0"]))
+
+
 # --- rendering ---------------------------------------------------------------------------------
 @pytest.mark.parametrize("track_name, size", [("trefoil", 128), ("straight", 96)])
 def test_rgb_array_render(trefoil, track_name, size):

@@ -116,3 +116,47 @@ def test_jax_started_before_the_import_is_reported():
     late = _child("jax_first")
     assert late["status"] == "too late" and not late["single_kernel_loop"]
     assert len(late["warnings"]) == 1 and "before the first JAX computation" in late["warnings"][0]
+
+
+_ENV_CHILD = textwrap.dedent(
+    """
+    import json, sys
+    if sys.argv[1] == "jax_first":
+        import jax.numpy as jnp
+        jnp.ones(1).block_until_ready()
+    import jax, numpy as np
+    import racing_env
+    env = racing_env.parallel_env(track="trefoil", num_agents=2)
+    observations, _ = env.reset(seed=3)
+    actions = np.random.default_rng(0).uniform(-1, 1, size=(40, 2, 2))
+    for k in range(40):
+        observations, rewards, *_ = env.step({a: actions[k, i] for i, a in enumerate(env.agents)})
+    print(json.dumps({
+        "async_dispatch": jax.config.values["jax_cpu_enable_async_dispatch"],
+        "state": env.state().tolist(),
+        "observations": {a: o.tolist() for a, o in observations.items()},
+        "rewards": rewards,
+    }))
+    """
+)
+
+
+def _env_child(mode: str, **env) -> dict:
+    environ = {k: v for k, v in os.environ.items() if k != "RACING_INLINE_DISPATCH"}
+    environ.update(env)
+    out = subprocess.run([sys.executable, "-c", _ENV_CHILD, mode], env=environ, capture_output=True,
+                         text=True, timeout=240, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_inline_dispatch_is_set_on_import_and_changes_no_result():
+    inline = _env_child("import_first")
+    queued = _env_child("import_first", RACING_INLINE_DISPATCH="off")
+    late = _env_child("jax_first")
+    assert inline["async_dispatch"] is False
+    assert queued["async_dispatch"] is True and late["async_dispatch"] is True
+    # Only which thread runs the computation differs: the race is bit-for-bit the same.
+    for other in (queued, late):
+        assert {k: v for k, v in other.items() if k != "async_dispatch"} == {
+            k: v for k, v in inline.items() if k != "async_dispatch"
+        }
