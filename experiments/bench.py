@@ -26,7 +26,8 @@ def _median_rate(run: Callable[[], int], repeats: int) -> tuple[float, list[floa
 
 
 def bench_env(steps: int = 3000, repeats: int = 3, cars: tuple[int, ...] = (2, 4)) -> Iterator[dict[str, Any]]:
-    """PettingZoo ``step`` calls per second (random actions, one core's worth of Python)."""
+    """PettingZoo ``step`` calls per second (random actions, one core's worth of Python), then
+    the Gymnasium view against a lane-keeping opponent (:func:`_gym_view_row`)."""
     from racing_env import parallel_env
 
     for num in cars:
@@ -54,6 +55,30 @@ def bench_env(steps: int = 3000, repeats: int = 3, cars: tuple[int, ...] = (2, 4
             "repeats": [round(r, 1) for r in rates],
             "target_steps_per_s": 5000 if num == 2 else None,
         }
+    yield _gym_view_row(steps, repeats)
+
+
+def _gym_view_row(steps: int, repeats: int) -> dict[str, Any]:
+    """Steps per second of the Gymnasium view (``racing_env/Race-v0``), the loop an RL
+    learner trains in: random learner actions against a lane-keeping opponent."""
+    from planners.scripted import LaneKeeping
+    from racing_env.single_agent import RaceEnv
+
+    probe = RaceEnv(track="trefoil")
+    rival = LaneKeeping(probe.race.track, index=1, vehicle=probe.race.game.vehicles.car(1))
+    env = RaceEnv(opponents=[rival], track="trefoil", max_steps=10**9, laps=1000)
+    actions = np.random.default_rng(0).uniform(-1, 1, size=(steps, 2)).astype(np.float32)
+    env.reset(seed=0)
+
+    def run() -> int:
+        env.reset(seed=0)
+        for k in range(steps):
+            env.step(actions[k])
+        return steps
+
+    rate, rates = _median_rate(run, repeats)
+    return {"name": "gym_step_vs_lane_keeper", "steps_per_s": rate, "us_per_step": 1e6 / rate,
+            "repeats": [round(r, 1) for r in rates]}
 
 
 def _solver_game(num_cars: int):

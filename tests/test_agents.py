@@ -299,3 +299,22 @@ def test_sb3_agent_real_ppo(tmp_path):
     a = agent.act(obs3["car_0"], env3.state())
     assert np.all(np.isfinite(a)) and agent.diagnostics()["fallback"]
     assert "observation shape" in agent.diagnostics()["error"]
+
+
+@pytest.mark.parametrize("track_name", ["trefoil", "straight", "Monza.csv"])
+def test_lane_keeper_curvature_lookup_equals_numpy_periodic_interp(track_name, shared_tracks):
+    """The lane keeper prepares np.interp's periodic grid once; its lookups must be the
+    very numbers np.interp(..., period=length) gives, wrapped arc lengths included."""
+    from planners.scripted import LaneKeeping
+    from racing_env import track as tr
+
+    track = tr.from_csv(shared_tracks / track_name) if track_name.endswith(".csv") else tr.get_track(track_name)
+    rng = np.random.default_rng(0)
+    L = track.length
+    if track.closed:
+        s = np.concatenate([rng.uniform(-2 * L, 3 * L, 2000), [-1e-20, -0.0, 0.0, L, 2 * L, -L, L - 1e-12]])
+        expected = np.interp(np.mod(s, L), track.s, track.kappa, period=L)
+    else:
+        s = np.concatenate([rng.uniform(-10.0, L + 10.0, 2000), [0.0, L]])
+        expected = np.interp(s, track.s, track.kappa)
+    np.testing.assert_array_equal(LaneKeeping(track, index=0)._kappa(s), expected)

@@ -109,3 +109,10 @@ def test_target_verdict_knows_which_way_each_target_points():
     assert bench._target_verdict({"name": "x", "steps_per_s": 5100.0, "target_steps_per_s": 5000}) == (">= 5000 steps_per_s", True)
     assert bench._target_verdict({"name": "x", "ms_p95": 21.6, "target_ms_p95": 50.0}) == ("<= 50 ms_p95", True)
     assert bench._target_verdict({"name": "x", "ms_per_iter": 1.9, "target_ms": None}) is None
+
+
+def test_env_section_measures_both_views():
+    rows = list(bench.bench_env(steps=30, repeats=1, cars=(2,)))
+    assert [row["name"] for row in rows] == ["env_step_2_cars", "gym_step_vs_lane_keeper"]
+    assert all(row["steps_per_s"] > 0 and row["us_per_step"] > 0 for row in rows)
+    assert rows[0]["target_steps_per_s"] == 5000 and "target_steps_per_s" not in rows[1]
