@@ -59,7 +59,6 @@ _YNN_FLAG_JAXLIB = ("0.10.",)
 # XLA's default multi-kernel execution.
 LOOP_KERNEL_BYTES = 1 << 27
 _EXTRA_OPTIONS_FLAG = "--xla_backend_extra_options="
-
 _OFF = {"0", "off", "false", "no"}
 
 
