@@ -3,7 +3,11 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-PYTEST_ARGS ?= -m "not slow"
+# Tests run in one worker process per logical CPU, at most 4 (pytest-xdist): most of their
+# time is XLA compilation, which keeps a process on one core most of the time.
+# `make test WORKERS=` runs them in a single process (e.g. under a debugger).
+WORKERS ?= -n logical --maxprocesses 4
+PYTEST_ARGS ?= -m "not slow" $(WORKERS)
 
 .PHONY: test test-all demo bench install clean
 
@@ -20,7 +24,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 test-all: $(STAMP)
-	$(BIN)/python -m pytest -m ""
+	$(BIN)/python -m pytest -m "" $(WORKERS)
 
 demo: $(STAMP)
 	$(BIN)/racing demo
