@@ -1,8 +1,9 @@
 """RacingParallelEnv: a PettingZoo ParallelEnv of N cars racing on a track.
 
-Physics runs in one jitted function per step for all cars (``_physics_step``); the
-bookkeeping around it (rewards, finishing order, the PettingZoo dictionaries) is small
-NumPy work.
+A step is one jitted call for all cars (``_race_step``): the physics, then the race's
+rules (finishing order, retirements, positions, rewards: :mod:`racing_env.referee`). Its
+results come back as a few packed arrays, from which the PettingZoo dictionaries are built
+as plain Python values.
 
 Actions are normalised jerks in ``[-1, 1]^2``, scaled by each car's jerk limits
 ``(jx_max, jy_max)``. Finite actions outside the box are clipped to it (the only silent
@@ -12,6 +13,7 @@ error and leave the environment unchanged.
 
 from __future__ import annotations
 
+import math
 import warnings
 from typing import Any, Mapping
 
@@ -26,26 +28,83 @@ from racing_env.dynamics import STATE_DIM, S
 from racing_env.game import RaceGame
 from racing_env.observation import observation_size, observe
 from racing_env.physics import enforce_limits, footprint_overlap, off_track, saturate_jerk
+from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
 from racing_env.scenarios import make_scenario
 from racing_env.track import get_track
 
 
+# Columns of the packed per-car results of a step (see _pack); the int rows end with N
+# columns of contacts (which cars each one touches).
+_FLOAT_COLUMNS = ("finish_time", "reward") + REWARD_TERMS
+_INT_COLUMNS = ("active", "finished", "out", "place", "position", "collided", "off_track", "lap")
+
+
+def _pack(game: RaceGame, x, status: RaceStatus, race_positions, collided, outside, contact, reward, terms):
+    """Per-car results as floats ``(N, len(_FLOAT_COLUMNS))`` and int32
+    ``(N, len(_INT_COLUMNS) + N)``: a few arrays to read back instead of a dozen."""
+    s = x[:, S]
+    lap = jnp.maximum(jnp.floor(s / game.track.length), 0) if game.track.closed else jnp.zeros_like(s)
+    floats = jnp.concatenate([status.finish_time[:, None], reward[:, None], terms], axis=1)
+    flags = [status.active, status.finished, status.out, status.place, race_positions, collided, outside, lap]
+    ints = jnp.concatenate([jnp.stack(flags, axis=1), contact], axis=1).astype(jnp.int32)
+    return floats, ints
+
+
 @jax.jit
-def _physics_step(game: RaceGame, x, active, u, finish_s, preview):
-    """Advance the active cars, enforce their limits, detect incidents and observe."""
+def _race_step(game: RaceGame, x, status: RaceStatus, actions, step, finish_s, preview, rules: RaceRules):
+    """Advance the active cars by their normalised ``actions (N, 2)`` (clipped to [-1, 1],
+    the only silent correction), enforce their limits, detect incidents, apply the rules
+    and observe.
+
+    Returns ``x_next (N, 6)``, observations ``(N, obs)`` float32 and the packed per-car
+    results (:func:`_pack`).
+    """
+    active = status.active
+    u = jnp.clip(actions, -1.0, 1.0) * game.vehicles.jerk_max
     u = saturate_jerk(x, u, game.vehicles, game.dt)
     x_next = enforce_limits(game.step(x, u), game.vehicles)
     x_next = jnp.where(active[:, None], x_next, x)
     contact = footprint_overlap(x_next, game.vehicles, game.track)
     contact = contact & active[:, None] & active[None, :]
     outside = off_track(x_next, game.track) & active
+    collided = contact.any(axis=1)
+    verdict = judge(x[:, S], x_next[:, S], status, collided, outside, step, game.dt, finish_s, rules)
+    # observed with the cars active at the start of the step (as before the rules moved here)
     obs = observe(x_next, active, game.track, finish_s, preview).astype(jnp.float32)
-    return x_next, contact, outside, obs
+    packed = _pack(game, x_next, verdict.status, verdict.positions, collided, outside, contact,
+                   verdict.reward, verdict.terms)
+    return (x_next, obs) + packed
 
 
 @jax.jit
-def _observe(game: RaceGame, x, active, finish_s, preview):
-    return observe(x, active, game.track, finish_s, preview).astype(jnp.float32)
+def _race_start(game: RaceGame, x, status: RaceStatus, finish_s, preview):
+    """Observations ``(N, obs)`` float32 and the packed per-car results (:func:`_pack`) of a
+    start state: no incidents, no rewards."""
+    num = x.shape[0]
+    obs = observe(x, status.active, game.track, finish_s, preview).astype(jnp.float32)
+    none = jnp.zeros(num, dtype=bool)
+    packed = _pack(game, x, status, positions(x[:, S], status.finished, status.place), none, none,
+                   jnp.zeros((num, num), dtype=bool), jnp.zeros(num), jnp.zeros((num, len(REWARD_TERMS))))
+    return (obs,) + packed
+
+
+def _race_rules(config: RaceConfig) -> RaceRules:
+    """The config's incident rules and reward weights as device arrays."""
+    reward = config.reward
+    penalise = lambda mode: mode in ("penalty", "both")
+    weights = [
+        reward.progress,
+        reward.position,
+        reward.collision if penalise(config.on_collision) else 0.0,
+        reward.off_track if penalise(config.on_off_track) else 0.0,
+        reward.finish,
+    ]
+    return RaceRules(
+        retire_on_collision=jnp.asarray(config.on_collision in ("terminate", "both")),
+        retire_off_track=jnp.asarray(config.on_off_track in ("terminate", "both")),
+        weights=jnp.asarray(weights, dtype=jnp.float64),
+        spread=jnp.asarray(max(config.num_agents - 1, 1), dtype=jnp.float64),
+    )
 
 
 def agent_name(index: int) -> str:
@@ -90,7 +149,7 @@ class RacingParallelEnv(ParallelEnv):
         # device copies, so a step does not re-transfer the track and parameters each call
         self._game_on_device = jax.device_put(self.game)
         self._finish_on_device = jnp.asarray(self.finish_s, dtype=jnp.float64)
-        self._jerk_max = np.asarray(self.game.vehicles.jerk_max, dtype=np.float64)  # (N, 2)
+        self._rules = _race_rules(config)
         obs_dim = observation_size(num, len(config.preview_distances))
         # every finite float32 vector (physical units, no natural bounds): finite limits,
         # because Gymnasium's check_env warns about infinite Box bounds
@@ -140,25 +199,52 @@ class RacingParallelEnv(ParallelEnv):
             # are ignored with a warning rather than refused.
             warnings.warn(f"ignoring unknown reset options {sorted(options)}; allowed: ['x0']", stacklevel=2)
         self._x = x0
-        self._active = np.ones(self.num_cars, dtype=bool)
-        self._finished = np.zeros(self.num_cars, dtype=bool)
-        self._out = np.zeros(self.num_cars, dtype=bool)
-        self._finish_time = np.full(self.num_cars, np.nan)
-        self._place = np.zeros(self.num_cars, dtype=int)
+        num = self.num_cars
+        self._active = np.ones(num, dtype=bool)
+        self._finished = np.zeros(num, dtype=bool)
+        self._out = np.zeros(num, dtype=bool)
+        self._finish_time = np.full(num, np.nan)
+        self._place = np.zeros(num, dtype=np.int32)
         self._steps = 0
         self.agents = list(self.possible_agents)
-        obs = np.array(_observe(self._game_on_device, x0, self._active, self._finish_on_device, self._preview))
-        positions = self._positions()
-        no_incident = np.zeros(self.num_cars, dtype=bool)
-        no_contact = np.zeros((self.num_cars, self.num_cars), dtype=bool)
-        per_car = self._infos(positions, no_incident, no_contact, no_incident, {})
+        obs, floats, ints = (
+            np.asarray(a)
+            for a in _race_start(self._game_on_device, x0, self._status(), self._finish_on_device, self._preview)
+        )
+        obs = obs.copy()  # writable
+        per_car = self._infos(floats.tolist(), ints.tolist(), with_terms=False)
         infos = {a: per_car[i] for i, a in enumerate(self.agents)}
         observations = {a: obs[self._index[a]] for a in self.agents}
         if self.render_mode == "human":
             self.render()
         return observations, infos
 
-    def _actions_to_jerk(self, actions: Mapping[str, Any]) -> np.ndarray:
+    def _checked_actions(self, actions: Mapping[str, Any]) -> np.ndarray:
+        """The live agents' normalised actions as ``(N, 2)`` (zero for cars no longer
+        racing; clipped and scaled in the jitted step); raises on bad input before anything
+        changes."""
+        live = self.agents
+        if live and len(actions) == len(live) and all(agent in actions for agent in live):
+            # The usual case in one go: every live agent acts with a finite (2,) action.
+            try:
+                normalised = np.array([actions[agent] for agent in live], dtype=np.float64)
+            except (TypeError, ValueError):
+                normalised = None
+            if (
+                normalised is not None
+                and normalised.shape == (len(live), 2)
+                and all(map(math.isfinite, normalised.ravel().tolist()))
+            ):
+                if len(live) == self.num_cars:
+                    return normalised
+                actions_all = np.zeros((self.num_cars, 2))
+                actions_all[[self._index[agent] for agent in live]] = normalised
+                return actions_all
+        self._refuse(actions)
+        raise AssertionError("unreachable: _refuse raises on every input the fast path refuses")
+
+    def _refuse(self, actions: Mapping[str, Any]) -> None:
+        """Raise the error that explains why ``actions`` cannot be applied."""
         if not self.agents:
             raise RuntimeError("the race is over (or was never started): call reset() first")
         unknown = [a for a in actions if a not in self._index]
@@ -170,73 +256,42 @@ class RacingParallelEnv(ParallelEnv):
         missing = [a for a in self.agents if a not in actions]
         if missing:
             raise KeyError(f"missing action(s) for {missing}; every live agent must act")
-        jerk = np.zeros((self.num_cars, 2))
         for agent, action in actions.items():
             a = np.asarray(action, dtype=np.float64)
             if a.shape != (2,):
                 raise ValueError(f"action of {agent} must have shape (2,) (normalised [jx, jy]), got {a.shape}")
-            jerk[self._index[agent]] = a
-        # One finiteness check and one clip for all cars: per-car NumPy calls were a
-        # noticeable part of a step's Python time.
-        if not np.isfinite(jerk).all():
-            bad = next(a for a in actions if not np.isfinite(jerk[self._index[a]]).all())
-            raise ValueError(f"action of {bad} must be finite, got {jerk[self._index[bad]].tolist()}")
-        return np.clip(jerk, -1.0, 1.0) * self._jerk_max
+            if not np.isfinite(a).all():
+                raise ValueError(f"action of {agent} must be finite, got {a.tolist()}")
 
     def step(self, actions: Mapping[str, Any]):
         """Apply normalised jerk actions of all live agents for one time step."""
-        jerk = self._actions_to_jerk(actions)  # validates before anything changes
-        cfg, num = self.config, self.num_cars
-        x_prev = self._x
-        out = _physics_step(
-            self._game_on_device, x_prev, self._active, jerk, self._finish_on_device, self._preview
+        normalised = self._checked_actions(actions)  # validates before anything changes
+        self._steps += 1
+        out = _race_step(
+            self._game_on_device, self._x, self._status(), normalised, self._steps, self._finish_on_device,
+            self._preview, self._rules,
         )
         # np.asarray waits for each result; jax.device_get cost about 60 us more per step.
-        x, contact, outside, obs = (np.asarray(a) for a in out)
+        x, obs, floats, ints = (np.asarray(a) for a in out)
         self._x = x
         obs = obs.copy()  # writable, as users may normalise observations in place
-        self._steps += 1
-        acting = self._active.copy()
-        collided = contact.any(axis=1)
+        flags = ints[:, :3].astype(bool)  # _INT_COLUMNS: active, finished, out, place, ...
+        self._active, self._finished, self._out = flags[:, 0], flags[:, 1], flags[:, 2]
+        self._place = ints[:, 3]
+        self._finish_time = floats[:, 0]  # _FLOAT_COLUMNS: finish_time, reward, terms
 
-        # finishing: interpolate the crossing time inside the step, then rank
-        crossed = acting & (self._x[:, S] >= self.finish_s)
-        if crossed.any():
-            frac = (self.finish_s - x_prev[:, S]) / np.maximum(self._x[:, S] - x_prev[:, S], 1e-9)
-            t_cross = (self._steps - 1 + np.clip(frac, 0.0, 1.0)) * cfg.dt
-            already = int(self._finished.sum())
-            for rank, i in enumerate(sorted(np.flatnonzero(crossed), key=lambda j: t_cross[j])):
-                self._finish_time[i] = t_cross[i]
-                self._place[i] = already + rank + 1
-            self._finished |= crossed
-
-        retire_collision = cfg.on_collision in ("terminate", "both")
-        retire_off = cfg.on_off_track in ("terminate", "both")
-        newly_out = acting & ~crossed & ((collided & retire_collision) | (outside & retire_off))
-        self._out |= newly_out
-        self._active = acting & ~self._finished & ~self._out
-
-        positions = self._positions()
-        rw = cfg.reward
-        terms = {
-            "progress": rw.progress * (self._x[:, S] - x_prev[:, S]),
-            "position": rw.position * self._position_score(positions),
-            "collision": (rw.collision if cfg.on_collision in ("penalty", "both") else 0.0) * collided,
-            "off_track": (rw.off_track if cfg.on_off_track in ("penalty", "both") else 0.0) * outside,
-            "finish": rw.finish * crossed * (num - self._place) / max(num - 1, 1),
-        }
-        reward = sum(terms.values())
-        truncate = self._steps >= cfg.max_steps
-        live = list(self.agents)
-        per_car = self._infos(positions, collided, contact, outside, terms)
-        reward, active = np.asarray(reward, dtype=np.float64).tolist(), self._active.tolist()
+        floats, ints = floats.tolist(), ints.tolist()
+        per_car = self._infos(floats, ints, with_terms=True)
+        truncate = self._steps >= self.config.max_steps
+        live = self.agents
         observations, rewards, terminations, truncations, infos = {}, {}, {}, {}, {}
         for agent in live:
             i = self._index[agent]
+            active = ints[i][0] == 1
             observations[agent] = obs[i]
-            rewards[agent] = reward[i]
-            terminations[agent] = not active[i]
-            truncations[agent] = truncate and active[i]
+            rewards[agent] = floats[i][1]
+            terminations[agent] = not active
+            truncations[agent] = truncate and active
             infos[agent] = per_car[i]
         self.agents = [a for a in live if not (terminations[a] or truncations[a])]
         if self.render_mode == "human":
@@ -244,48 +299,35 @@ class RacingParallelEnv(ParallelEnv):
         return observations, rewards, terminations, truncations, infos
 
     # --- bookkeeping ----------------------------------------------------------------------
-    def _positions(self) -> np.ndarray:
-        """Race positions (1 = leading): finished cars by place, the rest by arc length."""
-        key = np.where(self._finished, -1e12 + self._place, -self._x[:, S])
-        order = np.argsort(key, kind="stable")
-        positions = np.empty(self.num_cars, dtype=int)
-        positions[order] = np.arange(1, self.num_cars + 1)
-        return positions
+    def _status(self) -> RaceStatus:
+        return RaceStatus(self._active, self._finished, self._out, self._place, self._finish_time)
 
-    def _position_score(self, positions: np.ndarray) -> np.ndarray:
-        num = self.num_cars
-        behind, ahead = num - positions, positions - 1
-        return (behind - ahead) / max(num - 1, 1)
-
-    def _infos(self, positions, collided, contact, outside, terms) -> list[dict[str, Any]]:
-        """Every car's info dict. Arrays become Python lists once per step: element-wise
-        indexing of NumPy arrays took more time than the physics step's own Python side."""
+    def _infos(self, floats: list[list[float]], ints: list[list[int]], with_terms: bool) -> list[dict[str, Any]]:
+        """Every car's info dict from the packed per-car results (rows of ``_FLOAT_COLUMNS``
+        and ``_INT_COLUMNS`` plus contacts, as Python lists: element-wise indexing of
+        NumPy arrays took more time than the physics step's own Python side)."""
         s = self._x[:, S].tolist()
-        laps = (
-            np.maximum(np.floor(self._x[:, S] / self.track.length), 0).astype(int).tolist()
-            if self.track.closed
-            else [0] * self.num_cars
-        )
-        positions, collided, outside = positions.tolist(), collided.tolist(), outside.tolist()
-        finished, out, finish_time = self._finished.tolist(), self._out.tolist(), self._finish_time.tolist()
-        contact = contact.tolist()
-        terms = {k: np.asarray(v, dtype=np.float64).tolist() for k, v in terms.items()}
-        return [
-            {
-                "s": s[i],
-                "lap": laps[i],
-                "position": positions[i],
-                "collided": collided[i],
-                "contact_with": [name for name, touching in zip(self.possible_agents, contact[i]) if touching],
-                "off_track": outside[i],
-                "finished": finished[i],
-                # None until finished (not NaN: NaN != NaN breaks equality checks and JSON)
-                "finish_time": finish_time[i] if finished[i] else None,
-                "out": out[i],
-                "reward_terms": {k: v[i] for k, v in terms.items()},
-            }
-            for i in range(self.num_cars)
-        ]
+        names = self.possible_agents
+        per_car = []
+        for i in range(self.num_cars):
+            finish_time, _, *terms = floats[i]
+            _, finished, out, _, position, collided, outside, lap, *contact = ints[i]
+            per_car.append(
+                {
+                    "s": s[i],
+                    "lap": lap,
+                    "position": position,
+                    "collided": collided == 1,
+                    "contact_with": [name for name, touching in zip(names, contact) if touching],
+                    "off_track": outside == 1,
+                    "finished": finished == 1,
+                    # None until finished (not NaN: NaN != NaN breaks equality checks and JSON)
+                    "finish_time": finish_time if finished else None,
+                    "out": out == 1,
+                    "reward_terms": dict(zip(REWARD_TERMS, terms)) if with_terms else {},
+                }
+            )
+        return per_car
 
     def state(self) -> np.ndarray:
         """Joint state ``(N, 6)`` = ``[s, V, n, chi, ax, ay]`` per car (a copy)."""

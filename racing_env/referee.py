@@ -1,0 +1,149 @@
+"""The race's rules after each physics step: finishing order, retirements, positions and
+rewards, as pure JAX functions of ``(N,)`` arrays.
+
+The environment calls :func:`judge` inside the same jitted call as the physics, so a step
+crosses from Python to XLA once and reads back a few packed arrays. The formulas perform
+the same floating-point operations in the same order as the NumPy bookkeeping they
+replaced, so races are the same bit for bit, except that an incident term without an
+incident is now 0.0 where NumPy's ``weight * False`` gave -0.0.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from racing_env.dynamics import S
+
+#: Names of the reward terms, in the order of :attr:`Judgement.terms`' columns.
+REWARD_TERMS = ("progress", "position", "collision", "off_track", "finish")
+
+
+class RaceStatus(NamedTuple):
+    """Where each car stands in the race; every field has shape ``(N,)``.
+
+    Attributes:
+        active: still racing (neither finished nor retired).
+        finished: crossed the finish line.
+        out: retired by an incident rule (``on_collision`` / ``on_off_track``).
+        place: finishing place, 1 = winner; 0 until finished (int32).
+        finish_time: time of the crossing [s], interpolated inside the step; NaN until
+            finished.
+    """
+
+    active: jax.Array
+    finished: jax.Array
+    out: jax.Array
+    place: jax.Array
+    finish_time: jax.Array
+
+
+class RaceRules(NamedTuple):
+    """The incident rules and reward weights of a race (arrays, so one compiled step
+    serves every configuration).
+
+    Attributes:
+        retire_on_collision, retire_off_track: whether an incident retires the car (bool).
+        weights: ``(5,)`` reward weights in the order of :data:`REWARD_TERMS`; an incident
+            term whose mode gives no penalty has weight 0.
+        spread: ``max(N - 1, 1)`` as a float64 scalar, the divisor of the position and
+            finish terms. An argument rather than a constant: XLA turns a division by a
+            constant into a multiplication by its reciprocal, which rounds differently.
+    """
+
+    retire_on_collision: jax.Array
+    retire_off_track: jax.Array
+    weights: jax.Array
+    spread: jax.Array
+
+
+class Judgement(NamedTuple):
+    """One step's outcome for every car.
+
+    Attributes:
+        status: the :class:`RaceStatus` after the step.
+        positions: race positions, 1 = leading, ``(N,)`` int32.
+        crossed: crossed the finish line in this step, ``(N,)`` bool.
+        terms: reward terms ``(N, 5)``, columns as :data:`REWARD_TERMS`.
+        reward: their sum, ``(N,)``.
+    """
+
+    status: RaceStatus
+    positions: jax.Array
+    crossed: jax.Array
+    terms: jax.Array
+    reward: jax.Array
+
+
+def _precedes(key: jax.Array) -> jax.Array:
+    """``before[i, j]``: car j sorts before car i by ``key`` (ties by index, as a stable sort)."""
+    index = jnp.arange(key.shape[0])
+    return (key[None, :] < key[:, None]) | ((key[None, :] == key[:, None]) & (index[None, :] < index[:, None]))
+
+
+def positions(s: jax.Array, finished: jax.Array, place: jax.Array) -> jax.Array:
+    """Race positions ``(N,)`` (1 = leading): finished cars by place, the others by arc
+    length ``s`` [m]; equal keys keep the cars' order."""
+    key = jnp.where(finished, -1e12 + place, -s)
+    return 1 + jnp.sum(_precedes(key), axis=1, dtype=jnp.int32)
+
+
+def judge(
+    s_prev: jax.Array,
+    s: jax.Array,
+    status: RaceStatus,
+    collided: jax.Array,
+    outside: jax.Array,
+    step: jax.Array,
+    dt: float,
+    finish_s: jax.Array,
+    rules: RaceRules,
+) -> Judgement:
+    """Apply the rules to one step of the cars that were active at its start.
+
+    Args:
+        s_prev, s: arc lengths [m] before and after the step, ``(N,)``.
+        status: the status before the step.
+        collided, outside: incidents detected after the step (active cars only), ``(N,)``.
+        step: the number of the step just taken (1 for the first), a scalar.
+        dt: the step length [s].
+        finish_s: the finish line's arc length [m].
+        rules: incident rules and reward weights.
+    """
+    num = s.shape[0]
+    acting = status.active
+    crossed = acting & (s >= finish_s)
+    # Crossing time interpolated inside the step; cars crossing in the same step are ranked
+    # by it (ties by index) behind those already finished.
+    frac = (finish_s - s_prev) / jnp.maximum(s - s_prev, 1e-9)
+    t_cross = ((step - 1) + jnp.clip(frac, 0.0, 1.0)) * dt
+    rank = jnp.sum(_precedes(jnp.where(crossed, t_cross, jnp.inf)) & crossed[None, :], axis=1, dtype=jnp.int32)
+    already = jnp.sum(status.finished, dtype=jnp.int32)
+    place = jnp.where(crossed, already + rank + 1, status.place)
+    finish_time = jnp.where(crossed, t_cross, status.finish_time)
+    finished = status.finished | crossed
+
+    newly_out = acting & ~crossed & (
+        (collided & rules.retire_on_collision) | (outside & rules.retire_off_track)
+    )
+    out = status.out | newly_out
+    active = acting & ~finished & ~out
+    pos = positions(s, finished, place)
+
+    spread, w = rules.spread, rules.weights
+    terms = jnp.stack(
+        [
+            w[0] * (s - s_prev),
+            w[1] * (((num - pos) - (pos - 1)) / spread),
+            w[2] * collided.astype(s.dtype),
+            w[3] * outside.astype(s.dtype),
+            w[4] * crossed * (num - place) / spread,
+        ],
+        axis=1,
+    )
+    # summed in the terms' order
+    reward = (((terms[:, 0] + terms[:, 1]) + terms[:, 2]) + terms[:, 3]) + terms[:, 4]
+    new_status = RaceStatus(active, finished, out, place, finish_time)
+    return Judgement(new_status, pos, crossed, terms, reward)

@@ -1,0 +1,104 @@
+"""The race's rules (racing_env.referee): finishing order, retirements, positions, rewards.
+
+Expected values are worked out by hand from the rules' definitions in the docstrings of
+RewardConfig and RacingParallelEnv; the env tests cover the same rules inside whole races.
+"""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import racing_env  # noqa: F401  (float64)
+from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
+
+DT = 0.1
+FINISH = 100.0
+WEIGHTS = {"progress": 0.1, "position": 0.5, "collision": -5.0, "off_track": -1.0, "finish": 10.0}
+
+
+def _rules(num, retire_on_collision=False, retire_off_track=False):
+    return RaceRules(
+        retire_on_collision=jnp.asarray(retire_on_collision),
+        retire_off_track=jnp.asarray(retire_off_track),
+        weights=jnp.asarray([WEIGHTS[t] for t in REWARD_TERMS]),
+        spread=jnp.asarray(float(max(num - 1, 1))),
+    )
+
+
+def _status(active, finished=None, out=None, place=None, finish_time=None):
+    num = len(active)
+    return RaceStatus(
+        active=jnp.asarray(active),
+        finished=jnp.zeros(num, bool) if finished is None else jnp.asarray(finished),
+        out=jnp.zeros(num, bool) if out is None else jnp.asarray(out),
+        place=jnp.zeros(num, jnp.int32) if place is None else jnp.asarray(place, jnp.int32),
+        finish_time=jnp.full(num, jnp.nan) if finish_time is None else jnp.asarray(finish_time),
+    )
+
+
+def test_positions_rank_like_a_stable_sort():
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        num = int(rng.integers(1, 7))
+        s = rng.choice([0.0, 1.0, 2.0, 5.5], size=num)  # many ties
+        finished = rng.random(num) < 0.4
+        place = np.where(finished, rng.permutation(num) + 1, 0)
+        key = np.where(finished, -1e12 + place, -s)
+        expected = np.empty(num, int)
+        expected[np.argsort(key, kind="stable")] = np.arange(1, num + 1)
+        got = positions(jnp.asarray(s), jnp.asarray(finished), jnp.asarray(place, jnp.int32))
+        np.testing.assert_array_equal(np.asarray(got), expected)
+
+
+def test_cars_crossing_in_one_step_are_ranked_by_interpolated_time():
+    # car 0 finished earlier (place 1); cars 1-3 cross in step 7 at fractions 0.5, 0.25, 0.5
+    # of the step (car 3 ties with car 1 and ranks behind it by index); car 4 does not cross.
+    s_prev = jnp.asarray([130.0, 98.0, 99.0, 96.0, 90.0])
+    s = jnp.asarray([131.0, 102.0, 103.0, 104.0, 95.0])
+    status = _status([False, True, True, True, True], finished=[True, False, False, False, False],
+                     place=[1, 0, 0, 0, 0], finish_time=[0.35, np.nan, np.nan, np.nan, np.nan])
+    none = jnp.zeros(5, bool)
+    v = judge(s_prev, s, status, none, none, jnp.asarray(7), DT, jnp.asarray(FINISH), _rules(5))
+
+    np.testing.assert_array_equal(np.asarray(v.crossed), [False, True, True, True, False])
+    np.testing.assert_array_equal(np.asarray(v.status.place), [1, 3, 2, 4, 0])
+    # crossing time (step - 1 + fraction) * dt; car 0 keeps its time
+    np.testing.assert_allclose(np.asarray(v.status.finish_time)[:4], [0.35, 0.65, 0.625, 0.65], rtol=1e-15)
+    assert np.isnan(np.asarray(v.status.finish_time)[4])
+    np.testing.assert_array_equal(np.asarray(v.status.active), [False, False, False, False, True])
+    np.testing.assert_array_equal(np.asarray(v.positions), [1, 3, 2, 4, 5])
+    # finish reward 10 * (N - place) / (N - 1) for the crossing cars only
+    terms = np.asarray(v.terms)
+    np.testing.assert_allclose(terms[:, REWARD_TERMS.index("finish")], [0.0, 5.0, 7.5, 2.5, 0.0], rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(v.reward), terms.sum(axis=1), rtol=1e-15)
+
+
+@pytest.mark.parametrize("retire", [False, True])
+def test_incidents_retire_only_under_the_terminate_rule(retire):
+    s_prev, s = jnp.asarray([10.0, 12.0, 98.0]), jnp.asarray([11.0, 13.0, 101.0])
+    collided = jnp.asarray([True, True, True])  # car 2 collides while crossing the line
+    outside = jnp.asarray([False, False, False])
+    v = judge(s_prev, s, _status([True, True, True]), collided, outside, jnp.asarray(3), DT,
+              jnp.asarray(FINISH), _rules(3, retire_on_collision=retire))
+
+    np.testing.assert_array_equal(np.asarray(v.status.out), [retire, retire, False])
+    np.testing.assert_array_equal(np.asarray(v.status.finished), [False, False, True])
+    np.testing.assert_array_equal(np.asarray(v.status.active), [not retire, not retire, False])
+    terms = np.asarray(v.terms)
+    np.testing.assert_allclose(terms[:, REWARD_TERMS.index("collision")], [-5.0, -5.0, -5.0])
+    np.testing.assert_allclose(terms[:, REWARD_TERMS.index("progress")], [0.1, 0.1, 0.3], rtol=1e-14)
+    # position: 0.5 * (behind - ahead) / (N - 1); car 2 leads, then car 1, then car 0
+    np.testing.assert_allclose(terms[:, REWARD_TERMS.index("position")], [-0.5, 0.0, 0.5])
+
+
+def test_cars_not_racing_are_not_judged():
+    # car 1 retired earlier and sits beyond the line: it neither finishes nor scores
+    s_prev, s = jnp.asarray([50.0, 120.0]), jnp.asarray([51.0, 120.0])
+    status = _status([True, False], out=[False, True])
+    v = judge(s_prev, s, status, jnp.zeros(2, bool), jnp.zeros(2, bool), jnp.asarray(9), DT,
+              jnp.asarray(FINISH), _rules(2))
+    np.testing.assert_array_equal(np.asarray(v.crossed), [False, False])
+    np.testing.assert_array_equal(np.asarray(v.status.finished), [False, False])
+    np.testing.assert_array_equal(np.asarray(v.status.out), [False, True])
+    np.testing.assert_array_equal(np.asarray(v.status.active), [True, False])
+    assert np.asarray(v.terms)[1, REWARD_TERMS.index("finish")] == 0.0
