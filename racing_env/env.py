@@ -1,9 +1,10 @@
 """RacingParallelEnv: a PettingZoo ParallelEnv of N cars racing on a track.
 
 A step is one jitted call for all cars (``_race_step``): the physics, then the race's
-rules (finishing order, retirements, positions, rewards: :mod:`racing_env.referee`). Its
-results come back as a few packed arrays, from which the PettingZoo dictionaries are built
-as plain Python values.
+rules (finishing order, retirements, positions, rewards: :mod:`racing_env.referee`). The
+race's constants go in as one packed array (:mod:`racing_env.packing`); the results come
+back as a few packed arrays, from which the PettingZoo dictionaries are built as plain
+Python values.
 
 Actions are normalised jerks in ``[-1, 1]^2``, scaled by each car's jerk limits
 ``(jx_max, jy_max)``. Finite actions outside the box are clipped to it (the only silent
@@ -13,9 +14,10 @@ error and leave the environment unchanged.
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
-from typing import Any, Mapping
+from typing import Any, Mapping, NamedTuple
 
 import gymnasium
 import jax
@@ -27,6 +29,7 @@ from racing_env.config import RaceConfig
 from racing_env.dynamics import STATE_DIM, S
 from racing_env.game import RaceGame
 from racing_env.observation import observation_size, observe
+from racing_env.packing import Layout, pack, unpack
 from racing_env.physics import enforce_limits, footprint_overlap, off_track, saturate_jerk
 from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
 from racing_env.scenarios import make_scenario
@@ -50,15 +53,26 @@ def _pack(game: RaceGame, x, status: RaceStatus, race_positions, collided, outsi
     return floats, ints
 
 
-@jax.jit
-def _race_step(game: RaceGame, x, status: RaceStatus, actions, step, finish_s, preview, rules: RaceRules):
+class _RaceConstants(NamedTuple):
+    """What stays fixed during a race; passed to the jitted calls as one flat array
+    (:mod:`racing_env.packing`)."""
+
+    game: RaceGame
+    finish_s: jax.Array  # [m]
+    preview: jax.Array  # (P,) [m]
+    rules: RaceRules
+
+
+@functools.partial(jax.jit, static_argnames=("layout",))
+def _race_step(constants: jax.Array, layout: Layout, x, status: RaceStatus, actions, step):
     """Advance the active cars by their normalised ``actions (N, 2)`` (clipped to [-1, 1],
     the only silent correction), enforce their limits, detect incidents, apply the rules
-    and observe.
+    and observe. ``constants`` are the packed :class:`_RaceConstants`.
 
     Returns ``x_next (N, 6)``, observations ``(N, obs)`` float32 and the packed per-car
     results (:func:`_pack`).
     """
+    game, finish_s, preview, rules = unpack(constants, layout)
     active = status.active
     u = jnp.clip(actions, -1.0, 1.0) * game.vehicles.jerk_max
     u = saturate_jerk(x, u, game.vehicles, game.dt)
@@ -76,10 +90,11 @@ def _race_step(game: RaceGame, x, status: RaceStatus, actions, step, finish_s, p
     return (x_next, obs) + packed
 
 
-@jax.jit
-def _race_start(game: RaceGame, x, status: RaceStatus, finish_s, preview):
+@functools.partial(jax.jit, static_argnames=("layout",))
+def _race_start(constants: jax.Array, layout: Layout, x, status: RaceStatus):
     """Observations ``(N, obs)`` float32 and the packed per-car results (:func:`_pack`) of a
     start state: no incidents, no rewards."""
+    game, finish_s, preview, _ = unpack(constants, layout)
     num = x.shape[0]
     obs = observe(x, status.active, game.track, finish_s, preview).astype(jnp.float32)
     none = jnp.zeros(num, dtype=bool)
@@ -89,7 +104,7 @@ def _race_start(game: RaceGame, x, status: RaceStatus, finish_s, preview):
 
 
 def _race_rules(config: RaceConfig) -> RaceRules:
-    """The config's incident rules and reward weights as device arrays."""
+    """The config's incident rules and reward weights as arrays."""
     reward = config.reward
     penalise = lambda mode: mode in ("penalty", "both")
     weights = [
@@ -100,10 +115,10 @@ def _race_rules(config: RaceConfig) -> RaceRules:
         reward.finish,
     ]
     return RaceRules(
-        retire_on_collision=jnp.asarray(config.on_collision in ("terminate", "both")),
-        retire_off_track=jnp.asarray(config.on_off_track in ("terminate", "both")),
-        weights=jnp.asarray(weights, dtype=jnp.float64),
-        spread=jnp.asarray(max(config.num_agents - 1, 1), dtype=jnp.float64),
+        retire_on_collision=np.asarray(config.on_collision in ("terminate", "both")),
+        retire_off_track=np.asarray(config.on_off_track in ("terminate", "both")),
+        weights=np.asarray(weights, dtype=np.float64),
+        spread=np.asarray(max(config.num_agents - 1, 1), dtype=np.float64),
     )
 
 
@@ -145,11 +160,16 @@ class RacingParallelEnv(ParallelEnv):
             self.finish_s = float(config.laps * self.track.length)
         else:
             self.finish_s = float(self.track.length - 20.0)
-        self._preview = jnp.asarray(config.preview_distances, dtype=jnp.float64)
-        # device copies, so a step does not re-transfer the track and parameters each call
-        self._game_on_device = jax.device_put(self.game)
-        self._finish_on_device = jnp.asarray(self.finish_s, dtype=jnp.float64)
-        self._rules = _race_rules(config)
+        # on the device once, as one array: a step neither re-transfers them nor pays for
+        # their ~30 argument leaves
+        self._constants, self._layout = pack(
+            _RaceConstants(
+                self.game,
+                np.float64(self.finish_s),
+                np.asarray(config.preview_distances, dtype=np.float64),
+                _race_rules(config),
+            )
+        )
         obs_dim = observation_size(num, len(config.preview_distances))
         # every finite float32 vector (physical units, no natural bounds): finite limits,
         # because Gymnasium's check_env warns about infinite Box bounds
@@ -209,7 +229,7 @@ class RacingParallelEnv(ParallelEnv):
         self.agents = list(self.possible_agents)
         obs, floats, ints = (
             np.asarray(a)
-            for a in _race_start(self._game_on_device, x0, self._status(), self._finish_on_device, self._preview)
+            for a in _race_start(self._constants, self._layout, x0, self._status())
         )
         obs = obs.copy()  # writable
         per_car = self._infos(floats.tolist(), ints.tolist(), with_terms=False)
@@ -267,10 +287,7 @@ class RacingParallelEnv(ParallelEnv):
         """Apply normalised jerk actions of all live agents for one time step."""
         normalised = self._checked_actions(actions)  # validates before anything changes
         self._steps += 1
-        out = _race_step(
-            self._game_on_device, self._x, self._status(), normalised, self._steps, self._finish_on_device,
-            self._preview, self._rules,
-        )
+        out = _race_step(self._constants, self._layout, self._x, self._status(), normalised, self._steps)
         # np.asarray waits for each result; jax.device_get cost about 60 us more per step.
         x, obs, floats, ints = (np.asarray(a) for a in out)
         self._x = x

@@ -465,3 +465,20 @@ def test_four_car_grid(trefoil):
     assert not any(info["collided"] or info["off_track"] for info in infos.values())
     assert sorted(info["position"] for info in infos.values()) == [1, 2, 3, 4]
     assert all(r > 0 for r in rewards.values())  # progress reward, no penalties
+
+
+def test_envs_of_one_size_share_one_compiled_step():
+    from racing_env import RewardConfig
+    from racing_env.env import _race_step
+
+    def race(**config):
+        env = racing_env.parallel_env(track="trefoil", num_agents=2, **config)
+        env.reset(seed=0)
+        env.step({a: np.array([0.5, 0.0]) for a in env.agents})
+
+    race()
+    compiled = _race_step._cache_size()
+    # other rules, rewards and finish lines are data, not compile-time constants
+    race(race_distance=150.0, on_collision="terminate", reward=RewardConfig(progress=1.0, finish=3.0))
+    race(laps=3, on_off_track="both")
+    assert _race_step._cache_size() == compiled

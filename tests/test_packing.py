@@ -1,0 +1,43 @@
+"""racing_env.packing: a pytree of constants as one flat float64 array."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import racing_env  # noqa: F401  (float64)
+from racing_env.packing import pack, unpack
+
+
+def _tree(scale):
+    return {
+        "track": np.linspace(0.0, scale, 7),
+        "flags": np.array([True, False, True]),
+        "index": np.arange(4, dtype=np.int32),
+        "scalar": np.float64(scale) / 3.0,
+        "nested": (np.full((2, 3), -scale), np.asarray(False)),
+    }
+
+
+def test_round_trip_is_exact_with_dtypes_and_shapes():
+    tree = _tree(1.7)
+    flat, layout = pack(tree)
+    assert flat.shape == (7 + 3 + 4 + 1 + 6 + 1,) and flat.dtype == jnp.float64
+    for unpacked in (unpack(flat, layout), jax.jit(unpack, static_argnames="layout")(flat, layout=layout)):
+        for got, want in zip(jax.tree_util.tree_leaves(unpacked), jax.tree_util.tree_leaves(tree)):
+            got = np.asarray(got)
+            assert got.dtype == np.asarray(want).dtype and got.shape == np.shape(want)
+            np.testing.assert_array_equal(got, want)
+        assert jax.tree_util.tree_structure(unpacked) == jax.tree_util.tree_structure(tree)
+
+
+def test_equal_shapes_give_equal_layouts():
+    # the layout is the static argument: equal layouts mean one compiled function
+    assert pack(_tree(1.0))[1] == pack(_tree(2.5))[1]
+    assert hash(pack(_tree(1.0))[1]) == hash(pack(_tree(2.5))[1])
+    assert pack(_tree(1.0))[1] != pack({**_tree(1.0), "track": np.zeros(8)})[1]
+
+
+def test_leaves_float64_cannot_hold_exactly_are_refused():
+    with pytest.raises(TypeError, match="int64"):
+        pack({"big": np.array([2**60], dtype=np.int64)})
