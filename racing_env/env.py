@@ -36,15 +36,13 @@ from racing_env.scenarios import make_scenario
 from racing_env.track import get_track
 
 
-# Columns of the packed per-car results of a step (see _pack); the int rows end with N
-# columns of contacts (which cars each one touches).
-_FLOAT_COLUMNS = ("finish_time", "reward") + REWARD_TERMS
-_INT_COLUMNS = ("active", "finished", "out", "place", "position", "collided", "off_track", "lap")
+def _per_car_rows(game: RaceGame, x, status: RaceStatus, race_positions, collided, outside, contact, reward, terms):
+    """Per-car results packed into two arrays (two to read back instead of a dozen).
 
-
-def _pack(game: RaceGame, x, status: RaceStatus, race_positions, collided, outside, contact, reward, terms):
-    """Per-car results as floats ``(N, len(_FLOAT_COLUMNS))`` and int32
-    ``(N, len(_INT_COLUMNS) + N)``: a few arrays to read back instead of a dozen."""
+    Returns floats ``(N, 7)``: finish_time, reward, the reward terms (``REWARD_TERMS``);
+    and int32 ``(N, 8 + N)``: active, finished, out, place, position, collided, off_track,
+    lap, then which cars each one touches.
+    """
     s = x[:, S]
     lap = jnp.maximum(jnp.floor(s / game.track.length), 0) if game.track.closed else jnp.zeros_like(s)
     floats = jnp.concatenate([status.finish_time[:, None], reward[:, None], terms], axis=1)
@@ -70,7 +68,7 @@ def _race_step(constants: jax.Array, layout: Layout, x, status: RaceStatus, acti
     and observe. ``constants`` are the packed :class:`_RaceConstants`.
 
     Returns ``x_next (N, 6)``, observations ``(N, obs)`` float32 and the packed per-car
-    results (:func:`_pack`).
+    results (:func:`_per_car_rows`).
     """
     game, finish_s, preview, rules = unpack(constants, layout)
     active = status.active
@@ -85,20 +83,20 @@ def _race_step(constants: jax.Array, layout: Layout, x, status: RaceStatus, acti
     verdict = judge(x[:, S], x_next[:, S], status, collided, outside, step, game.dt, finish_s, rules)
     # observed with the cars active at the start of the step (as before the rules moved here)
     obs = observe(x_next, active, game.track, finish_s, preview).astype(jnp.float32)
-    packed = _pack(game, x_next, verdict.status, verdict.positions, collided, outside, contact,
+    packed = _per_car_rows(game, x_next, verdict.status, verdict.positions, collided, outside, contact,
                    verdict.reward, verdict.terms)
     return (x_next, obs) + packed
 
 
 @functools.partial(jax.jit, static_argnames=("layout",))
 def _race_start(constants: jax.Array, layout: Layout, x, status: RaceStatus):
-    """Observations ``(N, obs)`` float32 and the packed per-car results (:func:`_pack`) of a
+    """Observations ``(N, obs)`` float32 and the packed per-car results (:func:`_per_car_rows`) of a
     start state: no incidents, no rewards."""
     game, finish_s, preview, _ = unpack(constants, layout)
     num = x.shape[0]
     obs = observe(x, status.active, game.track, finish_s, preview).astype(jnp.float32)
     none = jnp.zeros(num, dtype=bool)
-    packed = _pack(game, x, status, positions(x[:, S], status.finished, status.place), none, none,
+    packed = _per_car_rows(game, x, status, positions(x[:, S], status.finished, status.place), none, none,
                    jnp.zeros((num, num), dtype=bool), jnp.zeros(num), jnp.zeros((num, len(REWARD_TERMS))))
     return (obs,) + packed
 
@@ -292,10 +290,10 @@ class RacingParallelEnv(ParallelEnv):
         x, obs, floats, ints = (np.asarray(a) for a in out)
         self._x = x
         obs = obs.copy()  # writable, as users may normalise observations in place
-        flags = ints[:, :3].astype(bool)  # _INT_COLUMNS: active, finished, out, place, ...
+        flags = ints[:, :3].astype(bool)  # columns of _per_car_rows: active, finished, out, place, ...
         self._active, self._finished, self._out = flags[:, 0], flags[:, 1], flags[:, 2]
         self._place = ints[:, 3]
-        self._finish_time = floats[:, 0]  # _FLOAT_COLUMNS: finish_time, reward, terms
+        self._finish_time = floats[:, 0]  # finish_time, reward, terms
 
         floats, ints = floats.tolist(), ints.tolist()
         per_car = self._infos(floats, ints, with_terms=True)
@@ -320,9 +318,9 @@ class RacingParallelEnv(ParallelEnv):
         return RaceStatus(self._active, self._finished, self._out, self._place, self._finish_time)
 
     def _infos(self, floats: list[list[float]], ints: list[list[int]], with_terms: bool) -> list[dict[str, Any]]:
-        """Every car's info dict from the packed per-car results (rows of ``_FLOAT_COLUMNS``
-        and ``_INT_COLUMNS`` plus contacts, as Python lists: element-wise indexing of
-        NumPy arrays took more time than the physics step's own Python side)."""
+        """Every car's info dict from the rows of :func:`_per_car_rows` as Python lists
+        (element-wise indexing of NumPy arrays took more time than the physics step's own
+        Python side)."""
         s = self._x[:, S].tolist()
         names = self.possible_agents
         per_car = []
