@@ -6,8 +6,9 @@ import functools
 from typing import Callable
 
 import jax
+import jax.numpy as jnp
 
-__all__ = ["one_at_a_time"]
+__all__ = ["one_at_a_time", "with_batched_form"]
 
 
 def one_at_a_time(fn: Callable) -> Callable:
@@ -43,10 +44,37 @@ def one_at_a_time(fn: Callable) -> Callable:
         out = jax.lax.map(one, batched)
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
-    # custom_vmap has no reverse-mode rule; derivatives are those of fn itself.
+    wrapped = _differentiable_as(fn, mapped)
+    return wrapped
+
+
+def with_batched_form(fn: Callable, batched_fn: Callable) -> Callable:
+    """``fn`` with a batching rule that calls ``batched_fn`` on the whole batch.
+
+    ``batched_fn`` takes and returns ``fn``'s arrays with one more leading axis and must
+    compute the same function member by member. Under ``jax.vmap`` every argument gets the
+    batch axis in front (unbatched ones are broadcast) and ``batched_fn`` runs once; outer
+    ``vmap``s of a nest batch ``batched_fn`` as usual. For building blocks whose best single-problem form (e.g. a loop that XLA compiles into
+    one kernel) is a poor batched form on CPU. Derivatives are those of ``fn``.
+    """
+    batched = jax.custom_batching.custom_vmap(fn)
+
+    @batched.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        args = [a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a)) for a, b in zip(args, in_batched)]
+        out = batched_fn(*args)
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    return _differentiable_as(fn, batched)
+
+
+def _differentiable_as(fn: Callable, custom: Callable) -> Callable:
+    """``custom`` (a ``custom_vmap`` of ``fn``) with ``fn``'s derivatives: custom_vmap has no
+    reverse-mode rule of its own."""
+
     @jax.custom_jvp
     def wrapped(*args):
-        return mapped(*args)
+        return custom(*args)
 
     @wrapped.defjvp
     def _jvp(primals, tangents):

@@ -412,6 +412,39 @@ def test_gauss_newton_hessian_is_exact_for_the_track_term(game):
     assert float(exact[2, 2]) > 0  # the track term is active
 
 
+@pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
+def test_quadratization_matches_the_gauss_newton_products_of_each_stage(game, scene):
+    """The stage-wise products inside ``_quadratize`` (fused code for two cars, XLA dots for
+    three) equal ``J' diag(h) J`` and ``J' g`` formed in NumPy from each stage's factors."""
+    base = X0
+    if scene == "three_cars_trefoil":
+        game, base = _three_cars_on_the_trefoil()
+    problem = ilq.problem_from_race_game(game)
+    n, N, T = problem.state_dim, game.num_players, game.horizon
+    rng = np.random.default_rng(8)
+    scale = np.array([3.0, 4.0, 5.0, 0.2, 8.0, 12.0])
+    xs = jnp.asarray(np.stack([(base + rng.normal(size=base.shape) * scale).reshape(-1) for _ in range(T + 1)]))
+    us = jnp.asarray(rng.normal(size=(T, N, 2)))
+    Q, q, Rii, rii = jax.jit(lambda xs, us: ilq._quadratize(problem, xs, us, gauss_newton=True))(xs, us)
+
+    def factors(t, i):
+        fun = lambda z: ilq._race_stage_gauss_newton(game, t, i, z[:n], z[n:])
+        return ilq._gauss_newton_factors(fun, jnp.concatenate([xs[t], us[t, i]]))
+
+    factors = jax.jit(factors)
+    for t in sorted({0, T // 2, T - 1}):
+        for i in range(N):
+            J, g, h = (np.asarray(a) for a in factors(t, i))
+            assert np.any(h > 0)  # some curvature at these states
+            H = np.einsum("ka,k,kb->ab", J, h, J)
+            grad = J.T @ g
+            scale_H = max(1.0, np.abs(H).max())
+            np.testing.assert_allclose(Q[t, i], H[:n, :n], rtol=0, atol=1e-12 * scale_H)
+            np.testing.assert_allclose(Rii[t, i], H[n:, n:], rtol=0, atol=1e-12 * scale_H)
+            np.testing.assert_allclose(q[t, i], grad[:n], rtol=0, atol=1e-12 * max(1.0, np.abs(grad).max()))
+            np.testing.assert_allclose(rii[t, i], grad[n:], rtol=0, atol=1e-12 * max(1.0, np.abs(grad).max()))
+
+
 def _three_cars_on_the_trefoil() -> tuple[RaceGame, np.ndarray]:
     """Three cars on a curved, closed track (the straight has kappa = 0 everywhere)."""
     from racing_env.track import trefoil
