@@ -11,11 +11,15 @@ fusions jaxlib 0.10 makes of dot products). Raising the limit to :data:`LOOP_KER
 makes every loop of the two-car solvers a single kernel: a feedback iteration runs
 1.5-2.4x as fast (README, Loop kernels). The three-car recursions hold dot products, laid
 out so that YNNPACK does not take them (``planners.lq_game._sandwich``): their loops are
-single kernels too. ``RACING_XLA_LOOP_KERNELS=dots`` also turns every YNNPACK fusion off
-(:data:`YNN_FUSION_FLAG`, jaxlib 0.10 only), so that the solver's outer loop (the
-iterations) becomes one kernel as well: faster three-car iterations again, but one large
-function for LLVM, which doubles every solver's compile time. Results agree to rounding:
-the same operations (with ``dots``, XLA's own code for the dot products).
+single kernels too. Since the quadratisation's products became such a loop as well
+(``planners.ilq._stagewise_gauss_newton_products``), a single solve holds no library call
+at all, and its outer loop (the iterations) compiles into one kernel too: iterations
+1.2-1.6x faster, compile time about 1.7x longer (one large function for LLVM). A batched
+solve keeps batched products, so its outer loop stays with the runtime.
+``RACING_XLA_LOOP_KERNELS=dots`` also turns every YNNPACK fusion off
+(:data:`YNN_FUSION_FLAG`, jaxlib 0.10 only), which makes the outer loop of batched solves
+one kernel as well. Results agree to rounding: the same operations (with ``dots``, XLA's
+own code for the dot products).
 
 XLA reads its flags (the ``XLA_FLAGS`` environment variable) once, when JAX's backend
 starts, i.e. at the first JAX computation of the process. :func:`configure_loop_kernels`
@@ -50,7 +54,7 @@ __all__ = [
 LOOP_KERNEL_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 # jaxlib 0.10 hands dot products to YNNPACK as library fusions, which a single-kernel loop
 # cannot contain either; with no YNNPACK fusion types XLA emits the dots itself. Opt-in
-# (RACING_XLA_LOOP_KERNELS=dots): it doubles compile times. Set only for the jaxlib series
+# (RACING_XLA_LOOP_KERNELS=dots): hoisted loops become large functions that compile slowly. Set only for the jaxlib series
 # it was measured on: XLA aborts on a flag its version does not know.
 YNN_FUSION_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
 _YNN_FLAG_JAXLIB = ("0.10.",)
