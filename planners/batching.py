@@ -44,7 +44,7 @@ def one_at_a_time(fn: Callable) -> Callable:
         out = jax.lax.map(one, batched)
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
-    wrapped = _differentiable_as(fn, mapped)
+    wrapped = _differentiable_as(fn, mapped)  # the rule's members call it: nested maps
     return wrapped
 
 
@@ -54,8 +54,9 @@ def with_batched_form(fn: Callable, batched_fn: Callable) -> Callable:
     ``batched_fn`` takes and returns ``fn``'s arrays with one more leading axis and must
     compute the same function member by member. Under ``jax.vmap`` every argument gets the
     batch axis in front (unbatched ones are broadcast) and ``batched_fn`` runs once; outer
-    ``vmap``s of a nest batch ``batched_fn`` as usual. For building blocks whose best single-problem form (e.g. a loop that XLA compiles into
-    one kernel) is a poor batched form on CPU. Derivatives are those of ``fn``.
+    ``vmap``s of a nest batch ``batched_fn`` as usual. For building blocks whose best
+    single-problem form (e.g. a loop that XLA compiles into one kernel) is a poor batched
+    form on CPU. Derivatives are those of ``fn``.
     """
     batched = jax.custom_batching.custom_vmap(fn)
 

@@ -570,7 +570,9 @@ def _gauss_newton_factors(fun: Callable, z: Array) -> tuple[Array, Array, Array]
     return J, jax.lax.stop_gradient(g), jax.lax.stop_gradient(jnp.maximum(h, 0.0))
 
 
-# Larger fused multiply-sums XLA rewrites into dots, which jaxlib 0.10 hands to YNNPACK.
+# Multiply-adds of one product up to which it is written as fused code. XLA rewrote the
+# fused form into a dot, which jaxlib 0.10 hands to YNNPACK, at 3,600 (three cars: K = 9,
+# D = 20); at 1,568 (two cars: K = 8, D = 14) it did not.
 _GRAM_FUSED_MAX = 2048
 
 
@@ -596,8 +598,8 @@ def _stagewise_gauss_newton_products(J: Array, g: Array, h: Array) -> tuple[Arra
 
     As a loop over the stages the products compile into one kernel
     (:mod:`racing_env.xla_setup`). As one batched product over all stages XLA:CPU hands
-    them to a YNNPACK library call, which cost 2.3x as much for the paper scene's shapes
-    and, being the last library call in a two-car solver iteration, kept the solver's
+    them to a YNNPACK library call, which cost 2.2-2.6x as much for the paper scene's
+    shapes and, being the last library call in a two-car solver iteration, kept the solver's
     outer loop from becoming one kernel too (README, Loop kernels).
     """
     def stage(_, factors):

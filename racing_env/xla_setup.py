@@ -14,7 +14,8 @@ out so that YNNPACK does not take them (``planners.lq_game._sandwich``): their l
 single kernels too. Since the quadratisation's products became such a loop as well
 (``planners.ilq._stagewise_gauss_newton_products``), a single solve holds no library call
 at all, and its outer loop (the iterations) compiles into one kernel too: iterations
-1.2-1.6x faster, compile time about 1.7x longer (one large function for LLVM). A batched
+1.1-1.6x faster, a game solver's compile time 1.6-2.1x longer (one large function for
+LLVM). A batched
 solve keeps batched products, so its outer loop stays with the runtime.
 ``RACING_XLA_LOOP_KERNELS=dots`` also turns every YNNPACK fusion off
 (:data:`YNN_FUSION_FLAG`, jaxlib 0.10 only), which makes the outer loop of batched solves
@@ -54,8 +55,9 @@ __all__ = [
 LOOP_KERNEL_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 # jaxlib 0.10 hands dot products to YNNPACK as library fusions, which a single-kernel loop
 # cannot contain either; with no YNNPACK fusion types XLA emits the dots itself. Opt-in
-# (RACING_XLA_LOOP_KERNELS=dots): hoisted loops become large functions that compile slowly. Set only for the jaxlib series
-# it was measured on: XLA aborts on a flag its version does not know.
+# (RACING_XLA_LOOP_KERNELS=dots): hoisted loops become large functions that compile
+# slowly. Set only for the jaxlib series it was measured on: XLA aborts on a flag its
+# version does not know.
 YNN_FUSION_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
 _YNN_FLAG_JAXLIB = ("0.10.",)
 # 128 MiB per loop iteration: every solver loop up to far larger games than the paper's
