@@ -15,7 +15,6 @@ import math
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 # Dtypes whose values float64 holds exactly (int32 and below, booleans).

@@ -15,7 +15,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from racing_env.dynamics import S
 
 #: Names of the reward terms, in the order of :attr:`Judgement.terms`' columns.
 REWARD_TERMS = ("progress", "position", "collision", "off_track", "finish")
