@@ -605,7 +605,7 @@ def _stagewise_gauss_newton_products(J: Array, g: Array, h: Array) -> tuple[Arra
     def stage(_, factors):
         return None, jax.vmap(_gauss_newton_products)(*factors)
 
-    return jax.lax.scan(stage, None, (J, g, h), unroll=2)[1]
+    return jax.lax.scan(stage, None, (J, g, h))[1]
 
 
 def _all_gauss_newton_products(J: Array, g: Array, h: Array) -> tuple[Array, Array]:
@@ -722,9 +722,6 @@ def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions)
     return K, k
 
 
-_FORWARD_UNROLL = 5
-
-
 def _forward(problem: GameProblem, xs_hat: Array, us_hat: Array, K: Array, k: Array, eta):
     """Nonlinear forward pass ``u = u_hat - K (x - x_hat) - eta k`` from ``xs_hat[0]``."""
     params = problem.params
@@ -736,8 +733,9 @@ def _forward(problem: GameProblem, xs_hat: Array, us_hat: Array, K: Array, k: Ar
         return problem.dynamics(params, t, x, u), (x, u)
 
     ts = jnp.arange(us_hat.shape[0])
-    # Unrolling the short sequential loop saves per-iteration loop overhead (~30%).
-    xT, (xs, us) = jax.lax.scan(body, xs_hat[0], (ts, xs_hat[:-1], us_hat, K, k), unroll=_FORWARD_UNROLL)
+    # Not unrolled (nor are the other solver loops): compiled into one kernel, an unrolled
+    # loop ran no faster and compiled for longer (docs/performance.md, Compile time).
+    xT, (xs, us) = jax.lax.scan(body, xs_hat[0], (ts, xs_hat[:-1], us_hat, K, k))
     return jnp.concatenate([xs, xT[None]], axis=0), us
 
 

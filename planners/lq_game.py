@@ -384,7 +384,7 @@ def _feedback_own_recursion(A, B, Q, q, Rii, rii):
         return (_sym(P_new), p_new), sol
 
     stages = (A, B, Q[:-1], q[:-1], Rii, rii)
-    _, sol = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True, unroll=2)
+    _, sol = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True)
     return sol[..., :n], sol[..., n]
 
 
@@ -553,7 +553,7 @@ def _open_loop_own_recursion(A, B, Q, q, Rii, rii, x0):
         return (M_new, m_new), (LinvA, Linvc, W, g)
 
     stages = (A, B, Q[:-1], q[:-1], Rii, rii)
-    _, (LinvA, Linvc, W, g) = jax.lax.scan(backward, (Q[-1], q[-1]), stages, reverse=True, unroll=2)
+    _, (LinvA, Linvc, W, g) = jax.lax.scan(backward, (Q[-1], q[-1]), stages, reverse=True)
 
     def forward(x, stage):
         LinvA_t, Linvc_t, W_t, g_t = stage
@@ -561,7 +561,7 @@ def _open_loop_own_recursion(A, B, Q, q, Rii, rii, x0):
         # k_t^i = R^{-1} (B^i' lambda_{t+1}^i + r^i), lambda_{t+1}^i = M^i x_{t+1} + m^i.
         return x_next, (x_next, c("imb,b->im", W_t, x_next) + g_t)
 
-    _, (xs_next, k) = jax.lax.scan(forward, x0, (LinvA, Linvc, W, g), unroll=5)
+    _, (xs_next, k) = jax.lax.scan(forward, x0, (LinvA, Linvc, W, g))
     return k, jnp.concatenate([x0[None], xs_next], axis=0)
 
 

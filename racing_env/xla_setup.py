@@ -14,9 +14,9 @@ out so that YNNPACK does not take them (``planners.lq_game._sandwich``): their l
 single kernels too. Since the quadratisation's products became such a loop as well
 (``planners.ilq._stagewise_gauss_newton_products``), a single solve holds no library call
 at all, and its outer loop (the iterations) compiles into one kernel too: iterations
-1.1-1.6x faster, a game solver's compile time 1.6-2.1x longer (one large function for
-LLVM). A batched
-solve keeps batched products, so its outer loop stays with the runtime.
+1.1-1.6x faster, at a longer compile (one large function for LLVM; 7-10 s per game solver
+here, with the loops not unrolled, which inside a kernel saves nothing). A batched solve
+keeps batched products, so its outer loop stays with the runtime.
 ``RACING_XLA_LOOP_KERNELS=dots`` also turns every YNNPACK fusion off
 (:data:`YNN_FUSION_FLAG`, jaxlib 0.10 only), which makes the outer loop of batched solves
 one kernel as well. Results agree to rounding: the same operations (with ``dots``, XLA's
