@@ -259,7 +259,7 @@ def _cpu_model() -> str:
 
 
 def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]:
-    """Per-iteration and per-solve times of feedback/open-loop iLQGame, and a vmapped batch.
+    """Per-iteration and per-solve times of feedback/open-loop iLQGame, and a batch of games.
 
     The first two rows are machine references (:func:`_machine_reference`,
     :func:`_machine_reference_batched`) for comparing days; :func:`machine_info` names the CPU.
@@ -269,10 +269,11 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     stage against the state size (:func:`_lq_state_size_row`). Batch: 64 perturbations of the
     paper's scene solved by :func:`planners.ilq.solve_batch` vs one by one (64 calls of
     ``solve``), on one device and split across every local device (``racing bench`` exposes
-    one CPU device per core, see :mod:`planners.devices`); a vmapped ``while_loop`` runs
-    until its slowest member converges, so the row reports the members' iterations too.
-    Straggler: a batch in which one member runs to the iteration cap, lock-step against
-    regrouped (:func:`_straggler_row`).
+    one CPU device per core, see :mod:`planners.devices`), in the default batching (on CPU
+    one member after another) and vmapped (``batching="vmap"``, for comparison; its
+    ``while_loop`` runs until the slowest member converges, so the row reports the
+    members' iterations too). Straggler: a batch in which one member runs to the iteration
+    cap, vmapped lock-step against regrouped and against the default (:func:`_straggler_row`).
     """
     from experiments.timing import time_jax_call
     from planners import ilq
@@ -300,25 +301,31 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     import jax
 
     devices = jax.local_devices()
-    batches = {}  # devices used -> (result, first call s, later call s)
-    for used in sorted({1, len(devices)}):
-        batches[used] = time_jax_call(
-            lambda: ilq.solve_batch(game, x0s, mode="feedback", devices=devices[:used]), max(1, repeats // 2))
+    batches = {}  # (batching, devices used) -> (result, first call s, later call s)
+    for batching in ("auto", "vmap"):
+        for used in sorted({1, len(devices)}):
+            batches[batching, used] = time_jax_call(
+                lambda: ilq.solve_batch(game, x0s, mode="feedback", devices=devices[:used], batching=batching),
+                max(1, repeats // 2))
     ilq.solve(game, x0s[0], mode="feedback")  # compile the single solve before timing
 
     def sequential():
         return [ilq.solve(game, x, mode="feedback").xs for x in x0s]
 
     _, _, run_seq = time_jax_call(sequential, 3)
-    res_b, first_b, run_b = batches[len(devices)]
-    _, first_1, run_1 = batches[1]
-    yield {"name": f"feedback_batch{batch}_vmap", "devices": len(devices), "ms_batch": 1e3 * run_b,
+    res_b, first_b, run_b = batches["auto", len(devices)]
+    _, first_1, run_1 = batches["auto", 1]
+    _, first_v, run_v = batches["vmap", len(devices)]
+    _, _, run_v1 = batches["vmap", 1]
+    yield {"name": f"feedback_batch{batch}", "devices": len(devices), "ms_batch": 1e3 * run_b,
            "compile_s": first_b - run_b, "ms_batch_one_device": 1e3 * run_1,
            "compile_s_one_device": first_1 - run_1,
            "converged": int(np.sum(np.asarray(res_b.converged))), "sequential_ms": 1e3 * run_seq,
            "iterations_mean": float(np.mean(np.asarray(res_b.iterations))),
            "iterations_max": int(np.max(np.asarray(res_b.iterations))),
            "throughput_ratio": run_seq / run_b, "throughput_ratio_one_device": run_seq / run_1,
+           "ms_batch_vmap": 1e3 * run_v, "ms_batch_vmap_one_device": 1e3 * run_v1,
+           "compile_s_vmap": first_v - run_v, "throughput_ratio_vmap": run_seq / run_v,
            "target_ratio": 10.0}
     yield _straggler_row(game, x0, repeats)
 
@@ -335,22 +342,27 @@ def _perturbed_scenes(x0: np.ndarray, batch: int) -> np.ndarray:
 
 def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> dict[str, Any]:
     """A batch with a straggler: of these 63 perturbed scenes one does not converge in the
-    100 iterations (the others take 10-17). Lock-step ``solve_batch`` against
-    ``regroup_every=10`` (the members still running regrouped every 10 iterations), both
-    on every local device; compile time (including every regrouped size) apart."""
+    100 iterations (the others take 10-17). Vmapped lock-step ``solve_batch`` against
+    ``regroup_every=10`` (the members still running regrouped every 10 iterations), and
+    the default batching (on CPU one member after another, so nobody waits), all on every
+    local device; compile time (including every regrouped size) apart."""
     from experiments.timing import time_jax_call
     from planners import ilq
 
     x0s = _perturbed_scenes(x0, batch)
-    res, first, run = time_jax_call(lambda: ilq.solve_batch(game, x0s, mode="feedback"), max(1, repeats // 2))
+    runs = max(1, repeats // 2)
+    res, first, run = time_jax_call(lambda: ilq.solve_batch(game, x0s, mode="feedback", batching="vmap"), runs)
     res_r, first_r, run_r = time_jax_call(
-        lambda: ilq.solve_batch(game, x0s, mode="feedback", regroup_every=every), max(1, repeats // 2))
+        lambda: ilq.solve_batch(game, x0s, mode="feedback", batching="vmap", regroup_every=every), runs)
+    res_d, first_d, run_d = time_jax_call(lambda: ilq.solve_batch(game, x0s, mode="feedback"), runs)
     iterations = np.asarray(res.iterations)
     return {"name": f"feedback_batch{batch}_straggler_regroup{every}", "ms_lockstep": 1e3 * run,
             "compile_s_lockstep": first - run, "ms_regrouped": 1e3 * run_r, "compile_s_regrouped": first_r - run_r,
-            "speedup": run / run_r, "converged": int(np.sum(np.asarray(res.converged))),
+            "ms_default": 1e3 * run_d, "compile_s_default": first_d - run_d,
+            "speedup": run / run_r, "speedup_default": run / run_d, "converged": int(np.sum(np.asarray(res.converged))),
             "iterations_median": float(np.median(iterations)), "iterations_max": int(iterations.max()),
-            "same_iterations": bool(np.array_equal(iterations, np.asarray(res_r.iterations)))}
+            "same_iterations": bool(np.array_equal(iterations, np.asarray(res_r.iterations))
+                                    and np.array_equal(iterations, np.asarray(res_d.iterations)))}
 
 
 def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:

@@ -256,18 +256,27 @@ def _assert_same_solution(batch, b, single):
     np.testing.assert_allclose(batch.us[b], single.us, atol=1e-10)
 
 
-@pytest.mark.parametrize("mode,where", [("feedback", "all devices"), ("open_loop", "all devices"),
-                                        ("feedback", "one device")])
-def test_vmapped_batch_matches_individual_solves(game, mode, where):
+@pytest.mark.parametrize("mode,where,batching", [
+    ("feedback", "all devices", "auto"), ("open_loop", "all devices", "auto"), ("feedback", "one device", "auto"),
+    ("feedback", "all devices", "vmap"), ("open_loop", "one device", "vmap"),
+])
+def test_batch_matches_individual_solves(game, mode, where, batching, monkeypatch):
     assert len(jax.local_devices()) == 2  # conftest: the split path is exercised
     x0s = np.stack([X0, X0, X0])  # three members on two devices: one padded slot
     x0s[1, 1, 2] = 1.0  # opponent closer to the centre line
     x0s[2, 1, 1] = 24.0  # faster opponent
     devices = jax.local_devices()[:1] if where == "one device" else None
-    batch = ilq.solve_batch(game, x0s, mode=mode, devices=devices)
+    batch = ilq.solve_batch(game, x0s, mode=mode, devices=devices, batching=batching)
     assert batch.xs.shape == (3, 51, 2, 6) and batch.us.shape == (3, 50, 2, 2)
     for b in range(3):
         _assert_same_solution(batch, b, ilq.solve(game, x0s[b], mode=mode))
+    if batching == "auto":  # "map" on this CPU: members never wait, regroup_every is ignored
+        def no_regrouping(*args, **kwargs):
+            raise AssertionError("a mapped batch was regrouped")
+
+        monkeypatch.setattr(ilq, "_solve_regrouped", no_regrouping)
+        regrouped = ilq.solve_batch(game, x0s, mode=mode, devices=devices, regroup_every=2)
+        np.testing.assert_array_equal(regrouped.xs, batch.xs)
 
 
 # A batch with one member per CPU core, each on its own CPU device (as many devices as
@@ -285,9 +294,11 @@ game, x0 = paper_game()
 x0s = np.repeat(x0[None], devices, axis=0)
 x0s[:, 1, 1] += 0.5 * np.arange(devices)  # a different opponent speed per member
 options = dict(mode="open_loop", convexify="eig", max_iterations=3)
-batch = ilq.solve_batch(game, x0s, **options)
-gaps = [float(np.max(np.abs(np.asarray(batch.xs[b]) - np.asarray(ilq.solve(game, x0s[b], **options).xs))))
-        for b in range(devices)]
+singles = [np.asarray(ilq.solve(game, x0s[b], **options).xs) for b in range(devices)]
+gaps = []
+for batching in ("vmap", "map"):
+    batch = ilq.solve_batch(game, x0s, batching=batching, **options)
+    gaps += [float(np.max(np.abs(np.asarray(batch.xs[b]) - singles[b]))) for b in range(devices)]
 print(json.dumps({"devices": devices, "gaps": gaps}))
 """
 
@@ -300,7 +311,7 @@ def test_eig_projection_in_a_batch_on_every_core_does_not_hang():
     done = subprocess.run([sys.executable, "-c", _EIG_BATCH_CHILD], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     report = json.loads(done.stdout.strip().splitlines()[-1])
-    assert report["devices"] >= 1 and len(report["gaps"]) == report["devices"]
+    assert report["devices"] >= 1 and len(report["gaps"]) == 2 * report["devices"]
     assert max(report["gaps"]) < 1e-10  # each member is its single solve
 
 
@@ -322,7 +333,8 @@ def test_regrouped_batch_matches_individual_solves(game):
     x0s[1, 1, 2] -= 0.5
     x0s[2, 1, 1] += 1.0  # a faster opponent
     # Measured: 13, 27 and 24 iterations: three different blocks.
-    batch = ilq.solve_batch(batched_game, x0s, mode="feedback", regroup_every=4, params_axes=params_axes)
+    batch = ilq.solve_batch(batched_game, x0s, mode="feedback", batching="vmap", regroup_every=4,
+                            params_axes=params_axes)
     singles = [ilq.solve(g, x, mode="feedback") for g, x in zip(games, x0s)]
     blocks = {(int(s.iterations) - 1) // 4 for s in singles}
     assert len(blocks) == 3, [int(s.iterations) for s in singles]
@@ -331,12 +343,17 @@ def test_regrouped_batch_matches_individual_solves(game):
         np.testing.assert_allclose(batch.costs[b], singles[b].costs, rtol=1e-10)
 
 
-def test_batch_over_cost_weights_and_warm_starts(game):
+@pytest.mark.parametrize("batching", ["map", "vmap"])
+def test_batch_over_cost_weights_and_warm_starts(game, batching):
     """params_axes: the opponent's collision weight (the paper's Figure 2 variation) differs
-    per member; batched initial inputs. Split across the two devices."""
+    per member, the weights stacked along their second axis (``(N, B)``); batched initial
+    inputs. Split across the two devices."""
     games, batched_game, params_axes = _collision_weight_batch(game)
+    batched_game = batched_game.replace(weights=jax.tree_util.tree_map(lambda w: np.moveaxis(w, 0, 1), batched_game.weights))
+    params_axes = params_axes.replace(weights=1)
     inits = np.random.default_rng(5).normal(scale=0.5, size=(3, 50, 2, 2))  # warm starts [m/s^3]
-    batch = ilq.solve_batch(batched_game, np.stack([X0] * 3), inits, mode="feedback", params_axes=params_axes)
+    batch = ilq.solve_batch(batched_game, np.stack([X0] * 3), inits, mode="feedback", params_axes=params_axes,
+                            batching=batching)
     for b, g in enumerate(games):
         _assert_same_solution(batch, b, ilq.solve(g, X0, inits[b], mode="feedback"))
     # Each member used its own weight (shared weights would give three equal solutions):
@@ -353,6 +370,19 @@ def test_batch_refuses_malformed_inputs(game):
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match="regroup_every"):
             ilq.solve_batch(game, np.stack([X0, X0]), regroup_every=bad)
+    with pytest.raises(ValueError, match="batching must be one of"):
+        ilq.solve_batch(game, np.stack([X0, X0]), batching="lockstep")
+
+
+def test_auto_batching_maps_on_cpu_and_vmaps_elsewhere():
+    class Device:
+        def __init__(self, platform):
+            self.platform = platform
+
+    assert ilq._resolve_batching("auto", jax.local_devices()) == "map"  # this machine's CPUs
+    assert ilq._resolve_batching("auto", [Device("gpu")]) == "vmap"
+    assert ilq._resolve_batching("auto", [Device("cpu"), Device("gpu")]) == "vmap"
+    assert ilq._resolve_batching("vmap", jax.local_devices()) == "vmap"
 
 
 # --------------------------------------------------------------------------------------
