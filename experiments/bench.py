@@ -1,7 +1,7 @@
 """`racing bench`: performance figures as JSON and a table.
 
 Sections: ``env`` (PettingZoo steps per second), ``solvers`` (iLQGame iterations, solves,
-vmapped batches), ``agents`` (re-plan times of the game agents). Compile time is measured apart from run
+batches), ``agents`` (re-plan times of the game agents). Compile time is measured apart from run
 time; each figure is the median over repeats so a noisy shared machine disturbs it less.
 """
 
