@@ -359,7 +359,8 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
     return {"name": f"feedback_batch{batch}_straggler_regroup{every}", "ms_lockstep": 1e3 * run,
             "compile_s_lockstep": first - run, "ms_regrouped": 1e3 * run_r, "compile_s_regrouped": first_r - run_r,
             "ms_default": 1e3 * run_d, "compile_s_default": first_d - run_d,
-            "speedup": run / run_r, "speedup_default": run / run_d, "converged": int(np.sum(np.asarray(res.converged))),
+            "speedup": run / run_r, "speedup_default": run / run_d,
+            "converged": int(np.sum(np.asarray(res.converged))),
             "iterations_median": float(np.median(iterations)), "iterations_max": int(iterations.max()),
             "same_iterations": bool(np.array_equal(iterations, np.asarray(res_r.iterations))
                                     and np.array_equal(iterations, np.asarray(res_d.iterations)))}

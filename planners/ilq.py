@@ -123,8 +123,8 @@ iterations, ``lax.scan`` only for the recursions and rollouts, ``vmap`` over the
 derivatives), compiled once per shapes, problem functions and :class:`SolverOptions`.
 It can be vmapped over initial states (and over ``params``); :func:`solve_batch` solves a
 batch that way or, on CPU, one member after another (``batching``), optionally regrouping
-the members still running between blocks of iterations (``regroup_every``). Internally a solve is :func:`_initial_carry`, :func:`_iterate` in a
-``while_loop``, and :func:`_result`.
+the members still running between blocks of iterations (``regroup_every``). Internally a
+solve is :func:`_initial_carry`, :func:`_iterate` in a ``while_loop``, and :func:`_result`.
 """
 
 from __future__ import annotations

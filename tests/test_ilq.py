@@ -349,7 +349,8 @@ def test_batch_over_cost_weights_and_warm_starts(game, batching):
     per member, the weights stacked along their second axis (``(N, B)``); batched initial
     inputs. Split across the two devices."""
     games, batched_game, params_axes = _collision_weight_batch(game)
-    batched_game = batched_game.replace(weights=jax.tree_util.tree_map(lambda w: np.moveaxis(w, 0, 1), batched_game.weights))
+    second_axis = jax.tree_util.tree_map(lambda w: np.moveaxis(w, 0, 1), batched_game.weights)
+    batched_game = batched_game.replace(weights=second_axis)
     params_axes = params_axes.replace(weights=1)
     inits = np.random.default_rng(5).normal(scale=0.5, size=(3, 50, 2, 2))  # warm starts [m/s^3]
     batch = ilq.solve_batch(batched_game, np.stack([X0] * 3), inits, mode="feedback", params_axes=params_axes,
