@@ -1161,14 +1161,14 @@ def solve_batch(
         result = _map_split("solve", problem, batch, leaf_axes=leaf_axes, options=options, mesh=mesh,
                             batching=batching)
     else:
-        result = _solve_regrouped(problem, batch, leaf_axes, options, mesh, batching, int(regroup_every))
+        result = _solve_regrouped(problem, batch, leaf_axes, options, mesh, int(regroup_every))
     return result._replace(xs=result.xs.reshape(result.xs.shape[:2] + x0s.shape[1:]))
 
 
-def _solve_regrouped(problem: GameProblem, batch, leaf_axes, options, mesh, batching: str, every: int) -> SolverResult:
-    """:func:`solve_batch` in blocks of ``every`` iterations, each block on the members
-    still running (see ``regroup_every``)."""
-    run = functools.partial(_map_split, leaf_axes=leaf_axes, options=options, mesh=mesh, batching=batching)
+def _solve_regrouped(problem: GameProblem, batch, leaf_axes, options, mesh, every: int) -> SolverResult:
+    """A vmapped :func:`solve_batch` in blocks of ``every`` iterations, each block on the
+    members still running (see ``regroup_every``)."""
+    run = functools.partial(_map_split, leaf_axes=leaf_axes, options=options, mesh=mesh, batching="vmap")
     carry = run("start", problem, batch)
     batch_size = int(carry.status.shape[0])
     while True:
