@@ -1099,8 +1099,8 @@ def solve_batch(
     weights=0)``); ``None`` shares the params. The result has a leading batch axis.
 
     ``devices``: the batch is split evenly across these devices and the parts run in
-    parallel, each part's iterations stopping when its own slowest member is done; the
-    default is every local device of JAX's default backend. On CPU that is one device
+    parallel, each part stopping when its own members are done; the default is every
+    local device of JAX's default backend. On CPU that is one device
     unless :func:`planners.devices.use_cpu_cores` was called. Every member's result is the
     same either way. Compiled once per shapes, :class:`SolverOptions`, ``params_axes``,
     devices and ``batching``.
@@ -1231,8 +1231,8 @@ def _map_split(kind: str, problem: GameProblem, batch, *, leaf_axes, options, me
     (``"map"``).
 
     The batch is padded to a multiple of the device count by repeating its last member;
-    every device runs the vmapped function on its part (``shard_map``: no communication,
-    so each part's while loops end with its own members) and the padding is cut off again.
+    every device runs its part (``shard_map``: no communication, so each part's while loops
+    end with its own members) and the padding is cut off again.
     """
     from jax.sharding import PartitionSpec
 
@@ -1249,23 +1249,19 @@ def _map_split(kind: str, problem: GameProblem, batch, *, leaf_axes, options, me
     def spec(leaf, axis):
         return PartitionSpec() if axis is None else PartitionSpec(*([None] * (axis % leaf.ndim)), "batch")
 
-    def one(leaves_, args):
-        p = problem.replace(params=jax.tree_util.tree_unflatten(treedef, leaves_))
-        return _member(kind, p, args, options, steps)
+    batch_def = jax.tree_util.tree_structure(batch)
+
+    def one(*flat):
+        """One member from flat arrays: the params leaves, then the leaves of ``batch``."""
+        p = problem.replace(params=jax.tree_util.tree_unflatten(treedef, flat[: len(leaves)]))
+        return _member(kind, p, jax.tree_util.tree_unflatten(batch_def, flat[len(leaves):]), options, steps)
+
+    # "map": under vmap, one_at_a_time runs the members one after another (a lax.map).
+    member = one if batching == "vmap" else one_at_a_time(one)
 
     def part(leaves, batch):
-        if batching == "vmap":
-            return jax.vmap(one, in_axes=(list(leaf_axes), 0))(leaves, batch)
-        # One member after another: the batched params leaves are mapped over (their batch
-        # axis moved to the front), the shared ones are closed over.
-        mapped = [jnp.moveaxis(leaf, axis, 0) for leaf, axis in zip(leaves, leaf_axes) if axis is not None]
-
-        def member(args):
-            member_leaves, member_args = args
-            it = iter(member_leaves)
-            return one([leaf if axis is None else next(it) for leaf, axis in zip(leaves, leaf_axes)], member_args)
-
-        return jax.lax.map(member, (mapped, batch))
+        flat = (*leaves, *jax.tree_util.tree_leaves(batch))
+        return jax.vmap(member, in_axes=(*leaf_axes, *[0] * batch_def.num_leaves))(*flat)
 
     leaves = [padded(leaf, axis) for leaf, axis in zip(leaves, leaf_axes)]
     batch = jax.tree_util.tree_map(lambda leaf: padded(leaf, 0), batch)
