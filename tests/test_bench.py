@@ -3,6 +3,8 @@
 import json
 import os
 
+import pytest
+
 from experiments import bench
 
 
@@ -102,6 +104,35 @@ def test_figure_shows_the_headline_or_every_part():
     assert bench._figure({"name": "parts", "linearize": 0.1042, "lq_feedback": 0.19961}) == "linearize 0.104, lq_feedback 0.2"
 
 
+def test_figure_and_verdict_show_the_tenth_percentile_beside_the_median():
+    row = {"name": "x", "ms_per_iter": 0.36, "ms_per_iter_p10": 0.21, "target_ms": 0.25, "target_met_p10": True}
+    assert bench._figure(row) == "0.36 ms_per_iter (p10 0.21)"
+    verdict = bench._target_verdict(row)
+    assert verdict == ("<= 0.25 ms_per_iter", False)  # the median decides
+    assert bench._verdict_text(row, verdict) == "<= 0.25 ms_per_iter: MISSED (p10: met)"
+    assert bench._verdict_text({"name": "y"}, ("<= 50 ms_per_solve", True)) == "<= 50 ms_per_solve: met"
+
+
+def test_interleaved_calls_time_every_function_in_turns():
+    order = []
+    calls = {name: (lambda name=name: order.append(name)) for name in ("a", "b")}
+    seconds = bench._interleaved_calls(calls, rounds=3)
+    assert order == ["a", "b"] * 4  # one call each first (compilation), then three rounds in turns
+    assert {name: s.shape for name, s in seconds.items()} == {"a": (3,), "b": (3,)}
+    assert all((s >= 0).all() for s in seconds.values())
+
+
+def test_a_bench_run_records_the_verdict_on_the_tenth_percentile(monkeypatch):
+    def section():
+        yield {"name": "iter", "ms_per_iter": 0.36, "ms_per_iter_p10": 0.21, "target_ms": 0.25}
+        yield {"name": "solve", "ms_per_solve": 5.0, "target_ms": 50.0}
+
+    monkeypatch.setitem(bench.SECTIONS, "fake", section)
+    iteration, solve = bench.run_bench(["fake"])["results"]["fake"]
+    assert iteration["target_met"] is False and iteration["target_met_p10"] is True
+    assert solve["target_met"] is True and "target_met_p10" not in solve
+
+
 def test_target_verdict_knows_which_way_each_target_points():
     assert bench._target_verdict({"name": "x", "ms_per_iter": 0.52, "target_ms": 0.25}) == ("<= 0.25 ms_per_iter", False)
     assert bench._target_verdict({"name": "x", "ms_per_solve": 8.7, "target_ms": 50.0}) == ("<= 50 ms_per_solve", True)
@@ -116,3 +147,14 @@ def test_env_section_measures_both_views():
     assert [row["name"] for row in rows] == ["env_step_2_cars", "gym_step_vs_lane_keeper"]
     assert all(row["steps_per_s"] > 0 and row["us_per_step"] > 0 for row in rows)
     assert rows[0]["target_steps_per_s"] == 5000 and "target_steps_per_s" not in rows[1]
+
+
+@pytest.mark.slow
+def test_iteration_rows_report_the_distribution_of_every_configuration():
+    rows = list(bench._iteration_rows(fixed_iterations=2, rounds=3))
+    assert [row["name"] for row in rows] == [f"{mode}_iteration_N{num}_T50"
+                                            for num in (2, 3) for mode in ("feedback", "open_loop")]
+    for row in rows:
+        assert row["calls"] == 3 and row["compile_s"] > 0
+        assert 0 < row["ms_per_iter_min"] <= row["ms_per_iter_p10"] <= row["ms_per_iter"]
+    assert [row["target_ms"] for row in rows] == [0.25, None, None, None]
