@@ -262,17 +262,15 @@ def _cpu_model() -> str:
 _ITERATION_ROUNDS = 40
 
 
-def _interleaved_calls(calls: dict[str, Callable[[], Any]], rounds: int) -> dict[str, np.ndarray]:
-    """Seconds of every call of each function in ``calls``, called in turns ``rounds`` times
-    (after one call each, which compiles): ``name -> (rounds,)``.
+def _interleaved_calls(calls: dict[Any, Callable[[], Any]], rounds: int) -> dict[Any, np.ndarray]:
+    """Seconds of every call of each function in ``calls``, called in turns ``rounds`` times:
+    ``name -> (rounds,)``. Call each once before, to compile it.
 
     In turns, so that a slow spell of the machine falls on every function alike.
     """
     import jax
 
-    for fn in calls.values():
-        jax.block_until_ready(fn())
-    seconds: dict[str, list[float]] = {name: [] for name in calls}
+    seconds: dict[Any, list[float]] = {name: [] for name in calls}
     for _ in range(rounds):
         for name, fn in calls.items():
             start = time.perf_counter()
@@ -328,7 +326,8 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     one CPU device per core, see :mod:`planners.devices`), in the default batching (on CPU
     one member after another) and vmapped (``batching="vmap"``, for comparison; its
     ``while_loop`` runs until the slowest member converges, so the row reports the
-    members' iterations too). Straggler: a batch in which one member runs to the iteration
+    members' iterations too); the batches and the sequential solves are timed in turns
+    (:func:`_interleaved_calls`), so their ratios come from the same spells. Straggler: a batch in which one member runs to the iteration
     cap, vmapped lock-step against regrouped and against the default (:func:`_straggler_row`).
     """
     from experiments.timing import time_jax_call
@@ -353,22 +352,23 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     import jax
 
     devices = jax.local_devices()
-    batches = {}  # (batching, devices used) -> (result, first call s, later call s)
+    calls: dict[Any, Callable[[], Any]] = {}  # (batching, devices used), or "sequential"
     for batching in ("auto", "vmap"):
         for used in sorted({1, len(devices)}):
-            batches[batching, used] = time_jax_call(
-                lambda: ilq.solve_batch(game, x0s, mode="feedback", devices=devices[:used], batching=batching),
-                max(1, repeats // 2))
-    ilq.solve(game, x0s[0], mode="feedback")  # compile the single solve before timing
-
-    def sequential():
-        return [ilq.solve(game, x, mode="feedback").xs for x in x0s]
-
-    _, _, run_seq = time_jax_call(sequential, 3)
-    res_b, first_b, run_b = batches["auto", len(devices)]
-    _, first_1, run_1 = batches["auto", 1]
-    _, first_v, run_v = batches["vmap", len(devices)]
-    _, _, run_v1 = batches["vmap", 1]
+            calls[batching, used] = (lambda batching=batching, used=used: ilq.solve_batch(
+                game, x0s, mode="feedback", devices=devices[:used], batching=batching))
+    calls["sequential"] = lambda: [ilq.solve(game, x, mode="feedback").xs for x in x0s]
+    first, results = {}, {}  # the first call of each, which compiles
+    for key, fn in calls.items():
+        start = time.perf_counter()
+        results[key] = jax.block_until_ready(fn())
+        first[key] = time.perf_counter() - start
+    # In turns, so that the batches and the sequential solves share the machine's spells.
+    run = {key: float(np.median(s)) for key, s in _interleaved_calls(calls, max(3, repeats // 2)).items()}
+    res_b = results["auto", len(devices)]
+    run_seq, run_b, run_1 = run["sequential"], run["auto", len(devices)], run["auto", 1]
+    run_v, run_v1 = run["vmap", len(devices)], run["vmap", 1]
+    first_b, first_1, first_v = first["auto", len(devices)], first["auto", 1], first["vmap", len(devices)]
     yield {"name": f"feedback_batch{batch}", "devices": len(devices), "ms_batch": 1e3 * run_b,
            "compile_s": first_b - run_b, "ms_batch_one_device": 1e3 * run_1,
            "compile_s_one_device": first_1 - run_1,
