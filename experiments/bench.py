@@ -2,7 +2,8 @@
 
 Sections: ``env`` (PettingZoo steps per second), ``solvers`` (iLQGame iterations, solves,
 batches), ``agents`` (re-plan times of the game agents). Compile time is measured apart from run
-time; each figure is the median over repeats so a noisy shared machine disturbs it less.
+time; each figure is the median over repeats so a noisy shared machine disturbs it less, and
+the solver iterations and the batches are timed in turns with what they are compared to.
 """
 
 from __future__ import annotations
@@ -327,8 +328,9 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     one member after another) and vmapped (``batching="vmap"``, for comparison; its
     ``while_loop`` runs until the slowest member converges, so the row reports the
     members' iterations too); the batches and the sequential solves are timed in turns
-    (:func:`_interleaved_calls`), so their ratios come from the same spells. Straggler: a batch in which one member runs to the iteration
-    cap, vmapped lock-step against regrouped and against the default (:func:`_straggler_row`).
+    (:func:`_interleaved_calls`), so their ratios come from the same spells. Straggler: a
+    batch in which one member runs to the iteration cap, vmapped lock-step against
+    regrouped and against the default (:func:`_straggler_row`).
     """
     from experiments.timing import time_jax_call
     from planners import ilq
