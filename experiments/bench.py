@@ -271,10 +271,14 @@ class _Interleaved(NamedTuple):
     first_s: dict[Any, float]
     seconds: dict[Any, np.ndarray]
 
+    def median_s(self, name: Any) -> float:
+        """The median seconds of the later calls."""
+        return float(np.median(self.seconds[name]))
+
     def compile_s(self, name: Any) -> float:
         """The first call's seconds less the median later call's (as
         :func:`experiments.timing.time_jax_call` counts compile time)."""
-        return self.first_s[name] - float(np.median(self.seconds[name]))
+        return self.first_s[name] - self.median_s(name)
 
 
 def _interleaved_calls(calls: dict[Any, Callable[[], Any]], rounds: int) -> _Interleaved:
@@ -380,7 +384,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     calls["sequential"] = lambda: [ilq.solve(game, x, mode="feedback").xs for x in x0s]
     # In turns, so that the batches and the sequential solves share the machine's spells.
     timed = _interleaved_calls(calls, max(3, repeats // 2))
-    run = {key: float(np.median(s)) for key, s in timed.seconds.items()}
+    run = {key: timed.median_s(key) for key in calls}
     res_b = timed.results["auto", len(devices)]
     run_seq, run_b, run_1 = run["sequential"], run["auto", len(devices)], run["auto", 1]
     run_v, run_v1 = run["vmap", len(devices)], run["vmap", 1]
@@ -412,25 +416,28 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
     100 iterations (the others take 10-17). Vmapped lock-step ``solve_batch`` against
     ``regroup_every=10`` (the members still running regrouped every 10 iterations), and
     the default batching (on CPU one member after another, so nobody waits), all on every
-    local device; compile time (including every regrouped size) apart."""
-    from experiments.timing import time_jax_call
+    local device, timed in turns (:func:`_interleaved_calls`); compile time (including
+    every regrouped size) apart."""
     from planners import ilq
 
     x0s = _perturbed_scenes(x0, batch)
-    runs = max(1, repeats // 2)
-    res, first, run = time_jax_call(lambda: ilq.solve_batch(game, x0s, mode="feedback", batching="vmap"), runs)
-    res_r, first_r, run_r = time_jax_call(
-        lambda: ilq.solve_batch(game, x0s, mode="feedback", batching="vmap", regroup_every=every), runs)
-    res_d, first_d, run_d = time_jax_call(lambda: ilq.solve_batch(game, x0s, mode="feedback"), runs)
-    iterations = np.asarray(res.iterations)
-    return {"name": f"feedback_batch{batch}_straggler_regroup{every}", "ms_lockstep": 1e3 * run,
-            "compile_s_lockstep": first - run, "ms_regrouped": 1e3 * run_r, "compile_s_regrouped": first_r - run_r,
-            "ms_default": 1e3 * run_d, "compile_s_default": first_d - run_d,
-            "speedup": run / run_r, "speedup_default": run / run_d,
-            "converged": int(np.sum(np.asarray(res.converged))),
-            "iterations_median": float(np.median(iterations)), "iterations_max": int(iterations.max()),
-            "same_iterations": bool(np.array_equal(iterations, np.asarray(res_r.iterations))
-                                    and np.array_equal(iterations, np.asarray(res_d.iterations)))}
+    calls = {
+        "lockstep": lambda: ilq.solve_batch(game, x0s, mode="feedback", batching="vmap"),
+        "regrouped": lambda: ilq.solve_batch(game, x0s, mode="feedback", batching="vmap", regroup_every=every),
+        "default": lambda: ilq.solve_batch(game, x0s, mode="feedback"),
+    }
+    timed = _interleaved_calls(calls, max(1, repeats // 2))
+    run = {name: timed.median_s(name) for name in calls}
+    iterations = {name: np.asarray(res.iterations) for name, res in timed.results.items()}
+    return {"name": f"feedback_batch{batch}_straggler_regroup{every}",
+            "ms_lockstep": 1e3 * run["lockstep"], "compile_s_lockstep": timed.compile_s("lockstep"),
+            "ms_regrouped": 1e3 * run["regrouped"], "compile_s_regrouped": timed.compile_s("regrouped"),
+            "ms_default": 1e3 * run["default"], "compile_s_default": timed.compile_s("default"),
+            "speedup": run["lockstep"] / run["regrouped"], "speedup_default": run["lockstep"] / run["default"],
+            "converged": int(np.sum(np.asarray(timed.results["lockstep"].converged))),
+            "iterations_median": float(np.median(iterations["lockstep"])),
+            "iterations_max": int(iterations["lockstep"].max()),
+            "same_iterations": all(np.array_equal(iterations["lockstep"], it) for it in iterations.values())}
 
 
 def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
