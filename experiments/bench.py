@@ -229,6 +229,42 @@ def _machine_reference_batched(repeats: int = 5, lanes: int = 4096, steps: int =
             "compile_s": first - run_s}
 
 
+def _machine_reference_dgemm(repeats: int = 5, n: int = 1000) -> dict[str, Any]:
+    """The machine's practical arithmetic ceiling: GFLOP/s of an ``n x n`` float64 matrix
+    product by NumPy's BLAS on its default threads (every core), the best of ``repeats``.
+
+    Tuned BLAS on large matrices is about as close to the cores' peak as float64 code gets,
+    so a target that would need a rate near this one is out of reach for any batching of
+    the solvers (the batch row states the rate its target needs)."""
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(n, n)), rng.normal(size=(n, n))
+    a @ b  # let BLAS start its threads
+    best = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - start)
+    return {"name": "machine_reference_dgemm", "gflop_per_s": 2 * n**3 / best / 1e9}
+
+
+def _iteration_flops(game, x0: np.ndarray, mode: str) -> int:
+    """Flops of one iteration of :func:`planners.ilq.solve` on ``game`` from zero inputs,
+    counted from its jaxpr (:mod:`experiments.flops`; a step-size search of one trial)."""
+    import jax.numpy as jnp
+
+    from experiments.flops import count_flops
+    from planners import ilq
+
+    problem = ilq.problem_from_race_game(game)
+    options = ilq.SolverOptions(mode=mode)
+    us0 = jnp.zeros((game.horizon, game.num_players, problem.input_dim))
+    carry = ilq._initial_carry(problem, jnp.asarray(x0).reshape(-1), us0, options)
+    flops = count_flops(lambda c: ilq._iterate(problem, c, options), carry)
+    if flops.uncounted:
+        raise RuntimeError(f"the iteration calls {sorted(flops.uncounted)}, which the flop count cannot see into")
+    return flops.total
+
+
 def machine_info() -> dict[str, Any]:
     """What the figures were measured on: CPU model and count, load average at the start
     (this is a shared machine), Python, JAX and its devices, the XLA flags (e.g. whether the
@@ -318,7 +354,7 @@ def _iteration_rows(fixed_iterations: int, rounds: int) -> Iterator[dict[str, An
     """
     from planners import ilq
 
-    calls, targets = {}, {}
+    calls, targets, flops = {}, {}, {}
     for num in (2, 3):
         game, x0 = _solver_game(num)
         for mode in ("feedback", "open_loop"):
@@ -326,21 +362,26 @@ def _iteration_rows(fixed_iterations: int, rounds: int) -> Iterator[dict[str, An
             calls[name] = (lambda game=game, x0=x0, mode=mode:
                            ilq.solve(game, x0, mode=mode, max_iterations=fixed_iterations, tolerance=0.0))
             targets[name] = 0.25 if (num == 2 and mode == "feedback") else None
+            flops[name] = _iteration_flops(game, x0, mode)
     timed = _interleaved_calls(calls, rounds)
     for name, seconds in timed.seconds.items():
         ms = 1e3 * seconds / fixed_iterations
-        yield {"name": name, "ms_per_iter": float(np.median(ms)), "ms_per_iter_p10": float(np.percentile(ms, 10)),
+        median = float(np.median(ms))
+        yield {"name": name, "ms_per_iter": median, "ms_per_iter_p10": float(np.percentile(ms, 10)),
                "ms_per_iter_min": float(ms.min()), "calls": int(ms.size), "compile_s": timed.compile_s(name),
+               "mflop_per_iter": flops[name] / 1e6, "gflop_per_s": flops[name] / median / 1e6,
                "target_ms": targets[name]}
 
 
 def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]:
     """Per-iteration and per-solve times of feedback/open-loop iLQGame, and a batch of games.
 
-    The first two rows are machine references (:func:`_machine_reference`,
-    :func:`_machine_reference_batched`) for comparing days; :func:`machine_info` names the CPU.
-    Per iteration: a solve capped at 20 iterations with tolerance 0 (so all 20 run), divided
-    by 20, the four configurations timed in turns (:func:`_iteration_rows`). Per solve: a
+    The first three rows are machine references (:func:`_machine_reference`,
+    :func:`_machine_reference_batched`) for comparing days, and the machine's dgemm rate
+    (:func:`_machine_reference_dgemm`) as its arithmetic ceiling; :func:`machine_info` names
+    the CPU. Per iteration: a solve capped at 20 iterations with tolerance 0 (so all 20 run),
+    divided by 20, the four configurations timed in turns (:func:`_iteration_rows`), with the
+    flops of one iteration (:func:`_iteration_flops`) and the rate they run at. Per solve: a
     cold solve (zero inputs) to convergence. Components: the parts of one N = 2 feedback
     iteration, timed inside a jitted loop, and the LQ recursion's cost per stage against
     the state size (:func:`_lq_state_size_row`). Batch: 64 perturbations of the
@@ -352,7 +393,11 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     members' iterations too); the batches and the sequential solves are timed in turns
     (:func:`_interleaved_calls`), so their ratios come from the same spells. Straggler: a
     batch in which one member runs to the iteration cap, vmapped lock-step against
-    regrouped and against the default (:func:`_straggler_row`).
+    regrouped and against the default (:func:`_straggler_row`). The batch row also states
+    the batch's arithmetic (``gflop``, a lower bound: one step-size trial per iteration), the
+    rate the sequential solves and the batch run it at, and the rate the target ratio
+    would need (``gflop_per_s_at_target``) as a share of the dgemm rate: a share near or
+    above 1 means no batching can meet the target on this machine.
     """
     from experiments.timing import time_jax_call
     from planners import ilq
@@ -360,6 +405,8 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     fixed_iterations = 20
     yield _machine_reference()
     yield _machine_reference_batched()
+    dgemm = _machine_reference_dgemm()
+    yield dgemm
     yield from _iteration_rows(fixed_iterations, rounds=max(repeats, _ITERATION_ROUNDS))
     for num in (2, 3):
         game, x0 = _solver_game(num)
@@ -388,16 +435,24 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     res_b = timed.results["auto", len(devices)]
     run_seq, run_b, run_1 = run["sequential"], run["auto", len(devices)], run["auto", 1]
     run_v, run_v1 = run["vmap", len(devices)], run["vmap", 1]
+    iterations_mean = float(np.mean(np.asarray(res_b.iterations)))
+    # The arithmetic the 64 solves do, at least (one step-size trial per iteration), and
+    # the rate at which the target ratio would have the batch do it.
+    gflop = batch * iterations_mean * _iteration_flops(game, x0, "feedback") / 1e9
+    target_ratio = 10.0
     yield {"name": f"feedback_batch{batch}", "devices": len(devices), "ms_batch": 1e3 * run_b,
            "compile_s": timed.compile_s(("auto", len(devices))), "ms_batch_one_device": 1e3 * run_1,
            "compile_s_one_device": timed.compile_s(("auto", 1)),
            "converged": int(np.sum(np.asarray(res_b.converged))), "sequential_ms": 1e3 * run_seq,
-           "iterations_mean": float(np.mean(np.asarray(res_b.iterations))),
+           "iterations_mean": iterations_mean,
            "iterations_max": int(np.max(np.asarray(res_b.iterations))),
            "throughput_ratio": run_seq / run_b, "throughput_ratio_one_device": run_seq / run_1,
            "ms_batch_vmap": 1e3 * run_v, "ms_batch_vmap_one_device": 1e3 * run_v1,
            "compile_s_vmap": timed.compile_s(("vmap", len(devices))), "throughput_ratio_vmap": run_seq / run_v,
-           "target_ratio": 10.0}
+           "gflop": gflop, "gflop_per_s_sequential": gflop / run_seq, "gflop_per_s_batch": gflop / run_b,
+           "gflop_per_s_at_target": target_ratio * gflop / run_seq,
+           "dgemm_share_at_target": target_ratio * gflop / run_seq / dgemm["gflop_per_s"],
+           "target_ratio": target_ratio}
     yield _straggler_row(game, x0, repeats)
 
 
@@ -477,7 +532,7 @@ SECTIONS: dict[str, Callable[[], Iterator[dict[str, Any]]]] = {"env": bench_env,
 
 
 _FIGURE_KEYS = ("steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95",
-                "us_per_step", "ns_per_lane_step")
+                "us_per_step", "ns_per_lane_step", "gflop_per_s")
 
 
 def _figure(row: dict[str, Any]) -> str:
@@ -520,10 +575,14 @@ def _target_verdict(row: dict[str, Any], suffix: str = "") -> tuple[str, bool] |
 
 def _verdict_text(row: dict[str, Any], verdict: tuple[str, bool], missed: str = "MISSED") -> str:
     """``<= 0.25 ms_per_iter: met``; for a row with a 10th percentile (``ms_per_iter_p10``)
-    also the verdict on it, e.g. ``...: MISSED (p10: met)``. The median decides."""
+    also the verdict on it, e.g. ``...: MISSED (p10: met)`` (the median decides); for the
+    batch row the arithmetic rate its target needs, against the dgemm reference."""
     text = f"{verdict[0]}: {'met' if verdict[1] else missed}"
     if "target_met_p10" in row:
         text += f" (p10: {'met' if row['target_met_p10'] else 'missed'})"
+    if "dgemm_share_at_target" in row:
+        text += (f" (the target needs {row['gflop_per_s_at_target']:.3g} GFLOP/s,"
+                 f" {row['dgemm_share_at_target']:.0%} of dgemm)")
     return text
 
 

@@ -26,6 +26,20 @@ def test_batched_machine_reference_is_a_positive_rate():
     assert row["ns_per_lane_step"] > 0 and row["compile_s"] >= 0
 
 
+def test_dgemm_reference_is_a_rate_below_what_two_flops_per_cycle_per_core_cannot_exceed():
+    row = bench._machine_reference_dgemm(repeats=2, n=200)
+    assert row["name"] == "machine_reference_dgemm"
+    # no core of this decade does more than 64 float64 flops per cycle at 6 GHz
+    assert 0 < row["gflop_per_s"] < 64 * 6.0 * os.cpu_count()
+
+
+def test_batch_verdict_states_the_rate_its_target_needs():
+    row = {"name": "b", "throughput_ratio": 2.1, "target_ratio": 10.0,
+           "gflop_per_s_at_target": 91.7, "dgemm_share_at_target": 0.85}
+    assert bench._verdict_text(row, bench._target_verdict(row)) == (
+        ">= 10 throughput_ratio: MISSED (the target needs 91.7 GFLOP/s, 85% of dgemm)")
+
+
 def test_report_is_saved_after_every_row_and_kept_on_ctrl_c(tmp_path, monkeypatch):
     """Rows reach the JSON file as they are measured; Ctrl-C keeps them and marks the run."""
     out = tmp_path / "bench.json"
@@ -165,4 +179,5 @@ def test_iteration_rows_report_the_distribution_of_every_configuration():
     for row in rows:
         assert row["calls"] == 3 and row["compile_s"] > 0
         assert 0 < row["ms_per_iter_min"] <= row["ms_per_iter_p10"] <= row["ms_per_iter"]
+        assert row["gflop_per_s"] == pytest.approx(row["mflop_per_iter"] / row["ms_per_iter"], rel=1e-12)
     assert [row["target_ms"] for row in rows] == [0.25, None, None, None]
