@@ -249,7 +249,8 @@ def _machine_reference_dgemm(repeats: int = 5, n: int = 1000) -> dict[str, Any]:
 
 def _iteration_flops(game, x0: np.ndarray, mode: str) -> int:
     """Flops of one iteration of :func:`planners.ilq.solve` on ``game`` from zero inputs,
-    counted from its jaxpr (:mod:`experiments.flops`; a step-size search of one trial)."""
+    counted from its jaxpr (:mod:`experiments.flops`; a step-size search of one trial).
+    The count depends on the shapes only (N, T, the state size), not on ``x0``'s values."""
     import jax.numpy as jnp
 
     from experiments.flops import count_flops

@@ -41,8 +41,9 @@ _ELEMENTWISE = frozenset({
 })
 _REDUCTIONS = frozenset({"reduce_sum", "reduce_max", "reduce_min", "reduce_prod", "argmax", "argmin"})
 _CUMULATIVE = frozenset({"cumsum", "cumprod", "cummax", "cummin", "cumlogsumexp"})
+_ARITHMETIC = _ELEMENTWISE | _REDUCTIONS | _CUMULATIVE | {"dot_general"}
 _OPAQUE = frozenset({
-    "cholesky", "lu", "lu_pivots_to_permutation", "eigh", "eig", "svd", "qr", "geqrf",
+    "cholesky", "lu", "eigh", "eig", "svd", "qr", "geqrf",
     "householder_product", "triangular_solve", "schur", "hessenberg", "tridiagonal",
     "tridiagonal_solve", "fft", "custom_call", "ffi_call", "pure_callback", "io_callback",
 })
@@ -74,7 +75,7 @@ def count_flops(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> FlopCount:
     return jaxpr_flops(jax.make_jaxpr(fn)(*args, **kwargs).jaxpr)
 
 
-def jaxpr_flops(jaxpr: jex_core.Jaxpr) -> FlopCount:
+def jaxpr_flops(jaxpr: jex_core.Jaxpr | jex_core.ClosedJaxpr) -> FlopCount:
     """The flops of one evaluation of ``jaxpr`` (open or closed), by the rules above."""
     jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
     total = FlopCount()
@@ -93,7 +94,7 @@ def _is_floating(var: Any) -> bool:
 
 def _equation_flops(eqn: Any) -> FlopCount:
     name, params = eqn.primitive.name, eqn.params
-    if name in _ELEMENTWISE | _REDUCTIONS | _CUMULATIVE | {"dot_general"} and not _is_floating(eqn.invars[0]):
+    if name in _ARITHMETIC and not _is_floating(eqn.invars[0]):
         return FlopCount()  # integer arithmetic (indices, counters) is not floating point
     if name == "dot_general":
         (lhs_contract, _), _ = params["dimension_numbers"]
