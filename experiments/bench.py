@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import platform
 import time
+import timeit
 from pathlib import Path
 from typing import Any, Callable, Iterator, NamedTuple
 
@@ -239,11 +240,7 @@ def _machine_reference_dgemm(repeats: int = 5, n: int = 1000) -> dict[str, Any]:
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=(n, n)), rng.normal(size=(n, n))
     a @ b  # let BLAS start its threads
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        a @ b
-        best = min(best, time.perf_counter() - start)
+    best = min(timeit.repeat(lambda: a @ b, repeat=repeats, number=1))
     return {"name": "machine_reference_dgemm", "gflop_per_s": 2 * n**3 / best / 1e9}
 
 
@@ -408,7 +405,8 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     yield _machine_reference_batched()
     dgemm = _machine_reference_dgemm()
     yield dgemm
-    yield from _iteration_rows(fixed_iterations, rounds=max(repeats, _ITERATION_ROUNDS))
+    iteration_rows = list(_iteration_rows(fixed_iterations, rounds=max(repeats, _ITERATION_ROUNDS)))
+    yield from iteration_rows
     for num in (2, 3):
         game, x0 = _solver_game(num)
         for mode in ("feedback", "open_loop"):
@@ -437,9 +435,12 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     run_seq, run_b, run_1 = run["sequential"], run["auto", len(devices)], run["auto", 1]
     run_v, run_v1 = run["vmap", len(devices)], run["vmap", 1]
     iterations_mean = float(np.mean(np.asarray(res_b.iterations)))
-    # The arithmetic the 64 solves do, at least (one step-size trial per iteration), and
-    # the rate at which the target ratio would have the batch do it.
-    gflop = batch * iterations_mean * _iteration_flops(game, x0, "feedback") / 1e9
+    # The arithmetic the 64 solves do, at least (one step-size trial per iteration; the
+    # scenes have the shapes of the N = 2 iteration row's), and the rate at which the
+    # target ratio would have the batch do it.
+    mflop_per_iter = next(row["mflop_per_iter"] for row in iteration_rows
+                          if row["name"] == f"feedback_iteration_N2_T{game.horizon}")
+    gflop = batch * iterations_mean * mflop_per_iter / 1e3
     target_ratio = 10.0
     yield {"name": f"feedback_batch{batch}", "devices": len(devices), "ms_batch": 1e3 * run_b,
            "compile_s": timed.compile_s(("auto", len(devices))), "ms_batch_one_device": 1e3 * run_1,
