@@ -391,7 +391,9 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     members' iterations too); the batches and the sequential solves are timed in turns
     (:func:`_interleaved_calls`), so their ratios come from the same spells. Straggler: a
     batch in which one member runs to the iteration cap, vmapped lock-step against
-    regrouped and against the default (:func:`_straggler_row`). The batch row also states
+    regrouped and against the default (:func:`_straggler_row`). Convergence: how often cold
+    solves of random scenes on a circuit converge, and in how many iterations
+    (:func:`convergence_rows`). The batch row also states
     the batch's arithmetic (``gflop``, a lower bound: one step-size trial per iteration), the
     rate the sequential solves and the batch run it at, and the rate the target ratio
     would need (``gflop_per_s_at_target``) as a share of the dgemm rate: a share near or
@@ -456,6 +458,43 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
            "dgemm_share_at_target": target_ratio * gflop / run_seq / dgemm["gflop_per_s"],
            "target_ratio": target_ratio}
     yield _straggler_row(game, x0, repeats)
+    yield from convergence_rows(batch)
+
+
+def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
+                     modes: tuple[str, ...] = ("feedback", "open_loop"),
+                     track: Any = "trefoil") -> Iterator[dict[str, Any]]:
+    """How often, and in how many iterations, cold solves converge away from the paper's
+    scene: ``count`` random close-quarters starts of two cars anywhere on ``track`` (a
+    :class:`racing_env.Track`, a builder's name or a TUMFTM CSV path; by default the trefoil,
+    with curves both ways) drawn by :func:`racing_env.scenarios.random_scenes` (up to 15 m
+    apart, 10-19 m/s), the paper's two cars, the solver defaults and the default cost
+    weights, one row per mode. The
+    scenes are solved by :func:`planners.ilq.solve_batch` (its default batching), timed
+    ``repeats`` times after a compiling call. Iteration figures are over the converged
+    scenes; ``statuses`` counts every outcome by its message."""
+    from planners import ilq
+    from experiments.timing import time_jax_call
+    from racing_env import RaceGame, VehicleParams
+    from racing_env.scenarios import random_scenes
+    from racing_env.track import get_track
+
+    vehicles = [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)]  # the paper's cars
+    track = get_track(track)
+    game = RaceGame.create(track, vehicles)
+    x0s = random_scenes(track, vehicles, count, seed=seed)
+    for mode in modes:
+        res, first, run = time_jax_call(lambda mode=mode: ilq.solve_batch(game, x0s, mode=mode), repeats)
+        converged = np.asarray(res.converged)
+        iterations = np.asarray(res.iterations)[converged]
+        statuses, counts = np.unique(np.asarray(res.status), return_counts=True)
+        yield {"name": f"{mode}_convergence_random{count}_N2_{track.name}", "scenes": int(count),
+               "converged_fraction": float(converged.mean()),
+               "statuses": {ilq.status_message(k): int(c) for k, c in zip(statuses, counts)},
+               "iterations_median": float(np.median(iterations)) if iterations.size else None,
+               "iterations_p90": float(np.percentile(iterations, 90)) if iterations.size else None,
+               "iterations_max": int(iterations.max()) if iterations.size else None,
+               "ms_batch": 1e3 * run, "compile_s": first - run}
 
 
 def _perturbed_scenes(x0: np.ndarray, batch: int) -> np.ndarray:
@@ -534,7 +573,7 @@ SECTIONS: dict[str, Callable[[], Iterator[dict[str, Any]]]] = {"env": bench_env,
 
 
 _FIGURE_KEYS = ("steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95",
-                "us_per_step", "ns_per_lane_step", "gflop_per_s")
+                "us_per_step", "ns_per_lane_step", "gflop_per_s", "converged_fraction")
 
 
 def _figure(row: dict[str, Any]) -> str:

@@ -1,4 +1,5 @@
-"""Named start configurations: the paper's overtaking scenario and seeded start grids.
+"""Named start configurations: the paper's overtaking scenario and seeded start grids, and
+seeded random scenes anywhere on a track (:func:`random_scenes`).
 
 A scenario returns the joint start state ``x0 (N, 6)`` and the cars' parameters. On closed
 tracks the grid lines up just behind the start/finish line at ``s = 0`` (negative ``s`` is
@@ -105,6 +106,57 @@ def side_by_side(track: Track, num_cars: int = 2, vehicles=None, seed: int | Non
     if num_cars != 2:
         raise ValueError(f"side_by_side has exactly 2 cars, got num_cars={num_cars}")
     return grid(track, 2, vehicles, seed=None, row_spacing=0.0, speed=15.0, jitter=False)
+
+
+def random_scenes(
+    track: Track,
+    vehicles: Sequence[VehicleParams],
+    count: int,
+    seed: int = 0,
+    spread: float = 15.0,
+    speed: tuple[float, float] = (10.0, 19.0),
+    margin: float = 1.5,
+) -> np.ndarray:
+    """``count`` seeded close-quarters starts anywhere on ``track``: ``x0s (count, N, 6)``.
+
+    Per scene a reference arc length is drawn uniformly over the track; every car starts
+    0 to ``spread`` metres [m] behind it, at a lateral offset drawn uniformly inside the
+    track at its own arc length, ``margin`` [m] from either edge, and at a speed drawn from
+    ``speed`` [m/s] (capped at 95% of the car's ``v_max``); heading and accelerations are
+    zero. Cars never overlap at the start (footprints drawn again until they do not). For
+    solver robustness sweeps: unlike :func:`grid` the scenes cover the whole lap, its curves
+    and its width changes.
+    """
+    num_cars = len(vehicles)
+    if num_cars < 1 or int(count) < 1:
+        raise ValueError(f"need at least 1 car and 1 scene, got {num_cars} cars and count={count!r}")
+    if not (spread >= 0 and margin >= 0 and 0 < speed[0] <= speed[1]):
+        raise ValueError(f"need spread >= 0, margin >= 0 and 0 < speed[0] <= speed[1]; "
+                         f"got spread={spread!r}, margin={margin!r}, speed={speed!r}")
+    rng = np.random.default_rng(seed)
+    lengths = np.array([v.length for v in vehicles], float)
+    widths = np.array([v.width for v in vehicles], float)
+    v_max = np.array([float(v.v_max) for v in vehicles])
+    lo = spread if not track.closed else 0.0  # open tracks: every car at s >= 0
+    scenes = np.zeros((int(count), num_cars, STATE_DIM))
+    for scene in scenes:
+        for _ in range(1000):
+            s = rng.uniform(lo, track.length) - rng.uniform(0.0, spread, num_cars)
+            left = np.asarray(track.width_left_at(s)) - margin
+            right = np.asarray(track.width_right_at(s)) - margin
+            if np.any(left + right < 0):
+                raise ValueError(f"margin={margin} m leaves no room on track {track.name!r}")
+            n = rng.uniform(-right, left)
+            ds = np.abs(np.asarray(track.wrap_ds(s[:, None] - s[None, :])))
+            apart = (ds >= 0.5 * (lengths[:, None] + lengths[None, :])) | (
+                np.abs(n[:, None] - n[None, :]) >= 0.5 * (widths[:, None] + widths[None, :]))
+            if np.all(apart | np.eye(num_cars, dtype=bool)):
+                break
+        else:
+            raise ValueError(f"no overlap-free start for {num_cars} cars within spread={spread} m")
+        scene[:, S], scene[:, N_LAT] = s, n
+        scene[:, V] = np.minimum(rng.uniform(speed[0], speed[1], num_cars), 0.95 * v_max)
+    return scenes
 
 
 SCENARIOS: dict[str, Callable[..., Scenario]] = {

@@ -181,3 +181,29 @@ def test_iteration_rows_report_the_distribution_of_every_configuration():
         assert 0 < row["ms_per_iter_min"] <= row["ms_per_iter_p10"] <= row["ms_per_iter"]
         assert row["gflop_per_s"] == pytest.approx(row["mflop_per_iter"] / row["ms_per_iter"], rel=1e-12)
     assert [row["target_ms"] for row in rows] == [0.25, None, None, None]
+
+
+def test_convergence_rows_summarise_the_single_solves_of_the_same_scenes():
+    """The convergence row's fraction, status counts and iteration figures are those of the
+    same random scenes solved one at a time."""
+    from planners import ilq
+    from racing_env import RaceGame, VehicleParams
+    from racing_env.scenarios import random_scenes
+    from racing_env.track import trefoil
+
+    count = 6
+    (row,) = bench.convergence_rows(count, seed=3, repeats=1, modes=("open_loop",))
+    vehicles = [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)]
+    game = RaceGame.create(trefoil(), vehicles)
+    singles = [ilq.solve(game, x0, mode="open_loop") for x0 in random_scenes(trefoil(), vehicles, count, seed=3)]
+    converged = np.array([bool(r.converged) for r in singles])
+    iterations = np.array([int(r.iterations) for r in singles])[converged]
+    assert row["name"] == f"open_loop_convergence_random{count}_N2_trefoil" and row["scenes"] == count
+    assert row["converged_fraction"] == converged.mean()
+    assert sum(row["statuses"].values()) == count
+    assert row["statuses"].get("converged", 0) == converged.sum()
+    if converged.any():
+        assert row["iterations_median"] == np.median(iterations)
+        assert row["iterations_max"] == iterations.max()
+    assert row["ms_batch"] > 0 and row["compile_s"] > 0
+    assert bench._figure(row) == f"{row['converged_fraction']:.4g} converged_fraction"
