@@ -463,23 +463,27 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
 
 def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
                      modes: tuple[str, ...] = ("feedback", "open_loop"),
-                     track: Any = "trefoil") -> Iterator[dict[str, Any]]:
+                     track: Any = "trefoil", num_cars: int = 2) -> Iterator[dict[str, Any]]:
     """How often, and in how many iterations, cold solves converge away from the paper's
-    scene: ``count`` random close-quarters starts of two cars anywhere on ``track`` (a
+    scene: ``count`` random close-quarters starts anywhere on ``track`` (a
     :class:`racing_env.Track`, a builder's name or a TUMFTM CSV path; by default the trefoil,
     with curves both ways) drawn by :func:`racing_env.scenarios.random_scenes` (up to 15 m
-    apart, 10-19 m/s), the paper's two cars, the solver defaults and the default cost
-    weights, one row per mode. The
-    scenes are solved by :func:`planners.ilq.solve_batch` (its default batching), timed
-    ``repeats`` times after a compiling call. Iteration figures are over the converged
-    scenes; ``statuses`` counts every outcome by its message."""
+    apart, 10-19 m/s), the solver defaults and the default cost weights, one row per mode.
+    The cars are the paper's two (v_max 20 and 25 m/s), then the three-car bench scene's
+    third (24 m/s), then cars of 22 m/s. The scenes are solved by
+    :func:`planners.ilq.solve_batch` (its default batching), timed ``repeats`` (>= 1) times
+    after a compiling call. Iteration figures are over the converged scenes; ``statuses``
+    counts every outcome by its message."""
     from planners import ilq
     from experiments.timing import time_jax_call
     from racing_env import RaceGame, VehicleParams
     from racing_env.scenarios import random_scenes
     from racing_env.track import get_track
 
-    vehicles = [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)]  # the paper's cars
+    if int(repeats) < 1 or int(num_cars) < 1:
+        raise ValueError(f"need repeats >= 1 and num_cars >= 1, got {repeats!r} and {num_cars!r}")
+    v_max = (20.0, 25.0, 24.0) + (22.0,) * max(0, num_cars - 3)
+    vehicles = [VehicleParams(v_max=v) for v in v_max[:num_cars]]
     track = get_track(track)
     game = RaceGame.create(track, vehicles)
     x0s = random_scenes(track, vehicles, count, seed=seed)
@@ -488,7 +492,7 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
         converged = np.asarray(res.converged)
         iterations = np.asarray(res.iterations)[converged]
         statuses, counts = np.unique(np.asarray(res.status), return_counts=True)
-        yield {"name": f"{mode}_convergence_random{count}_N2_{track.name}", "scenes": int(count),
+        yield {"name": f"{mode}_convergence_random{count}_N{num_cars}_{track.name}", "scenes": int(count),
                "converged_fraction": float(converged.mean()),
                "statuses": {ilq.status_message(k): int(c) for k, c in zip(statuses, counts)},
                "iterations_median": float(np.median(iterations)) if iterations.size else None,

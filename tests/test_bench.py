@@ -207,3 +207,5 @@ def test_convergence_rows_summarise_the_single_solves_of_the_same_scenes():
         assert row["iterations_max"] == iterations.max()
     assert row["ms_batch"] > 0 and row["compile_s"] > 0
     assert bench._figure(row) == f"{row['converged_fraction']:.4g} converged_fraction"
+    with pytest.raises(ValueError, match="repeats"):
+        next(bench.convergence_rows(count, repeats=0))
