@@ -133,6 +133,8 @@ def random_scenes(
     if not (spread >= 0 and margin >= 0 and 0 < speed[0] <= speed[1]):
         raise ValueError(f"need spread >= 0, margin >= 0 and 0 < speed[0] <= speed[1]; "
                          f"got spread={spread!r}, margin={margin!r}, speed={speed!r}")
+    if not track.closed and track.length <= spread:
+        raise ValueError(f"the open track {track.name!r} ({track.length} m) is not longer than spread={spread} m")
     rng = np.random.default_rng(seed)
     lengths = np.array([v.length for v in vehicles], float)
     widths = np.array([v.width for v in vehicles], float)

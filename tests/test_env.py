@@ -479,6 +479,8 @@ def test_random_scenes_are_seeded_inside_the_track_and_apart(trefoil, long_strai
         random_scenes(trefoil, vehicles, 1, margin=20.0)
     with pytest.raises(ValueError, match="speed"):
         random_scenes(trefoil, vehicles, 1, speed=(19.0, 10.0))
+    with pytest.raises(ValueError, match="not longer than spread"):
+        random_scenes(long_straight, vehicles, 1, spread=2 * long_straight.length)
 
 
 def test_four_car_grid(trefoil):
