@@ -83,6 +83,11 @@ def _gym_view_row(steps: int, repeats: int) -> dict[str, Any]:
             "repeats": [round(r, 1) for r in rates]}
 
 
+#: v_max [m/s] of the bench's cars: the paper's ego and opponent, then the three-car scene's
+#: second opponent.
+_BENCH_V_MAX = (20.0, 25.0, 24.0)
+
+
 def _solver_game(num_cars: int):
     """The paper's scene for 2 cars; for 3 cars a second opponent 2 m to the right."""
     from experiments.paper import paper_game
@@ -91,7 +96,7 @@ def _solver_game(num_cars: int):
     game, x0 = paper_game()
     if num_cars == 2:
         return game, x0
-    vehicles = [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0), VehicleParams(v_max=24.0)]
+    vehicles = [VehicleParams(v_max=v) for v in _BENCH_V_MAX]
     game = RaceGame.create(game.track, vehicles, CostWeights(), dt=game.dt, horizon=game.horizon)
     third = x0[1].copy()
     third[2] = -2.0
@@ -482,7 +487,7 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
 
     if int(repeats) < 1 or int(num_cars) < 1:
         raise ValueError(f"need repeats >= 1 and num_cars >= 1, got {repeats!r} and {num_cars!r}")
-    v_max = (20.0, 25.0, 24.0) + (22.0,) * max(0, num_cars - 3)
+    v_max = _BENCH_V_MAX + (22.0,) * max(0, num_cars - 3)
     vehicles = [VehicleParams(v_max=v) for v in v_max[:num_cars]]
     track = get_track(track)
     game = RaceGame.create(track, vehicles)
