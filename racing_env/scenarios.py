@@ -11,11 +11,16 @@ from __future__ import annotations
 import dataclasses
 from typing import Callable, Sequence
 
+import jax
 import numpy as np
 
 from racing_env.dynamics import STATE_DIM, N_LAT, S, V
+from racing_env.physics import footprint_overlap
 from racing_env.track import Track
-from racing_env.vehicle import VehicleParams
+from racing_env.vehicle import VehicleParams, stack_vehicles
+
+# The env's own contact test, so a random scene never starts in a contact the env would count.
+_footprint_overlap = jax.jit(footprint_overlap)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,7 +128,8 @@ def random_scenes(
     0 to ``spread`` metres [m] behind it, at a lateral offset drawn uniformly inside the
     track at its own arc length, ``margin`` [m] from either edge, and at a speed drawn from
     ``speed`` [m/s] (capped at 95% of the car's ``v_max``); heading and accelerations are
-    zero. Cars never overlap at the start (footprints drawn again until they do not). For
+    zero. No two cars start in contact by the env's test,
+    :func:`racing_env.physics.footprint_overlap` (positions drawn again until so). For
     solver robustness sweeps: unlike :func:`grid` the scenes cover the whole lap, its curves
     and its width changes.
     """
@@ -136,8 +142,7 @@ def random_scenes(
     if not track.closed and track.length <= spread:
         raise ValueError(f"the open track {track.name!r} ({track.length} m) is not longer than spread={spread} m")
     rng = np.random.default_rng(seed)
-    lengths = np.array([v.length for v in vehicles], float)
-    widths = np.array([v.width for v in vehicles], float)
+    stacked = stack_vehicles(vehicles)
     v_max = np.array([float(v.v_max) for v in vehicles])
     lo = spread if not track.closed else 0.0  # open tracks: every car at s >= 0
     scenes = np.zeros((int(count), num_cars, STATE_DIM))
@@ -149,14 +154,11 @@ def random_scenes(
             if np.any(left + right < 0):
                 raise ValueError(f"margin={margin} m leaves no room on track {track.name!r}")
             n = rng.uniform(-right, left)
-            ds = np.abs(np.asarray(track.wrap_ds(s[:, None] - s[None, :])))
-            apart = (ds >= 0.5 * (lengths[:, None] + lengths[None, :])) | (
-                np.abs(n[:, None] - n[None, :]) >= 0.5 * (widths[:, None] + widths[None, :]))
-            if np.all(apart | np.eye(num_cars, dtype=bool)):
+            scene[:, S], scene[:, N_LAT] = s, n
+            if num_cars == 1 or not np.any(_footprint_overlap(scene, stacked, track)):
                 break
         else:
             raise ValueError(f"no overlap-free start for {num_cars} cars within spread={spread} m")
-        scene[:, S], scene[:, N_LAT] = s, n
         scene[:, V] = np.minimum(rng.uniform(speed[0], speed[1], num_cars), 0.95 * v_max)
     return scenes
 
