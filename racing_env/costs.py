@@ -27,7 +27,7 @@ import numpy as np
 
 from racing_env.dynamics import AX, AY, N_LAT, S, V
 from racing_env.track import Track
-from racing_env.vehicle import ArrayLike, VehicleParams
+from racing_env.vehicle import ArrayLike, VehicleParams, concrete_fields
 
 _NORM_EPS = 1e-12  # keeps |a| differentiable at a = 0
 
@@ -56,13 +56,7 @@ class CostWeights:
     c_gap: ArrayLike = 0.5
 
     def __post_init__(self) -> None:
-        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        if not all(isinstance(v, (int, float, np.ndarray, np.number)) for v in values.values()):
-            return  # traced leaves
-        for name, value in values.items():
-            arr = np.asarray(value, dtype=float)
-            if not np.all(np.isfinite(arr)):
-                raise ValueError(f"CostWeights.{name} must be finite, got {value!r}")
+        for name, (value, arr) in (concrete_fields(self) or {}).items():
             if name in ("r_jx", "r_jy"):
                 if not np.all(arr > 0):
                     raise ValueError(

@@ -17,6 +17,24 @@ import numpy as np
 ArrayLike = float | np.ndarray | jax.Array
 
 
+def concrete_fields(params) -> dict[str, tuple[ArrayLike, np.ndarray]] | None:
+    """A parameter dataclass's fields as ``{name: (value, float array)}``, each checked finite.
+
+    ``None`` while any field is traced or abstract (inside jit/vmap): such values were
+    validated when the concrete object was built.
+    """
+    values = {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
+    if not all(isinstance(v, (int, float, np.ndarray, np.number)) for v in values.values()):
+        return None
+    checked = {}
+    for name, value in values.items():
+        arr = np.asarray(value, dtype=float)
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{type(params).__name__}.{name} must be finite, got {value!r}")
+        checked[name] = (value, arr)
+    return checked
+
+
 @dataclasses.dataclass(frozen=True)
 class VehicleParams:
     """Physical limits of one car (or, stacked, of N cars).
@@ -44,13 +62,7 @@ class VehicleParams:
     jy_max: ArrayLike = 30.0
 
     def __post_init__(self) -> None:
-        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        if not all(isinstance(v, (int, float, np.ndarray, np.number)) for v in values.values()):
-            return  # traced or abstract leaves inside jit/vmap: validated at construction time
-        for name, value in values.items():
-            arr = np.asarray(value, dtype=float)
-            if not np.all(np.isfinite(arr)):
-                raise ValueError(f"VehicleParams.{name} must be finite, got {value!r}")
+        for name, (value, arr) in (concrete_fields(self) or {}).items():
             lower_ok = arr >= 0 if name == "rho_aero" else arr > 0
             if not np.all(lower_ok):
                 allowed = ">= 0" if name == "rho_aero" else "> 0"
