@@ -468,7 +468,9 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
 
 def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
                      modes: tuple[str, ...] = ("feedback", "open_loop"),
-                     track: Any = "trefoil", num_cars: int = 2) -> Iterator[dict[str, Any]]:
+                     track: Any = "trefoil", num_cars: int = 2, max_iterations: int = 100,
+                     tolerance: float = 1e-6, jerk_weight: float | None = None,
+                     per_scene: bool = False) -> Iterator[dict[str, Any]]:
     """How often, and in how many iterations, cold solves converge away from the paper's
     scene: ``count`` random close-quarters starts anywhere on ``track`` (a
     :class:`racing_env.Track`, a builder's name or a TUMFTM CSV path; by default the trefoil,
@@ -478,10 +480,13 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     third (24 m/s), then cars of 22 m/s. The scenes are solved by
     :func:`planners.ilq.solve_batch` (its default batching), timed ``repeats`` (>= 1) times
     after a compiling call. Iteration figures are over the converged scenes; ``statuses``
-    counts every outcome by its message."""
+    counts every outcome by its message. ``max_iterations`` and ``tolerance`` are the
+    solver's (:class:`planners.ilq.SolverOptions`); ``jerk_weight`` the jerk weight ``r`` of every car (default: ``CostWeights``'
+    default). With ``per_scene`` a row also lists every scene's ``iterations`` and
+    ``status`` (message), in scene order."""
     from planners import ilq
     from experiments.timing import time_jax_call
-    from racing_env import RaceGame, VehicleParams
+    from racing_env import CostWeights, RaceGame, VehicleParams
     from racing_env.scenarios import random_scenes
     from racing_env.track import get_track
 
@@ -489,21 +494,30 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
         raise ValueError(f"need repeats >= 1 and num_cars >= 1, got {repeats!r} and {num_cars!r}")
     v_max = _BENCH_V_MAX + (22.0,) * max(0, num_cars - 3)
     vehicles = [VehicleParams(v_max=v) for v in v_max[:num_cars]]
+    weights = None if jerk_weight is None else CostWeights(r_jx=jerk_weight, r_jy=jerk_weight)
+    options = ilq.SolverOptions(max_iterations=max_iterations, tolerance=tolerance)  # checked before the work
     track = get_track(track)
-    game = RaceGame.create(track, vehicles)
+    game = RaceGame.create(track, vehicles, weights)
     x0s = random_scenes(track, vehicles, count, seed=seed)
     for mode in modes:
-        res, first, run = time_jax_call(lambda mode=mode: ilq.solve_batch(game, x0s, mode=mode), repeats)
+        solve = lambda mode=mode: ilq.solve_batch(game, x0s, options=options, mode=mode)
+        res, first, run = time_jax_call(solve, repeats)
+        status = np.asarray(res.status)
         converged = np.asarray(res.converged)
         iterations = np.asarray(res.iterations)[converged]
-        statuses, counts = np.unique(np.asarray(res.status), return_counts=True)
-        yield {"name": f"{mode}_convergence_random{count}_N{num_cars}_{track.name}", "scenes": int(count),
+        statuses, counts = np.unique(status, return_counts=True)
+        row = {"name": f"{mode}_convergence_random{count}_N{num_cars}_{track.name}",
+               "mode": mode, "track": track.name, "cars": int(num_cars), "scenes": int(count),
                "converged_fraction": float(converged.mean()),
                "statuses": {ilq.status_message(k): int(c) for k, c in zip(statuses, counts)},
                "iterations_median": float(np.median(iterations)) if iterations.size else None,
                "iterations_p90": float(np.percentile(iterations, 90)) if iterations.size else None,
                "iterations_max": int(iterations.max()) if iterations.size else None,
                "ms_batch": 1e3 * run, "compile_s": first - run}
+        if per_scene:
+            row["iterations"] = np.asarray(res.iterations).tolist()
+            row["status"] = [ilq.status_message(k) for k in status]
+        yield row
 
 
 def _perturbed_scenes(x0: np.ndarray, batch: int) -> np.ndarray:

@@ -184,28 +184,36 @@ def test_iteration_rows_report_the_distribution_of_every_configuration():
 
 
 def test_convergence_rows_summarise_the_single_solves_of_the_same_scenes():
-    """The convergence row's fraction, status counts and iteration figures are those of the
-    same random scenes solved one at a time."""
+    """The convergence row's fraction, status counts, iteration figures and per-scene
+    outcomes are those of the same random scenes solved one at a time, with the row's
+    jerk weight and iteration cap."""
     from planners import ilq
-    from racing_env import RaceGame, VehicleParams
+    from racing_env import CostWeights, RaceGame, VehicleParams
     from racing_env.scenarios import random_scenes
     from racing_env.track import trefoil
 
     count = 6
-    (row,) = bench.convergence_rows(count, seed=3, repeats=1, modes=("open_loop",))
+    (row,) = bench.convergence_rows(count, seed=3, repeats=1, modes=("open_loop",), max_iterations=40,
+                                    jerk_weight=0.5, per_scene=True)
     vehicles = [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)]
-    game = RaceGame.create(trefoil(), vehicles)
-    singles = [ilq.solve(game, x0, mode="open_loop") for x0 in random_scenes(trefoil(), vehicles, count, seed=3)]
+    game = RaceGame.create(trefoil(), vehicles, CostWeights(r_jx=0.5, r_jy=0.5))
+    singles = [ilq.solve(game, x0, mode="open_loop", max_iterations=40)
+               for x0 in random_scenes(trefoil(), vehicles, count, seed=3)]
     converged = np.array([bool(r.converged) for r in singles])
-    iterations = np.array([int(r.iterations) for r in singles])[converged]
+    iterations = np.array([int(r.iterations) for r in singles])
     assert row["name"] == f"open_loop_convergence_random{count}_N2_trefoil" and row["scenes"] == count
+    assert (row["mode"], row["track"], row["cars"]) == ("open_loop", "trefoil", 2)
+    assert row["iterations"] == iterations.tolist()
+    assert row["status"] == [ilq.status_message(r.status) for r in singles]
     assert row["converged_fraction"] == converged.mean()
     assert sum(row["statuses"].values()) == count
     assert row["statuses"].get("converged", 0) == converged.sum()
     if converged.any():
-        assert row["iterations_median"] == np.median(iterations)
-        assert row["iterations_max"] == iterations.max()
+        assert row["iterations_median"] == np.median(iterations[converged])
+        assert row["iterations_max"] == iterations[converged].max()
     assert row["ms_batch"] > 0 and row["compile_s"] > 0
     assert bench._figure(row) == f"{row['converged_fraction']:.4g} converged_fraction"
     with pytest.raises(ValueError, match="repeats"):
         next(bench.convergence_rows(count, repeats=0))
+    with pytest.raises(ValueError, match="max_iterations"):
+        next(bench.convergence_rows(count, max_iterations=0))

@@ -17,7 +17,7 @@ def test_help_lists_the_subcommands(capsys):
         build_parser().parse_args(["--help"])
     assert exit_info.value.code == 0
     text = capsys.readouterr().out
-    for command in ("demo", "paper", "bench"):
+    for command in ("demo", "paper", "tournament", "convergence", "bench"):
         assert command in text
 
 

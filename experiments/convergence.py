@@ -1,0 +1,178 @@
+"""`racing convergence`: how often, and in how many iterations, the game solvers converge
+from seeded random close-quarters starts, per circuit, number of cars and mode.
+
+Each (track, cars) pair draws ``scenes`` starts with :func:`racing_env.scenarios.random_scenes`
+and solves them cold as one batch per mode (:func:`experiments.bench.convergence_rows`).
+Writes ``convergence.json`` (rewritten after every row, so an interrupted run keeps what it
+measured) and ``convergence.png`` (per circuit, the fraction of scenes converged within k
+iterations), and prints a table.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from experiments.bench import convergence_rows
+
+MODES = ("feedback", "open_loop")
+
+
+@dataclasses.dataclass(frozen=True)
+class ConvergenceConfig:
+    """What to sweep.
+
+    Attributes:
+        tracks: built-in track names or TUMFTM CSV paths.
+        cars: numbers of cars per scene (each >= 1).
+        scenes: random starts per (track, cars) pair (>= 1).
+        seed: seed of the random starts.
+        modes: ``"feedback"`` and/or ``"open_loop"``.
+        max_iterations: the solver's iteration cap (>= 1).
+        tolerance: the solver's convergence tolerance (>= 0; the largest state change of a
+            full step, state units). The agents re-plan with 1e-3.
+        jerk_weight: every car's jerk weight ``r`` [s^6/m^2] (> 0); ``None`` for the
+            ``CostWeights`` default (1.0), ``racing_env.costs.RACING_JERK_WEIGHT`` (0.01)
+            for the tournaments' racing weights.
+    """
+
+    tracks: tuple[str, ...] = ("trefoil",)
+    cars: tuple[int, ...] = (2,)
+    scenes: int = 64
+    seed: int = 0
+    modes: tuple[str, ...] = MODES
+    max_iterations: int = 100
+    tolerance: float = 1e-6
+    jerk_weight: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.tracks or not self.cars or not self.modes:
+            raise ValueError("need at least one track, one number of cars and one mode")
+        if any(int(n) < 1 for n in self.cars):
+            raise ValueError(f"every number of cars must be >= 1, got {list(self.cars)}")
+        if int(self.scenes) < 1 or int(self.max_iterations) < 1:
+            raise ValueError(f"need scenes >= 1 and max_iterations >= 1, got {self.scenes} and {self.max_iterations}")
+        unknown = [m for m in self.modes if m not in MODES]
+        if unknown:
+            raise ValueError(f"unknown mode(s) {unknown}; choose from {list(MODES)}")
+        if not (np.isfinite(self.tolerance) and self.tolerance >= 0):
+            raise ValueError(f"tolerance must be >= 0, got {self.tolerance!r}")
+        if self.jerk_weight is not None and not (np.isfinite(self.jerk_weight) and self.jerk_weight > 0):
+            raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight!r}")
+
+
+def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:
+    """Run the sweep, writing ``out/convergence.json`` after every row and
+    ``out/convergence.png`` at the end (also after Ctrl-C, then with ``"interrupted": true``
+    in the report, which is returned rather than raised)."""
+    from rich.console import Console
+
+    from racing_env import CostWeights
+    from racing_env.track import get_track
+
+    tracks = {name: get_track(name) for name in config.tracks}  # a bad name fails before any solve
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict[str, Any] = {"config": dataclasses.asdict(config), "rows": []}
+    console = Console(stderr=True)
+    pairs = [(name, n) for name in tracks for n in dict.fromkeys(config.cars)]
+    try:
+        for done, (name, num_cars) in enumerate(pairs, start=1):
+            console.print(f"[bold]{tracks[name].name}, {num_cars} cars[/] ({done}/{len(pairs)}): "
+                          f"{config.scenes} scenes, compiling and solving ...")
+            rows = convergence_rows(config.scenes, seed=config.seed, repeats=1, modes=config.modes,
+                                    track=tracks[name], num_cars=num_cars, max_iterations=config.max_iterations,
+                                    tolerance=config.tolerance, jerk_weight=config.jerk_weight, per_scene=True)
+            for row in rows:
+                report["rows"].append(row)
+                _write_json(report, out / "convergence.json")
+                console.print(f"  {row['mode']}: {_summary(row)}")
+    except KeyboardInterrupt:
+        report["interrupted"] = True
+        console.print("[bold red]interrupted[/]: convergence.json holds the rows measured so far")
+    _write_json(report, out / "convergence.json")
+    if report["rows"]:
+        r = f"{CostWeights().r_jx:g} (default)" if config.jerk_weight is None else f"{config.jerk_weight:g}"
+        title = (f"Cold solves of {config.scenes} random close-quarters starts (seed {config.seed}, "
+                 f"jerk weight {r}, tolerance {config.tolerance:g})")
+        plot_convergence_profiles(report["rows"], config.max_iterations, out / "convergence.png", title)
+    console.print(_table(report["rows"]))
+    console.print(f"wrote {out / 'convergence.json'}" + (f", {out / 'convergence.png'}" if report["rows"] else ""))
+    return report
+
+
+def _write_json(report: dict[str, Any], path: Path) -> None:
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(json.dumps(report, indent=2))
+    partial.replace(path)  # never a half-written file
+
+
+def _summary(row: dict[str, Any]) -> str:
+    converged = row["statuses"].get("converged", 0)
+    text = f"{converged}/{row['scenes']} converged ({row['converged_fraction']:.1%})"
+    if row["iterations_median"] is not None:
+        text += f", median {row['iterations_median']:g} / p90 {row['iterations_p90']:.3g} iterations"
+    return text + f", {row['ms_batch'] / 1e3:.2f} s"
+
+
+def _table(rows: list[dict[str, Any]]):
+    from rich.table import Table
+
+    from planners import ilq
+
+    short = {ilq.status_message(code): label for code, label in (
+        (ilq.MAX_ITERATIONS, "capped"), (ilq.NON_FINITE, "non-finite"), (ilq.LINE_SEARCH_FAILED, "no step"))}
+    table = Table(title="cold solves from random close-quarters starts",
+                  caption="median, p90, max: iterations of the converged solves")
+    for column in ("track", "cars", "mode", "converged", "median", "p90", "max", "others"):
+        table.add_column(column, no_wrap=column in ("track", "others"))
+    for row in rows:
+        others = ", ".join(f"{v} {short.get(k, k)}" for k, v in row["statuses"].items() if k != "converged")
+        table.add_row(row["track"], str(row["cars"]), row["mode"],
+                      f"{row['statuses'].get('converged', 0)}/{row['scenes']}",
+                      *(("-" if row[k] is None else f"{row[k]:.3g}") for k in ("iterations_median", "iterations_p90", "iterations_max")),
+                      others)
+    return table
+
+
+def plot_convergence_profiles(rows: list[dict[str, Any]], max_iterations: int, path: Path, title: str = "") -> None:
+    """One panel per track (four to a row): the fraction of scenes converged within k
+    iterations, per mode (colour) and number of cars (line style); a curve ends at the
+    converged fraction."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    tracks = list(dict.fromkeys(row["track"] for row in rows))
+    cars = sorted({row["cars"] for row in rows})
+    styles = dict(zip(cars, ("-", "--", ":", "-.") * len(cars)))
+    colours = {"feedback": "tab:blue", "open_loop": "tab:orange"}
+    columns = min(len(tracks), 4)
+    grid_rows = -(-len(tracks) // columns)
+    fig, axes = plt.subplots(grid_rows, columns, figsize=(4.2 * columns, 3.4 * grid_rows + 0.4),
+                             sharey=True, squeeze=False)
+    for ax in axes.flat[len(tracks):]:
+        ax.set_visible(False)
+    k = np.arange(0, max_iterations + 1)
+    for ax, track in zip(axes.flat, tracks):
+        for row in (r for r in rows if r["track"] == track):
+            done = np.array([it for it, st in zip(row["iterations"], row["status"]) if st == "converged"])
+            within = (done[None, :] <= k[:, None]).sum(axis=1) / row["scenes"]
+            ax.step(k, within, where="post", color=colours[row["mode"]], ls=styles[row["cars"]],
+                    label=f"{row['mode'].replace('_', ' ')}, {row['cars']} cars")
+        ax.set_title(track, fontsize=10)
+        ax.set_xlabel("iterations")
+        ax.set_xlim(0, max_iterations)
+        ax.grid(alpha=0.3)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("fraction of scenes converged")
+    axes[0, 0].set_ylim(0.0, 1.02)
+    axes[0, 0].legend(fontsize=7, loc="lower right")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)

@@ -1,0 +1,63 @@
+"""`racing convergence`: the sweep's outputs, its errors, and what an interruption keeps."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from experiments import convergence
+from experiments.cli import main
+
+# Not tests/test_bench.py's cap: that test checks that its first call compiles.
+ARGS = ["convergence", "--scenes", "6", "--seed", "3", "--modes", "open_loop", "--max-iterations", "30",
+        "--jerk-weight", "0.5", "--no-compile-cache"]
+
+
+def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
+    assert main(ARGS + ["--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "convergence.json").read_text())
+    assert report["config"]["jerk_weight"] == 0.5 and report["config"]["max_iterations"] == 30
+    assert "interrupted" not in report
+    (row,) = report["rows"]
+    assert (row["track"], row["cars"], row["mode"], row["scenes"]) == ("trefoil", 2, "open_loop", 6)
+    assert len(row["iterations"]) == len(row["status"]) == 6
+    assert all(1 <= it <= 30 for it in row["iterations"])
+    converged = [st == "converged" for st in row["status"]]
+    assert row["converged_fraction"] == sum(converged) / 6
+    assert sum(row["statuses"].values()) == 6
+    assert (tmp_path / "convergence.png").stat().st_size > 0
+    assert not list(tmp_path.glob("*.partial"))
+    assert f"{sum(converged)}/6" in capsys.readouterr().err  # the table
+
+
+@pytest.mark.parametrize("bad, message", [
+    (["--scenes", "0"], "scenes"),
+    (["--cars", "0"], "cars"),
+    (["--jerk-weight", "-1"], "jerk_weight"),
+    (["--max-iterations", "0"], "max_iterations"),
+    (["--tolerance", "-1"], "tolerance"),
+    (["--track", "nowhere"], "trefoil"),
+])
+def test_convergence_cli_rejects_bad_input_before_any_work(tmp_path, capsys, bad, message):
+    assert main(["convergence", "--out", str(tmp_path / "out")] + bad) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out" / "convergence.json").exists()
+
+
+def test_interrupted_sweep_keeps_the_rows_measured(tmp_path, monkeypatch, capsys):
+    """Ctrl-C after the first (real) row: exit status 130, and the JSON and the plot hold
+    that row, the report marked interrupted."""
+    real_rows = convergence.convergence_rows
+
+    def first_row_then_interrupt(*args, **kwargs):
+        yield next(real_rows(*args, **kwargs))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(convergence, "convergence_rows", first_row_then_interrupt)
+    assert main(ARGS + ["--modes", "open_loop", "feedback", "--out", str(tmp_path)]) == 130
+    report = json.loads((tmp_path / "convergence.json").read_text())
+    assert report["interrupted"] is True
+    assert [row["mode"] for row in report["rows"]] == ["open_loop"]
+    assert (tmp_path / "convergence.png").stat().st_size > 0
+    assert "interrupted" in capsys.readouterr().err
