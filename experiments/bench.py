@@ -470,20 +470,22 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
                      modes: tuple[str, ...] = ("feedback", "open_loop"),
                      track: Any = "trefoil", num_cars: int = 2, max_iterations: int = 100,
                      tolerance: float = 1e-6, jerk_weight: float | None = None,
-                     per_scene: bool = False) -> Iterator[dict[str, Any]]:
+                     per_scene: bool = False, spread: float = 15.0,
+                     speed: tuple[float, float] = (10.0, 19.0)) -> Iterator[dict[str, Any]]:
     """How often, and in how many iterations, cold solves converge away from the paper's
     scene: ``count`` random close-quarters starts anywhere on ``track`` (a
     :class:`racing_env.Track`, a builder's name or a TUMFTM CSV path; by default the trefoil,
-    with curves both ways) drawn by :func:`racing_env.scenarios.random_scenes` (up to 15 m
-    apart, 10-19 m/s), the solver defaults and the default cost weights, one row per mode.
+    with curves both ways) drawn by :func:`racing_env.scenarios.random_scenes` (up to
+    ``spread`` [m] apart, speeds in ``speed`` [m/s]), the solver defaults and the default
+    cost weights, one row per mode.
     The cars are the paper's two (v_max 20 and 25 m/s), then the three-car bench scene's
     third (24 m/s), then cars of 22 m/s. The scenes are solved by
     :func:`planners.ilq.solve_batch` (its default batching), timed ``repeats`` (>= 1) times
     after a compiling call. Iteration figures are over the converged scenes; ``statuses``
     counts every outcome by its message. ``max_iterations`` and ``tolerance`` are the
     solver's (:class:`planners.ilq.SolverOptions`); ``jerk_weight`` the jerk weight ``r`` of every car (default: ``CostWeights``'
-    default). With ``per_scene`` a row also lists every scene's ``iterations`` and
-    ``status`` (message), in scene order."""
+    default). With ``per_scene`` a row also lists every scene's start state ``x0``
+    (N x 6), ``iterations`` and ``status`` (message), in scene order."""
     from planners import ilq
     from experiments.timing import time_jax_call
     from racing_env import CostWeights, RaceGame, VehicleParams
@@ -498,7 +500,7 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     options = ilq.SolverOptions(max_iterations=max_iterations, tolerance=tolerance)  # checked before the work
     track = get_track(track)
     game = RaceGame.create(track, vehicles, weights)
-    x0s = random_scenes(track, vehicles, count, seed=seed)
+    x0s = random_scenes(track, vehicles, count, seed=seed, spread=spread, speed=tuple(speed))
     for mode in modes:
         solve = lambda mode=mode: ilq.solve_batch(game, x0s, options=options, mode=mode)
         res, first, run = time_jax_call(solve, repeats)
@@ -515,6 +517,7 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
                "iterations_max": int(iterations.max()) if iterations.size else None,
                "ms_batch": 1e3 * run, "compile_s": first - run}
         if per_scene:
+            row["x0"] = x0s.tolist()
             row["iterations"] = np.asarray(res.iterations).tolist()
             row["status"] = [ilq.status_message(k) for k in status]
         yield row

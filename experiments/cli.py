@@ -70,7 +70,7 @@ def _cmd_convergence(args: argparse.Namespace) -> int:
     from experiments.convergence import ConvergenceConfig, run_convergence
 
     config = ConvergenceConfig(tracks=tuple(args.track), cars=tuple(args.cars), scenes=args.scenes, seed=args.seed,
-                               modes=tuple(args.modes), max_iterations=args.max_iterations,
+                               spread=args.spread, speed=tuple(args.speed), modes=tuple(args.modes), max_iterations=args.max_iterations,
                                tolerance=args.tolerance, jerk_weight=args.jerk_weight)
     _use_cpu_cores("convergence")
     report = run_convergence(config, Path(args.out))
@@ -155,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
         "convergence", parents=[cache],
         help="how often the game solvers converge from random close-quarters starts (table, JSON, PNG)",
         description="Per track and number of cars, draw --scenes seeded random close-quarters starts anywhere on "
-        "the track (cars up to 15 m apart, 10-19 m/s, not in contact) and solve them cold, as one batch per "
+        "the track (cars up to --spread apart, at --speed, not in contact) and solve them cold, as one batch per "
         "solver mode. Reports the converged fraction, the other outcomes and the iterations of the converged "
         "solves; writes OUT/convergence.json (after every row: Ctrl-C keeps what was measured) and "
         "OUT/convergence.png (fraction converged within k iterations). Four circuits, two cars, both modes: "
@@ -166,6 +166,10 @@ def build_parser() -> argparse.ArgumentParser:
     conv.add_argument("--cars", nargs="+", type=int, default=[2], help="numbers of cars per scene (default: 2)")
     conv.add_argument("--scenes", type=int, default=64, help="random starts per track and number of cars (default: 64)")
     conv.add_argument("--seed", type=int, default=0, help="seed of the random starts (default: 0)")
+    conv.add_argument("--spread", type=float, default=15.0,
+                      help="the cars start up to this far apart along the track [m] (default: 15)")
+    conv.add_argument("--speed", type=float, nargs=2, default=[10.0, 19.0], metavar=("LO", "HI"),
+                      help="range of the start speeds [m/s], capped at 95%% of each car's v_max (default: 10 19)")
     conv.add_argument("--modes", nargs="+", default=["feedback", "open_loop"], choices=["feedback", "open_loop"],
                       help="solver modes (default: both)")
     conv.add_argument("--max-iterations", type=int, default=100, help="the solver's iteration cap (default: 100)")

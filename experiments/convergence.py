@@ -31,6 +31,8 @@ class ConvergenceConfig:
         cars: numbers of cars per scene (each >= 1).
         scenes: random starts per (track, cars) pair (>= 1).
         seed: seed of the random starts.
+        spread: the cars start up to this far apart along the track [m].
+        speed: range of the start speeds [m/s] (capped at 95% of a car's v_max).
         modes: ``"feedback"`` and/or ``"open_loop"``.
         max_iterations: the solver's iteration cap (>= 1).
         tolerance: the solver's convergence tolerance (>= 0; the largest state change of a
@@ -44,6 +46,8 @@ class ConvergenceConfig:
     cars: tuple[int, ...] = (2,)
     scenes: int = 64
     seed: int = 0
+    spread: float = 15.0
+    speed: tuple[float, float] = (10.0, 19.0)
     modes: tuple[str, ...] = MODES
     max_iterations: int = 100
     tolerance: float = 1e-6
@@ -59,6 +63,8 @@ class ConvergenceConfig:
         unknown = [m for m in self.modes if m not in MODES]
         if unknown:
             raise ValueError(f"unknown mode(s) {unknown}; choose from {list(MODES)}")
+        if not (self.spread >= 0 and 0 < self.speed[0] <= self.speed[1]):
+            raise ValueError(f"need spread >= 0 and 0 < speed[0] <= speed[1], got {self.spread!r} and {self.speed!r}")
         if not (np.isfinite(self.tolerance) and self.tolerance >= 0):
             raise ValueError(f"tolerance must be >= 0, got {self.tolerance!r}")
         if self.jerk_weight is not None and not (np.isfinite(self.jerk_weight) and self.jerk_weight > 0):
@@ -85,7 +91,8 @@ def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:
                           f"{config.scenes} scenes, compiling and solving ...")
             rows = convergence_rows(config.scenes, seed=config.seed, repeats=1, modes=config.modes,
                                     track=tracks[name], num_cars=num_cars, max_iterations=config.max_iterations,
-                                    tolerance=config.tolerance, jerk_weight=config.jerk_weight, per_scene=True)
+                                    tolerance=config.tolerance, jerk_weight=config.jerk_weight, per_scene=True,
+                                    spread=config.spread, speed=config.speed)
             for row in rows:
                 report["rows"].append(row)
                 _write_json(report, out / "convergence.json")

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from experiments import convergence
 from experiments.cli import main
+from racing_env.dynamics import S, V
 
 # Not tests/test_bench.py's cap: that test checks that its first call compiles.
 ARGS = ["convergence", "--scenes", "6", "--seed", "3", "--modes", "open_loop", "--max-iterations", "30",
-        "--jerk-weight", "0.5", "--no-compile-cache"]
+        "--jerk-weight", "0.5", "--spread", "8", "--speed", "12", "14", "--no-compile-cache"]
 
 
 def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
@@ -21,7 +23,9 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     assert "interrupted" not in report
     (row,) = report["rows"]
     assert (row["track"], row["cars"], row["mode"], row["scenes"]) == ("trefoil", 2, "open_loop", 6)
-    assert len(row["iterations"]) == len(row["status"]) == 6
+    assert len(row["iterations"]) == len(row["status"]) == len(row["x0"]) == 6
+    x0 = np.array(row["x0"])  # (scenes, cars, 6): the scenes follow --spread and --speed
+    assert np.all(np.ptp(x0[..., S], axis=1) <= 8.0) and np.all((x0[..., V] >= 12.0) & (x0[..., V] <= 14.0))
     assert all(1 <= it <= 30 for it in row["iterations"])
     converged = [st == "converged" for st in row["status"]]
     assert row["converged_fraction"] == sum(converged) / 6
@@ -37,6 +41,8 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     (["--jerk-weight", "-1"], "jerk_weight"),
     (["--max-iterations", "0"], "max_iterations"),
     (["--tolerance", "-1"], "tolerance"),
+    (["--spread", "-1"], "spread"),
+    (["--speed", "19", "10"], "speed"),
     (["--track", "nowhere"], "trefoil"),
 ])
 def test_convergence_cli_rejects_bad_input_before_any_work(tmp_path, capsys, bad, message):
