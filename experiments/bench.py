@@ -476,16 +476,16 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     scene: ``count`` random close-quarters starts anywhere on ``track`` (a
     :class:`racing_env.Track`, a builder's name or a TUMFTM CSV path; by default the trefoil,
     with curves both ways) drawn by :func:`racing_env.scenarios.random_scenes` (up to
-    ``spread`` [m] apart, speeds in ``speed`` [m/s]), the solver defaults and the default
-    cost weights, one row per mode.
+    ``spread`` [m] apart, speeds in ``speed`` [m/s]), one row per mode.
     The cars are the paper's two (v_max 20 and 25 m/s), then the three-car bench scene's
     third (24 m/s), then cars of 22 m/s. The scenes are solved by
     :func:`planners.ilq.solve_batch` (its default batching), timed ``repeats`` (>= 1) times
     after a compiling call. Iteration figures are over the converged scenes; ``statuses``
     counts every outcome by its message. ``max_iterations`` and ``tolerance`` are the
-    solver's (:class:`planners.ilq.SolverOptions`); ``jerk_weight`` the jerk weight ``r`` of every car (default: ``CostWeights``'
-    default). With ``per_scene`` a row also lists every scene's start state ``x0``
-    (N x 6), ``iterations`` and ``status`` (message), in scene order."""
+    solver's (:class:`planners.ilq.SolverOptions`), the other options its defaults;
+    ``jerk_weight`` is every car's jerk weight ``r`` (default: ``CostWeights``' default,
+    as are the other cost weights). With ``per_scene`` a row also lists every scene's
+    start state ``x0`` (N x 6), ``iterations`` and ``status`` (message), in scene order."""
     from planners import ilq
     from experiments.timing import time_jax_call
     from racing_env import CostWeights, RaceGame, VehicleParams

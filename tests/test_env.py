@@ -455,9 +455,10 @@ def test_random_scenes_are_seeded_inside_the_track_and_apart(trefoil, long_strai
     """Random scenes: reproducible from the seed, every car inside the track by the margin at
     its own arc length, within the speed range (capped below v_max), no two cars in contact
     by the env's own test, spread over the lap; an open track keeps every car at s >= 0."""
+    import jax
+
     from racing_env.scenarios import random_scenes
     from racing_env.dynamics import N_LAT, S, V
-    import jax
     from racing_env.physics import footprint_overlap
     from racing_env.vehicle import stack_vehicles
 
