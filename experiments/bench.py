@@ -471,7 +471,7 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
                      track: Any = "trefoil", num_cars: int = 2, max_iterations: int = 100,
                      tolerance: float = 1e-6, jerk_weight: float | None = None,
                      per_scene: bool = False, spread: float = 15.0,
-                     speed: tuple[float, float] = (10.0, 19.0)) -> Iterator[dict[str, Any]]:
+                     speed: tuple[float, float] = (10.0, 19.0), **solver_options: Any) -> Iterator[dict[str, Any]]:
     """How often, and in how many iterations, cold solves converge away from the paper's
     scene: ``count`` random close-quarters starts anywhere on ``track`` (a
     :class:`racing_env.Track`, a builder's name or a TUMFTM CSV path; by default the trefoil,
@@ -481,8 +481,9 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     third (24 m/s), then cars of 22 m/s. The scenes are solved by
     :func:`planners.ilq.solve_batch` (its default batching), timed ``repeats`` (>= 1) times
     after a compiling call. Iteration figures are over the converged scenes; ``statuses``
-    counts every outcome by its message. ``max_iterations`` and ``tolerance`` are the
-    solver's (:class:`planners.ilq.SolverOptions`), the other options its defaults;
+    counts every outcome by its message. ``max_iterations``, ``tolerance`` and
+    ``solver_options`` are the solver's (:class:`planners.ilq.SolverOptions`; the other
+    options its defaults);
     ``jerk_weight`` is every car's jerk weight ``r`` (default: ``CostWeights``' default,
     as are the other cost weights). With ``per_scene`` a row also lists every scene's
     start state ``x0`` (N x 6), ``iterations`` and ``status`` (message), in scene order."""
@@ -497,7 +498,8 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     v_max = _BENCH_V_MAX + (22.0,) * max(0, num_cars - 3)
     vehicles = [VehicleParams(v_max=v) for v in v_max[:num_cars]]
     weights = None if jerk_weight is None else CostWeights(r_jx=jerk_weight, r_jy=jerk_weight)
-    options = ilq.SolverOptions(max_iterations=max_iterations, tolerance=tolerance)  # checked before the work
+    # checked before the work
+    options = ilq.SolverOptions(max_iterations=max_iterations, tolerance=tolerance, **solver_options)
     track = get_track(track)
     game = RaceGame.create(track, vehicles, weights)
     x0s = random_scenes(track, vehicles, count, seed=seed, spread=spread, speed=tuple(speed))

@@ -71,7 +71,8 @@ def _cmd_convergence(args: argparse.Namespace) -> int:
 
     config = ConvergenceConfig(tracks=tuple(args.track), cars=tuple(args.cars), scenes=args.scenes, seed=args.seed,
                                spread=args.spread, speed=tuple(args.speed), modes=tuple(args.modes), max_iterations=args.max_iterations,
-                               tolerance=args.tolerance, jerk_weight=args.jerk_weight)
+                               tolerance=args.tolerance, step_control=args.step_control,
+                               initial_step=args.initial_step, jerk_weight=args.jerk_weight)
     _use_cpu_cores("convergence")
     report = run_convergence(config, Path(args.out))
     return 130 if report.get("interrupted") else 0
@@ -176,6 +177,11 @@ def build_parser() -> argparse.ArgumentParser:
     conv.add_argument("--tolerance", type=float, default=1e-6,
                       help="convergence when a full step moves the trajectory by at most this much (state units; "
                       "default: the solver's 1e-6; the agents re-plan with 1e-3)")
+    conv.add_argument("--step-control", choices=["trust_region", "none"], default="trust_region",
+                      help="the solver's step-size control: trust_region (default) or none, a fixed step "
+                      "--initial-step (the paper's plain update)")
+    conv.add_argument("--initial-step", type=float, default=1.0, metavar="ETA",
+                      help="step size eta tried first (trust_region) or always (none), in (0, 1] (default: 1)")
     conv.add_argument("--jerk-weight", type=float, default=None,
                       help="every car's jerk weight r (default: the CostWeights default, 1; the tournaments race "
                       "with 0.01)")

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from experiments.bench import convergence_rows
+from planners import ilq
 
 MODES = ("feedback", "open_loop")
 
@@ -37,6 +38,9 @@ class ConvergenceConfig:
         max_iterations: the solver's iteration cap (>= 1).
         tolerance: the solver's convergence tolerance (>= 0; the largest state change of a
             full step, state units). The agents re-plan with 1e-3.
+        step_control: ``"trust_region"`` (the solver's default) or ``"none"``, a fixed step
+            ``initial_step`` (the paper's plain update).
+        initial_step: the step size ``eta`` tried first, in ``(0, 1]``.
         jerk_weight: every car's jerk weight ``r`` [s^6/m^2] (> 0); ``None`` for the
             ``CostWeights`` default (1.0), ``racing_env.costs.RACING_JERK_WEIGHT`` (0.01)
             for the tournaments' racing weights.
@@ -51,6 +55,8 @@ class ConvergenceConfig:
     modes: tuple[str, ...] = MODES
     max_iterations: int = 100
     tolerance: float = 1e-6
+    step_control: str = "trust_region"
+    initial_step: float = 1.0
     jerk_weight: float | None = None
 
     def __post_init__(self) -> None:
@@ -58,17 +64,21 @@ class ConvergenceConfig:
             raise ValueError("need at least one track, one number of cars and one mode")
         if any(int(n) < 1 for n in self.cars):
             raise ValueError(f"every number of cars must be >= 1, got {list(self.cars)}")
-        if int(self.scenes) < 1 or int(self.max_iterations) < 1:
-            raise ValueError(f"need scenes >= 1 and max_iterations >= 1, got {self.scenes} and {self.max_iterations}")
+        if int(self.scenes) < 1:
+            raise ValueError(f"need scenes >= 1, got {self.scenes}")
         unknown = [m for m in self.modes if m not in MODES]
         if unknown:
             raise ValueError(f"unknown mode(s) {unknown}; choose from {list(MODES)}")
         if not (self.spread >= 0 and 0 < self.speed[0] <= self.speed[1]):
             raise ValueError(f"need spread >= 0 and 0 < speed[0] <= speed[1], got {self.spread!r} and {self.speed!r}")
-        if not (np.isfinite(self.tolerance) and self.tolerance >= 0):
-            raise ValueError(f"tolerance must be >= 0, got {self.tolerance!r}")
+        ilq.SolverOptions(**self.solver_options())  # its own checks, before any work
         if self.jerk_weight is not None and not (np.isfinite(self.jerk_weight) and self.jerk_weight > 0):
             raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight!r}")
+
+    def solver_options(self) -> dict[str, Any]:
+        """The :class:`planners.ilq.SolverOptions` fields this sweep sets."""
+        return {"max_iterations": self.max_iterations, "tolerance": self.tolerance,
+                "step_control": self.step_control, "initial_step": self.initial_step}
 
 
 def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:
@@ -90,9 +100,9 @@ def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:
             console.print(f"[bold]{tracks[name].name}, {num_cars} cars[/] ({done}/{len(pairs)}): "
                           f"{config.scenes} scenes, compiling and solving ...")
             rows = convergence_rows(config.scenes, seed=config.seed, repeats=1, modes=config.modes,
-                                    track=tracks[name], num_cars=num_cars, max_iterations=config.max_iterations,
-                                    tolerance=config.tolerance, jerk_weight=config.jerk_weight, per_scene=True,
-                                    spread=config.spread, speed=config.speed)
+                                    track=tracks[name], num_cars=num_cars, jerk_weight=config.jerk_weight,
+                                    per_scene=True, spread=config.spread, speed=config.speed,
+                                    **config.solver_options())
             for row in rows:
                 report["rows"].append(row)
                 _write_json(report, out / "convergence.json")
@@ -103,8 +113,10 @@ def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:
     _write_json(report, out / "convergence.json")
     if report["rows"]:
         r = f"{CostWeights().r_jx:g} (default)" if config.jerk_weight is None else f"{config.jerk_weight:g}"
+        step = (f"fixed step {config.initial_step:g}" if config.step_control == "none"
+                else f"trust region, first step {config.initial_step:g}")
         title = (f"Cold solves of {config.scenes} random close-quarters starts (seed {config.seed}, "
-                 f"jerk weight {r}, tolerance {config.tolerance:g})")
+                 f"jerk weight {r}, tolerance {config.tolerance:g}, {step})")
         plot_convergence_profiles(report["rows"], config.max_iterations, out / "convergence.png", title)
     console.print(_table(report["rows"]))
     console.print(f"wrote {out / 'convergence.json'}" + (f", {out / 'convergence.png'}" if report["rows"] else ""))
@@ -127,8 +139,6 @@ def _summary(row: dict[str, Any]) -> str:
 
 def _table(rows: list[dict[str, Any]]):
     from rich.table import Table
-
-    from planners import ilq
 
     short = {ilq.status_message(code): label for code, label in (
         (ilq.MAX_ITERATIONS, "capped"), (ilq.NON_FINITE, "non-finite"), (ilq.LINE_SEARCH_FAILED, "no step"))}

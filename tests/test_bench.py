@@ -186,7 +186,7 @@ def test_iteration_rows_report_the_distribution_of_every_configuration():
 def test_convergence_rows_summarise_the_single_solves_of_the_same_scenes():
     """The convergence row's fraction, status counts, iteration figures and per-scene
     outcomes are those of the same random scenes solved one at a time, with the row's
-    jerk weight and iteration cap."""
+    jerk weight, iteration cap and first step size."""
     from planners import ilq
     from racing_env import CostWeights, RaceGame, VehicleParams
     from racing_env.scenarios import random_scenes
@@ -194,10 +194,10 @@ def test_convergence_rows_summarise_the_single_solves_of_the_same_scenes():
 
     count = 6
     (row,) = bench.convergence_rows(count, seed=3, repeats=1, modes=("open_loop",), max_iterations=40,
-                                    jerk_weight=0.5, per_scene=True)
+                                    jerk_weight=0.5, per_scene=True, initial_step=0.5)
     vehicles = [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)]
     game = RaceGame.create(trefoil(), vehicles, CostWeights(r_jx=0.5, r_jy=0.5))
-    singles = [ilq.solve(game, x0, mode="open_loop", max_iterations=40)
+    singles = [ilq.solve(game, x0, mode="open_loop", max_iterations=40, initial_step=0.5)
                for x0 in random_scenes(trefoil(), vehicles, count, seed=3)]
     converged = np.array([bool(r.converged) for r in singles])
     iterations = np.array([int(r.iterations) for r in singles])

@@ -13,13 +13,15 @@ from racing_env.dynamics import S, V
 
 # Not tests/test_bench.py's cap: that test checks that its first call compiles.
 ARGS = ["convergence", "--scenes", "6", "--seed", "3", "--modes", "open_loop", "--max-iterations", "30",
-        "--jerk-weight", "0.5", "--spread", "8", "--speed", "12", "14", "--no-compile-cache"]
+        "--jerk-weight", "0.5", "--spread", "8", "--speed", "12", "14", "--step-control", "none",
+        "--initial-step", "0.5", "--no-compile-cache"]
 
 
 def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     assert main(ARGS + ["--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "convergence.json").read_text())
     assert report["config"]["jerk_weight"] == 0.5 and report["config"]["max_iterations"] == 30
+    assert report["config"]["step_control"] == "none" and report["config"]["initial_step"] == 0.5
     assert "interrupted" not in report
     (row,) = report["rows"]
     assert (row["track"], row["cars"], row["mode"], row["scenes"]) == ("trefoil", 2, "open_loop", 6)
@@ -30,6 +32,10 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     converged = [st == "converged" for st in row["status"]]
     assert row["converged_fraction"] == sum(converged) / 6
     assert sum(row["statuses"].values()) == 6
+    (same,) = convergence.convergence_rows(6, seed=3, repeats=1, modes=("open_loop",), max_iterations=30,
+                                           jerk_weight=0.5, per_scene=True, spread=8.0, speed=(12.0, 14.0),
+                                           step_control="none", initial_step=0.5)
+    assert (same["x0"], same["iterations"], same["status"]) == (row["x0"], row["iterations"], row["status"])
     assert (tmp_path / "convergence.png").stat().st_size > 0
     assert not list(tmp_path.glob("*.partial"))
     assert f"{sum(converged)}/6" in capsys.readouterr().err  # the table
@@ -41,6 +47,7 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     (["--jerk-weight", "-1"], "jerk_weight"),
     (["--max-iterations", "0"], "max_iterations"),
     (["--tolerance", "-1"], "tolerance"),
+    (["--initial-step", "0"], "initial_step"),
     (["--spread", "-1"], "spread"),
     (["--speed", "19", "10"], "speed"),
     (["--track", "nowhere"], "trefoil"),
