@@ -67,12 +67,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_convergence(args: argparse.Namespace) -> int:
-    from experiments.convergence import ConvergenceConfig, run_convergence
+    from experiments.convergence import ConvergenceConfig, parse_solver_option, run_convergence
 
+    other = tuple(parse_solver_option(text) for text in args.solver_option or ())
     config = ConvergenceConfig(tracks=tuple(args.track), cars=tuple(args.cars), scenes=args.scenes, seed=args.seed,
                                spread=args.spread, speed=tuple(args.speed), modes=tuple(args.modes), max_iterations=args.max_iterations,
                                tolerance=args.tolerance, step_control=args.step_control,
-                               initial_step=args.initial_step, jerk_weight=args.jerk_weight)
+                               initial_step=args.initial_step, other_options=other, jerk_weight=args.jerk_weight)
     _use_cpu_cores("convergence")
     report = run_convergence(config, Path(args.out))
     return 130 if report.get("interrupted") else 0
@@ -182,6 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
                       "--initial-step (the paper's plain update)")
     conv.add_argument("--initial-step", type=float, default=1.0, metavar="ETA",
                       help="step size eta tried first (trust_region) or always (none), in (0, 1] (default: 1)")
+    conv.add_argument("--solver-option", action="append", metavar="NAME=VALUE",
+                      help="any further planners.ilq.SolverOptions field, e.g. trust_radius=10 or "
+                      "oscillation_damping=false (repeatable)")
     conv.add_argument("--jerk-weight", type=float, default=None,
                       help="every car's jerk weight r (default: the CostWeights default, 1; the tournaments race "
                       "with 0.01)")

@@ -41,6 +41,8 @@ class ConvergenceConfig:
         step_control: ``"trust_region"`` (the solver's default) or ``"none"``, a fixed step
             ``initial_step`` (the paper's plain update).
         initial_step: the step size ``eta`` tried first, in ``(0, 1]``.
+        other_options: further :class:`planners.ilq.SolverOptions` fields as ``(name, value)``
+            pairs, e.g. ``(("trust_radius", 10.0),)``; see :func:`parse_solver_option`.
         jerk_weight: every car's jerk weight ``r`` [s^6/m^2] (> 0); ``None`` for the
             ``CostWeights`` default (1.0), ``racing_env.costs.RACING_JERK_WEIGHT`` (0.01)
             for the tournaments' racing weights.
@@ -57,6 +59,7 @@ class ConvergenceConfig:
     tolerance: float = 1e-6
     step_control: str = "trust_region"
     initial_step: float = 1.0
+    other_options: tuple[tuple[str, Any], ...] = ()
     jerk_weight: float | None = None
 
     def __post_init__(self) -> None:
@@ -71,14 +74,42 @@ class ConvergenceConfig:
             raise ValueError(f"unknown mode(s) {unknown}; choose from {list(MODES)}")
         if not (self.spread >= 0 and 0 < self.speed[0] <= self.speed[1]):
             raise ValueError(f"need spread >= 0 and 0 < speed[0] <= speed[1], got {self.spread!r} and {self.speed!r}")
+        own = {"mode", *self.solver_options(include_other=False)}
+        for name, _ in self.other_options:
+            if name in own or name not in _SOLVER_FIELDS:
+                raise ValueError(f"{name!r} is not one of the further solver options "
+                                 f"{sorted(set(_SOLVER_FIELDS) - own)}")
         ilq.SolverOptions(**self.solver_options())  # its own checks, before any work
         if self.jerk_weight is not None and not (np.isfinite(self.jerk_weight) and self.jerk_weight > 0):
             raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight!r}")
 
-    def solver_options(self) -> dict[str, Any]:
+    def solver_options(self, include_other: bool = True) -> dict[str, Any]:
         """The :class:`planners.ilq.SolverOptions` fields this sweep sets."""
-        return {"max_iterations": self.max_iterations, "tolerance": self.tolerance,
-                "step_control": self.step_control, "initial_step": self.initial_step}
+        options = {"max_iterations": self.max_iterations, "tolerance": self.tolerance,
+                   "step_control": self.step_control, "initial_step": self.initial_step}
+        return {**options, **dict(self.other_options)} if include_other else options
+
+
+# Each SolverOptions field's type, from its default value.
+_SOLVER_FIELDS = {f.name: type(f.default) for f in dataclasses.fields(ilq.SolverOptions)}
+
+
+def parse_solver_option(text: str) -> tuple[str, Any]:
+    """``"name=value"`` -> ``(name, value)``, the value converted to the type of that
+    :class:`planners.ilq.SolverOptions` field (``true``/``false`` for flags)."""
+    name, sep, value = text.partition("=")
+    name = name.strip().replace("-", "_")
+    if not sep or name not in _SOLVER_FIELDS:
+        raise ValueError(f"expected NAME=VALUE with NAME one of {sorted(_SOLVER_FIELDS)}, got {text!r}")
+    kind = _SOLVER_FIELDS[name]
+    if kind is bool:
+        if value.lower() not in ("true", "false"):
+            raise ValueError(f"{name} takes true or false, got {value!r}")
+        return name, value.lower() == "true"
+    try:
+        return name, kind(value)
+    except ValueError:
+        raise ValueError(f"{name} takes a {kind.__name__}, got {value!r}") from None
 
 
 def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:

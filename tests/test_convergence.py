@@ -14,7 +14,7 @@ from racing_env.dynamics import S, V
 # Not tests/test_bench.py's cap: that test checks that its first call compiles.
 ARGS = ["convergence", "--scenes", "6", "--seed", "3", "--modes", "open_loop", "--max-iterations", "30",
         "--jerk-weight", "0.5", "--spread", "8", "--speed", "12", "14", "--step-control", "none",
-        "--initial-step", "0.5", "--no-compile-cache"]
+        "--initial-step", "0.5", "--solver-option", "max_backtracks=3", "--no-compile-cache"]
 
 
 def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
@@ -22,6 +22,7 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     report = json.loads((tmp_path / "convergence.json").read_text())
     assert report["config"]["jerk_weight"] == 0.5 and report["config"]["max_iterations"] == 30
     assert report["config"]["step_control"] == "none" and report["config"]["initial_step"] == 0.5
+    assert report["config"]["other_options"] == [["max_backtracks", 3]]
     assert "interrupted" not in report
     (row,) = report["rows"]
     assert (row["track"], row["cars"], row["mode"], row["scenes"]) == ("trefoil", 2, "open_loop", 6)
@@ -34,7 +35,7 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     assert sum(row["statuses"].values()) == 6
     (same,) = convergence.convergence_rows(6, seed=3, repeats=1, modes=("open_loop",), max_iterations=30,
                                            jerk_weight=0.5, per_scene=True, spread=8.0, speed=(12.0, 14.0),
-                                           step_control="none", initial_step=0.5)
+                                           step_control="none", initial_step=0.5, max_backtracks=3)
     assert (same["x0"], same["iterations"], same["status"]) == (row["x0"], row["iterations"], row["status"])
     assert (tmp_path / "convergence.png").stat().st_size > 0
     assert not list(tmp_path.glob("*.partial"))
@@ -48,6 +49,11 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     (["--max-iterations", "0"], "max_iterations"),
     (["--tolerance", "-1"], "tolerance"),
     (["--initial-step", "0"], "initial_step"),
+    (["--solver-option", "trust_radius"], "NAME=VALUE"),
+    (["--solver-option", "warp=9"], "NAME=VALUE"),
+    (["--solver-option", "mode=feedback"], "further solver options"),
+    (["--solver-option", "oscillation_damping=maybe"], "true or false"),
+    (["--solver-option", "trust_radius=0"], "trust_radius"),
     (["--spread", "-1"], "spread"),
     (["--speed", "19", "10"], "speed"),
     (["--track", "nowhere"], "trefoil"),
