@@ -476,7 +476,10 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     scene: ``count`` random close-quarters starts anywhere on ``track`` (a
     :class:`racing_env.Track`, a builder's name or a TUMFTM CSV path; by default the trefoil,
     with curves both ways) drawn by :func:`racing_env.scenarios.random_scenes` (up to
-    ``spread`` [m] apart, speeds in ``speed`` [m/s]), one row per mode.
+    ``spread`` [m] apart, speeds in ``speed`` [m/s]), one row per mode: ``"feedback"``,
+    ``"open_loop"``, or ``"open_loop_from_feedback"`` (open loop initialised with the
+    feedback solution of the same scene, the paper's experiment; its iterations and time
+    are the open-loop solve's).
     The cars are the paper's two (v_max 20 and 25 m/s), then the three-car bench scene's
     third (24 m/s), then cars of 22 m/s. The scenes are solved by
     :func:`planners.ilq.solve_batch` (its default batching), timed ``repeats`` (>= 1) times
@@ -503,9 +506,17 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     track = get_track(track)
     game = RaceGame.create(track, vehicles, weights)
     x0s = random_scenes(track, vehicles, count, seed=seed, spread=spread, speed=tuple(speed))
+    results = {}
     for mode in modes:
-        solve = lambda mode=mode: ilq.solve_batch(game, x0s, options=options, mode=mode)
+        if mode == "open_loop_from_feedback":
+            feedback = (results["feedback"] if "feedback" in results
+                        else ilq.solve_batch(game, x0s, options=options, mode="feedback"))
+            init = np.asarray(feedback.us)
+            solve = lambda: ilq.solve_batch(game, x0s, init, options=options, mode="open_loop")
+        else:
+            solve = lambda mode=mode: ilq.solve_batch(game, x0s, options=options, mode=mode)
         res, first, run = time_jax_call(solve, repeats)
+        results[mode] = res
         status = np.asarray(res.status)
         converged = np.asarray(res.converged)
         iterations = np.asarray(res.iterations)[converged]

@@ -172,8 +172,10 @@ def build_parser() -> argparse.ArgumentParser:
                       help="the cars start up to this far apart along the track [m] (default: 15)")
     conv.add_argument("--speed", type=float, nargs=2, default=[10.0, 19.0], metavar=("LO", "HI"),
                       help="range of the start speeds [m/s], capped at 95%% of each car's v_max (default: 10 19)")
-    conv.add_argument("--modes", nargs="+", default=["feedback", "open_loop"], choices=["feedback", "open_loop"],
-                      help="solver modes (default: both)")
+    conv.add_argument("--modes", nargs="+", default=["feedback", "open_loop"],
+                      choices=["feedback", "open_loop", "open_loop_from_feedback"],
+                      help="solver modes (default: feedback open_loop); open_loop_from_feedback starts open loop "
+                      "from the feedback solution of the same scene and reports that second solve")
     conv.add_argument("--max-iterations", type=int, default=100, help="the solver's iteration cap (default: 100)")
     conv.add_argument("--tolerance", type=float, default=1e-6,
                       help="convergence when a full step moves the trajectory by at most this much (state units; "

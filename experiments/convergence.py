@@ -2,7 +2,8 @@
 from seeded random close-quarters starts, per circuit, number of cars and mode.
 
 Each (track, cars) pair draws ``scenes`` starts with :func:`racing_env.scenarios.random_scenes`
-and solves them cold as one batch per mode (:func:`experiments.bench.convergence_rows`).
+and solves them as one batch per mode (:func:`experiments.bench.convergence_rows`), from
+zero inputs, or for ``open_loop_from_feedback`` from the feedback solution.
 Writes ``convergence.json`` (rewritten after every row, so an interrupted run keeps what it
 measured) and ``convergence.png`` (per circuit, the fraction of scenes converged within k
 iterations), and prints a table.
@@ -20,7 +21,8 @@ import numpy as np
 from experiments.bench import convergence_rows
 from planners import ilq
 
-MODES = ("feedback", "open_loop")
+MODES = ("feedback", "open_loop", "open_loop_from_feedback")
+_MODE_LABELS = {"feedback": "feedback", "open_loop": "open loop", "open_loop_from_feedback": "ol from fb"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,7 +36,8 @@ class ConvergenceConfig:
         seed: seed of the random starts.
         spread: the cars start up to this far apart along the track [m].
         speed: range of the start speeds [m/s] (capped at 95% of a car's v_max).
-        modes: ``"feedback"`` and/or ``"open_loop"``.
+        modes: ``"feedback"``, ``"open_loop"``, ``"open_loop_from_feedback"`` (open loop
+            initialised with the feedback solution of the same scene).
         max_iterations: the solver's iteration cap (>= 1).
         tolerance: the solver's convergence tolerance (>= 0; the largest state change of a
             full step, state units). The agents re-plan with 1e-3.
@@ -54,7 +57,7 @@ class ConvergenceConfig:
     seed: int = 0
     spread: float = 15.0
     speed: tuple[float, float] = (10.0, 19.0)
-    modes: tuple[str, ...] = MODES
+    modes: tuple[str, ...] = MODES[:2]
     max_iterations: int = 100
     tolerance: float = 1e-6
     step_control: str = "trust_region"
@@ -146,7 +149,7 @@ def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:
         r = f"{CostWeights().r_jx:g} (default)" if config.jerk_weight is None else f"{config.jerk_weight:g}"
         step = (f"fixed step {config.initial_step:g}" if config.step_control == "none"
                 else f"trust region, first step {config.initial_step:g}")
-        title = (f"Cold solves of {config.scenes} random close-quarters starts (seed {config.seed}, "
+        title = (f"Solves of {config.scenes} random close-quarters starts (seed {config.seed}, "
                  f"jerk weight {r}, tolerance {config.tolerance:g}, {step})")
         plot_convergence_profiles(report["rows"], config.max_iterations, out / "convergence.png", title)
     console.print(_table(report["rows"]))
@@ -173,13 +176,14 @@ def _table(rows: list[dict[str, Any]]):
 
     short = {ilq.status_message(code): label for code, label in (
         (ilq.MAX_ITERATIONS, "capped"), (ilq.NON_FINITE, "non-finite"), (ilq.LINE_SEARCH_FAILED, "no step"))}
-    table = Table(title="cold solves from random close-quarters starts",
-                  caption="median, p90, max: iterations of the converged solves")
+    table = Table(title="solves from random close-quarters starts",
+                  caption="median, p90, max: iterations of the converged solves; "
+                          "ol from fb: open loop started from the feedback solution")
     for column in ("track", "cars", "mode", "converged", "median", "p90", "max", "others"):
         table.add_column(column, no_wrap=column in ("track", "others"))
     for row in rows:
         others = ", ".join(f"{v} {short.get(k, k)}" for k, v in row["statuses"].items() if k != "converged")
-        table.add_row(row["track"], str(row["cars"]), row["mode"],
+        table.add_row(row["track"], str(row["cars"]), _MODE_LABELS[row["mode"]],
                       f"{row['statuses'].get('converged', 0)}/{row['scenes']}",
                       *(("-" if row[k] is None else f"{row[k]:.3g}") for k in ("iterations_median", "iterations_p90", "iterations_max")),
                       others)
@@ -198,7 +202,7 @@ def plot_convergence_profiles(rows: list[dict[str, Any]], max_iterations: int, p
     tracks = list(dict.fromkeys(row["track"] for row in rows))
     cars = sorted({row["cars"] for row in rows})
     styles = dict(zip(cars, ("-", "--", ":", "-.") * len(cars)))
-    colours = {"feedback": "tab:blue", "open_loop": "tab:orange"}
+    colours = {"feedback": "tab:blue", "open_loop": "tab:orange", "open_loop_from_feedback": "tab:green"}
     columns = min(len(tracks), 4)
     grid_rows = -(-len(tracks) // columns)
     fig, axes = plt.subplots(grid_rows, columns, figsize=(4.2 * columns, 3.4 * grid_rows + 0.4),
@@ -211,7 +215,7 @@ def plot_convergence_profiles(rows: list[dict[str, Any]], max_iterations: int, p
             done = np.array([it for it, st in zip(row["iterations"], row["status"]) if st == "converged"])
             within = (done[None, :] <= k[:, None]).sum(axis=1) / row["scenes"]
             ax.step(k, within, where="post", color=colours[row["mode"]], ls=styles[row["cars"]],
-                    label=f"{row['mode'].replace('_', ' ')}, {row['cars']} cars")
+                    label=f"{_MODE_LABELS[row['mode']]}, {row['cars']} cars")
         ax.set_title(track, fontsize=10)
         ax.set_xlabel("iterations")
         ax.set_xlim(0, max_iterations)

@@ -217,3 +217,28 @@ def test_convergence_rows_summarise_the_single_solves_of_the_same_scenes():
         next(bench.convergence_rows(count, repeats=0))
     with pytest.raises(ValueError, match="max_iterations"):
         next(bench.convergence_rows(count, max_iterations=0))
+
+
+def test_open_loop_from_feedback_rows_start_from_each_scenes_feedback_solution():
+    """``open_loop_from_feedback``: per scene, the open-loop solve initialised with that
+    scene's feedback solution, whether or not a feedback row comes first."""
+    from planners import ilq
+    from racing_env import CostWeights, RaceGame, VehicleParams
+    from racing_env.scenarios import random_scenes
+    from racing_env.track import trefoil
+
+    count, options = 4, dict(max_iterations=40, initial_step=0.5)
+    fb, ol_fb = bench.convergence_rows(count, seed=3, repeats=1, modes=("feedback", "open_loop_from_feedback"),
+                                       jerk_weight=0.5, per_scene=True, **options)
+    (alone,) = bench.convergence_rows(count, seed=3, repeats=1, modes=("open_loop_from_feedback",),
+                                      jerk_weight=0.5, per_scene=True, **options)
+    vehicles = [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)]
+    game = RaceGame.create(trefoil(), vehicles, CostWeights(r_jx=0.5, r_jy=0.5))
+    singles = []
+    for x0 in random_scenes(trefoil(), vehicles, count, seed=3):
+        feedback = ilq.solve(game, x0, mode="feedback", **options)
+        singles.append(ilq.solve(game, x0, feedback.us, mode="open_loop", **options))
+    assert ol_fb["mode"] == "open_loop_from_feedback"
+    assert ol_fb["iterations"] == alone["iterations"] == [int(r.iterations) for r in singles]
+    assert ol_fb["status"] == alone["status"] == [ilq.status_message(r.status) for r in singles]
+    assert fb["iterations"] != ol_fb["iterations"]  # the rows are two different solves
