@@ -150,7 +150,8 @@ def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:
         step = (f"fixed step {config.initial_step:g}" if config.step_control == "none"
                 else f"trust region, first step {config.initial_step:g}")
         title = (f"Solves of {config.scenes} random close-quarters starts (seed {config.seed}, "
-                 f"jerk weight {r}, tolerance {config.tolerance:g}, {step})")
+                 f"jerk weight {r}, tolerance {config.tolerance:g}, {step}"
+                 + "".join(f", {k}={v}" for k, v in config.other_options) + ")")
         plot_convergence_profiles(report["rows"], config.max_iterations, out / "convergence.png", title)
     console.print(_table(report["rows"]))
     console.print(f"wrote {out / 'convergence.json'}" + (f", {out / 'convergence.png'}" if report["rows"] else ""))
