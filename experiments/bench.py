@@ -519,7 +519,8 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
         results[mode] = res
         status = np.asarray(res.status)
         converged = np.asarray(res.converged)
-        iterations = np.asarray(res.iterations)[converged]
+        all_iterations = np.asarray(res.iterations)
+        iterations = all_iterations[converged]
         statuses, counts = np.unique(status, return_counts=True)
         row = {"name": f"{mode}_convergence_random{count}_N{num_cars}_{track.name}",
                "mode": mode, "track": track.name, "cars": int(num_cars), "scenes": int(count),
@@ -531,7 +532,7 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
                "ms_batch": 1e3 * run, "compile_s": first - run}
         if per_scene:
             row["x0"] = x0s.tolist()
-            row["iterations"] = np.asarray(res.iterations).tolist()
+            row["iterations"] = all_iterations.tolist()
             row["status"] = [ilq.status_message(k) for k in status]
         yield row
 
@@ -666,6 +667,14 @@ def _verdict_text(row: dict[str, Any], verdict: tuple[str, bool], missed: str = 
     return text
 
 
+def write_json_atomically(report: dict[str, Any], path: Path) -> None:
+    """Write ``report`` as JSON to ``path`` through a ``.partial`` file and a rename, so a
+    reader (or an interrupted run) never finds a half-written file."""
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(json.dumps(report, indent=2))
+    partial.replace(path)
+
+
 def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[str, Any]:
     """Run the sections ``only`` (default: all) and return the report.
 
@@ -686,9 +695,7 @@ def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[st
     def save() -> None:
         if out is not None:
             out.parent.mkdir(parents=True, exist_ok=True)
-            partial = out.with_name(out.name + ".partial")
-            partial.write_text(json.dumps(report, indent=2))
-            partial.replace(out)  # never a half-written report
+            write_json_atomically(report, out)
 
     seconds = report["section_seconds"] = {}
     try:

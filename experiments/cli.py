@@ -71,9 +71,10 @@ def _cmd_convergence(args: argparse.Namespace) -> int:
 
     other = tuple(parse_solver_option(text) for text in args.solver_option or ())
     config = ConvergenceConfig(tracks=tuple(args.track), cars=tuple(args.cars), scenes=args.scenes, seed=args.seed,
-                               spread=args.spread, speed=tuple(args.speed), modes=tuple(args.modes), max_iterations=args.max_iterations,
-                               tolerance=args.tolerance, step_control=args.step_control,
-                               initial_step=args.initial_step, other_options=other, jerk_weight=args.jerk_weight)
+                               spread=args.spread, speed=tuple(args.speed), modes=tuple(args.modes),
+                               max_iterations=args.max_iterations, tolerance=args.tolerance,
+                               step_control=args.step_control, initial_step=args.initial_step,
+                               other_options=other, jerk_weight=args.jerk_weight)
     _use_cpu_cores("convergence")
     report = run_convergence(config, Path(args.out))
     return 130 if report.get("interrupted") else 0

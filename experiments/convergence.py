@@ -12,14 +12,14 @@ iterations), and prints a table.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from experiments.bench import convergence_rows
+from experiments.bench import convergence_rows, write_json_atomically
 from planners import ilq
+from racing_env.scenarios import check_scene_ranges
 
 MODES = ("feedback", "open_loop", "open_loop_from_feedback")
 _MODE_LABELS = {"feedback": "feedback", "open_loop": "open loop", "open_loop_from_feedback": "ol from fb"}
@@ -75,8 +75,7 @@ class ConvergenceConfig:
         unknown = [m for m in self.modes if m not in MODES]
         if unknown:
             raise ValueError(f"unknown mode(s) {unknown}; choose from {list(MODES)}")
-        if not (self.spread >= 0 and 0 < self.speed[0] <= self.speed[1]):
-            raise ValueError(f"need spread >= 0 and 0 < speed[0] <= speed[1], got {self.spread!r} and {self.speed!r}")
+        check_scene_ranges(self.spread, self.speed)
         own = {"mode", *self.solver_options(include_other=False)}
         for name, _ in self.other_options:
             if name in own or name not in _SOLVER_FIELDS:
@@ -139,12 +138,12 @@ def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:
                                     **config.solver_options())
             for row in rows:
                 report["rows"].append(row)
-                _write_json(report, out / "convergence.json")
+                write_json_atomically(report, out / "convergence.json")
                 console.print(f"  {row['mode']}: {_summary(row)}")
     except KeyboardInterrupt:
         report["interrupted"] = True
         console.print("[bold red]interrupted[/]: convergence.json holds the rows measured so far")
-    _write_json(report, out / "convergence.json")
+    write_json_atomically(report, out / "convergence.json")
     if report["rows"]:
         r = f"{CostWeights().r_jx:g} (default)" if config.jerk_weight is None else f"{config.jerk_weight:g}"
         step = (f"fixed step {config.initial_step:g}" if config.step_control == "none"
@@ -156,12 +155,6 @@ def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:
     console.print(_table(report["rows"]))
     console.print(f"wrote {out / 'convergence.json'}" + (f", {out / 'convergence.png'}" if report["rows"] else ""))
     return report
-
-
-def _write_json(report: dict[str, Any], path: Path) -> None:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(report, indent=2))
-    partial.replace(path)  # never a half-written file
 
 
 def _summary(row: dict[str, Any]) -> str:

@@ -113,6 +113,14 @@ def side_by_side(track: Track, num_cars: int = 2, vehicles=None, seed: int | Non
     return grid(track, 2, vehicles, seed=None, row_spacing=0.0, speed=15.0, jitter=False)
 
 
+def check_scene_ranges(spread: float, speed: tuple[float, float], margin: float = 0.0) -> None:
+    """Raise ``ValueError`` unless :func:`random_scenes` can use these ranges:
+    ``spread >= 0`` [m], ``margin >= 0`` [m] and ``0 < speed[0] <= speed[1]`` [m/s]."""
+    if not (spread >= 0 and margin >= 0 and 0 < speed[0] <= speed[1]):
+        raise ValueError(f"need spread >= 0, margin >= 0 and 0 < speed[0] <= speed[1]; "
+                         f"got spread={spread!r}, margin={margin!r}, speed={speed!r}")
+
+
 def random_scenes(
     track: Track,
     vehicles: Sequence[VehicleParams],
@@ -136,9 +144,7 @@ def random_scenes(
     num_cars = len(vehicles)
     if num_cars < 1 or int(count) < 1:
         raise ValueError(f"need at least 1 car and 1 scene, got {num_cars} cars and count={count!r}")
-    if not (spread >= 0 and margin >= 0 and 0 < speed[0] <= speed[1]):
-        raise ValueError(f"need spread >= 0, margin >= 0 and 0 < speed[0] <= speed[1]; "
-                         f"got spread={spread!r}, margin={margin!r}, speed={speed!r}")
+    check_scene_ranges(spread, speed, margin)
     if not track.closed and track.length <= spread:
         raise ValueError(f"the open track {track.name!r} ({track.length} m) is not longer than spread={spread} m")
     rng = np.random.default_rng(seed)
@@ -155,7 +161,7 @@ def random_scenes(
                 raise ValueError(f"margin={margin} m leaves no room on track {track.name!r}")
             n = rng.uniform(-right, left)
             scene[:, S], scene[:, N_LAT] = s, n
-            if num_cars == 1 or not np.any(_footprint_overlap(scene, stacked, track)):
+            if not np.any(_footprint_overlap(scene, stacked, track)):
                 break
         else:
             raise ValueError(f"no overlap-free start for {num_cars} cars within spread={spread} m")
