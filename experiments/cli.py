@@ -1,4 +1,4 @@
-"""The `racing` command line: demo, paper, tournament, convergence, bench."""
+"""The `racing` command line: demo, paper, tournament, train, convergence, bench."""
 
 from __future__ import annotations
 
@@ -78,6 +78,27 @@ def _cmd_convergence(args: argparse.Namespace) -> int:
     _use_cpu_cores("convergence")
     report = run_convergence(config, Path(args.out))
     return 130 if report.get("interrupted") else 0
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    try:
+        import stable_baselines3  # noqa: F401
+    except ImportError:
+        raise ValueError("racing train needs stable-baselines3: pip install 'racing-games[rl]'") from None
+    from experiments.train_rl import TrainConfig, parse_hyperparameter, parse_reward_weight, run_training
+
+    config = TrainConfig(
+        opponents=tuple(a for part in args.opponents for a in part.split(",") if a), algo=args.algo,
+        timesteps=args.timesteps, track=args.track, laps=args.laps, race_distance=args.race_distance,
+        max_steps=args.max_steps, seed=args.seed, envs=args.envs, normalize=args.normalize,
+        on_off_track=args.off_track, on_collision=args.collision, checkpoint_every=args.checkpoint_every,
+        eval_every=args.eval_every, eval_grids=args.eval_grids,
+        reward=tuple(parse_reward_weight(text) for text in args.reward or ()), init_model=args.init_model,
+        hyperparameters=tuple(parse_hyperparameter(text) for text in args.hyperparameter or ()),
+        **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
+    )
+    report = run_training(config, Path(args.out), fresh=args.fresh)
+    return 130 if report["status"] == "interrupted" else 0
 
 
 def _compile_cache_option() -> argparse.ArgumentParser:
@@ -194,6 +215,58 @@ def build_parser() -> argparse.ArgumentParser:
                       "with 0.01)")
     conv.add_argument("--out", default="runs/convergence", help="output folder (default: runs/convergence)")
     conv.set_defaults(func=_cmd_convergence)
+
+    train = sub.add_parser(
+        "train", parents=[cache],
+        help="train a stable-baselines3 agent against planner or scripted opponents (resumable)",
+        description="Train an SB3 policy (MlpPolicy) to drive one car against --opponents on seeded rolling grids, "
+        "--envs copies of the race side by side (the learner in every starting slot in turn). Every --eval-every "
+        "steps the policy is raced against the opponents under tournament rules (each starting slot, --eval-grids "
+        "grids). Writes OUT/model.zip (race it with: racing tournament --agents rl:OUT/model.zip ...), "
+        "checkpoints, episodes.jsonl, evaluations.jsonl, learning_curve.png and train.json. Ctrl-C saves a "
+        "checkpoint; the same command resumes, and a larger --timesteps trains further. Against the lane keeper "
+        "PPO runs about 1,000 steps/s on a 2-core machine; against a planner about 100.",
+    )
+    train.add_argument("--opponents", nargs="+", default=["lane-keeping"],
+                       help="agent specs of the other cars (default: lane-keeping); e.g. ilqgame-fb, ilqr, "
+                       "rl:PATH.zip")
+    train.add_argument("--algo", default="ppo", choices=["ppo", "sac", "td3", "a2c", "ddpg"],
+                       help="stable-baselines3 algorithm (default: ppo)")
+    train.add_argument("--timesteps", type=int, default=200_000, help="environment steps in all (default: 200000)")
+    train.add_argument("--track", default="trefoil", help="built-in track name or TUMFTM CSV path (default: trefoil)")
+    train.add_argument("--laps", type=int, default=1, help="laps per episode on closed tracks (default: 1)")
+    train.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
+    train.add_argument("--max-steps", type=int, default=3000, help="truncate episodes after this many steps")
+    train.add_argument("--seed", type=int, default=0, help="seed of the policy and the start grids (default: 0)")
+    train.add_argument("--envs", type=int, default=2,
+                       help="copies of the race stepped side by side; copy k starts in slot k mod cars (default: 2)")
+    train.add_argument("--no-normalize", dest="normalize", action="store_false",
+                       help="do not normalise observations and rewards (VecNormalize)")
+    train.add_argument("--off-track", default="terminate", choices=["penalty", "terminate", "both", "ignore"],
+                       help="what leaving the track does in training (default: terminate the episode; evaluations "
+                       "use tournament rules, a penalty)")
+    train.add_argument("--collision", default="penalty", choices=["penalty", "terminate", "both", "ignore"],
+                       help="what contact does in training (default: penalty)")
+    train.add_argument("--jerk-weight", type=float, default=None,
+                       help="planner opponents' jerk weight r (default: the tournaments' RACING_JERK_WEIGHT)")
+    train.add_argument("--checkpoint-every", type=int, default=20_000, help="steps between checkpoints (default: 20000)")
+    train.add_argument("--eval-every", type=int, default=50_000,
+                       help="steps between evaluations (default: 50000; 0: only at the end)")
+    train.add_argument("--eval-grids", type=int, default=2,
+                       help="start grids per evaluation, each raced from every slot (default: 2)")
+    train.add_argument("--reward", action="append", metavar="TERM=WEIGHT",
+                       help="a reward weight of the training race (repeatable): progress (per metre, default 0.1), "
+                       "position (per step, times (cars behind - cars ahead)/(N-1), default 0), collision (per step "
+                       "in contact, -5), off_track (per step, -1), finish (times (N - place)/(N - 1), 10)")
+    train.add_argument("--hyperparameter", action="append", metavar="NAME=VALUE",
+                       help="a keyword argument of the algorithm, e.g. n_steps=1024 or learning_rate=1e-4 "
+                       "(repeatable; values are Python literals)")
+    train.add_argument("--init-model", default=None, metavar="PATH.zip",
+                       help="train this saved model further (same --algo and number of cars; its VecNormalize "
+                       "statistics come along), e.g. one trained against the lane keeper before a planner")
+    train.add_argument("--out", default="runs/train", help="output folder (default: runs/train)")
+    train.add_argument("--fresh", action="store_true", help="discard an earlier run in --out and start over")
+    train.set_defaults(func=_cmd_train)
 
     bench = sub.add_parser(
         "bench", help="performance figures as JSON (stdout) and a table (stderr)",

@@ -106,29 +106,42 @@ def _failed_setup(message: str):
     return policy
 
 
-def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0):
-    """Race one lineup; returns ``(record, frames)``. Faults are recorded, never raised."""
+def race_config(config: TournamentConfig, render: bool = False) -> RaceConfig:
+    """The race a tournament's lineups run: a seeded rolling grid on its track, its length
+    and step cap, and the planners' jerk weight in the game."""
+    return RaceConfig(track=config.track, num_agents=config.cars, scenario="grid", laps=config.laps,
+                      race_distance=config.race_distance, max_steps=config.max_steps,
+                      weights=CostWeights(r_jx=config.jerk_weight, r_jy=config.jerk_weight),
+                      render_mode="rgb_array" if render else None)
+
+
+def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: float | None = None,
+                render_every: int = 0) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """Race agent specs (one per starting slot) on grid ``seed``; returns ``(record, frames)``.
+
+    The record holds the finishing ``order`` (specs), the ``gap`` to the second car, the
+    ``overtakes`` and, per car, place, finish time, distance, mean speed, contact steps,
+    time off track, action times, solver failures and the ``error`` of a car that faulted.
+    Faults are recorded, never raised: a car that raises or blows ``step_budget_s`` is last.
+    """
     from experiments.race import run_race
     from planners.agents import make_agent
 
-    env = RacingParallelEnv(
-        RaceConfig(track=config.track, num_agents=config.cars, scenario="grid", laps=config.laps,
-                   race_distance=config.race_distance, max_steps=config.max_steps,
-                   weights=CostWeights(r_jx=config.jerk_weight, r_jy=config.jerk_weight),
-                   render_mode="rgb_array" if render_every else None)
-    )
+    if len(lineup) != race.num_agents:
+        raise ValueError(f"a lineup of {len(lineup)} specs for a race of {race.num_agents} cars")
+    env = RacingParallelEnv(race)
     agents, policies = [], []
-    for i, spec in enumerate(race["lineup"]):
+    for i, spec in enumerate(lineup):
         try:
             agent = make_agent(spec)
-            agent.reset(race["seed"], i, env)
+            agent.reset(seed, i, env)
             policies.append(agent.act)
         except Exception as err:  # noqa: BLE001 - a broken agent loses, the tournament goes on
             agent = None
             policies.append(_failed_setup(f"setup: {type(err).__name__}: {err}"))
         agents.append(agent)
-    result = run_race(env, policies, seed=race["seed"], render_every=render_every,
-                      step_budget_s=config.step_budget_s, catch_errors=True)
+    result = run_race(env, policies, seed=seed, render_every=render_every,
+                      step_budget_s=step_budget_s, catch_errors=True)
     xs, faults = result.xs, result.faults
     final_s = xs[-1, :, 0]
     finish = [car["finish_time"] for car in result.summary]
@@ -136,7 +149,7 @@ def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: i
     def key(i):  # finishers by time, then the rest by distance, faulted cars last
         return (i in faults, finish[i] is None, finish[i] if finish[i] is not None else -final_s[i])
 
-    order = sorted(range(config.cars), key=key)
+    order = sorted(range(len(lineup)), key=key)
     places = {i: p + 1 for p, i in enumerate(order)}
     winner, second = order[0], order[1]
     if finish[winner] is not None and finish[second] is not None:
@@ -144,7 +157,7 @@ def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: i
     else:
         gap = {"metres": float(final_s[winner] - final_s[second])}
     cars = []
-    for i, (spec, car) in enumerate(zip(race["lineup"], result.summary)):
+    for i, (spec, car) in enumerate(zip(lineup, result.summary)):
         agent = agents[i]
         summary = agent.summary() if agent is not None and hasattr(agent, "summary") else {}
         times = np.array(result.act_times[i]) if result.act_times[i] else np.array([np.nan])
@@ -156,11 +169,17 @@ def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: i
             "solver_failures": int(summary.get("fallbacks", 0)),
             "solver_converged_fraction": summary.get("converged_fraction"), "error": faults.get(i),
         })
-    record = {"id": race["id"], "grid": race["grid"], "seed": race["seed"], "steps": result.steps,
-              "order": [race["lineup"][i] for i in order], "gap": gap,
+    record = {"steps": result.steps, "order": [lineup[i] for i in order], "gap": gap,
               "overtakes": count_overtakes(xs[:, :, 0]), "cars": cars}
     env.close()
     return record, result.frames
+
+
+def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0):
+    """Race one scheduled lineup; returns ``(record, frames)``. Faults are recorded, never raised."""
+    record, frames = race_lineup(race_config(config, render=bool(render_every)), race["lineup"], race["seed"],
+                                 step_budget_s=config.step_budget_s, render_every=render_every)
+    return {"id": race["id"], "grid": race["grid"], "seed": race["seed"], **record}, frames
 
 
 def wilson_interval(wins: int, n: int, z: float = 1.96) -> tuple[float, float]:

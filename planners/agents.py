@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import time
 import traceback
+from pathlib import Path
 from typing import Any, Protocol, Sequence, runtime_checkable
 
 import numpy as np
@@ -47,6 +48,7 @@ __all__ = [
     "game_of",
     "make_agent",
     "reset_agents",
+    "vecnormalize_path",
 ]
 
 
@@ -485,8 +487,38 @@ class ConstantSpeedAgent(_ScriptedAgent):
 SB3_ALGOS = ("ppo", "sac", "td3", "a2c", "ddpg")
 
 
+VECNORMALIZE_SUFFIX = ".vecnormalize.pkl"
+
+
+def vecnormalize_path(model_path) -> Path:
+    """Where the observation statistics of a model trained under ``VecNormalize`` are kept:
+    beside the model, ``model.zip`` -> ``model.vecnormalize.pkl``."""
+    path = Path(model_path)
+    stem = path.name[: -len(".zip")] if path.name.endswith(".zip") else path.name
+    return path.with_name(stem + VECNORMALIZE_SUFFIX)
+
+
+def _observation_normalizer(path: Path, model):
+    """The saved ``VecNormalize`` of a model, frozen (statistics no longer updated), used
+    through its public ``normalize_obs``; it wraps a stand-in env that only has the spaces."""
+    import gymnasium
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    class _Spaces(gymnasium.Env):
+        observation_space, action_space = model.observation_space, model.action_space
+
+    normalizer = VecNormalize.load(str(path), DummyVecEnv([_Spaces]))
+    normalizer.training = False
+    normalizer.norm_reward = False
+    return normalizer
+
+
 class SB3Agent(BaseAgent):
     """A saved stable-baselines3 model acting with ``predict(obs, deterministic=True)``.
+
+    If the model was trained under ``VecNormalize`` (as ``racing train`` does by default),
+    its observation statistics are loaded from beside the model
+    (:func:`vecnormalize_path`) and applied to every observation.
 
     Args:
         path: the ``.zip`` written by ``model.save``.
@@ -516,6 +548,8 @@ class SB3Agent(BaseAgent):
         if self.model is None:
             raise ValueError(f"could not load a stable-baselines3 model from {self.path}: " + "; ".join(errors))
         self.name = f"rl:{self.algo}"
+        stats = vecnormalize_path(self.path)
+        self.normalizer = _observation_normalizer(stats, self.model) if stats.exists() else None
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
@@ -533,6 +567,8 @@ class SB3Agent(BaseAgent):
                 f"observation shape {obs.shape} does not match the model's {expected} "
                 "(trained with a different number of cars or preview distances?)"
             )
+        if self.normalizer is not None:
+            obs = self.normalizer.normalize_obs(obs)
         action, _ = self.model.predict(obs, deterministic=True)
         return action
 

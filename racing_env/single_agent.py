@@ -25,6 +25,11 @@ def coasting_policy(observation: np.ndarray, joint_state: np.ndarray) -> np.ndar
     return np.zeros(2, dtype=np.float32)
 
 
+def _is_agent(policy: OpponentPolicy) -> bool:
+    """Whether an opponent follows the agent protocol (resettable as a car of a race)."""
+    return callable(getattr(policy, "reset", None)) and callable(getattr(policy, "act", None))
+
+
 class RaceEnv(gymnasium.Env):
     """One learner (``car_<learner>``) against ``N - 1`` opponent policies.
 
@@ -34,6 +39,12 @@ class RaceEnv(gymnasium.Env):
             is given, in which case a single policy is reused for every opponent.
         learner: index of the learner's car.
         **config: ``RaceConfig`` fields (track, scenario, laps, reward, ...).
+
+    An opponent that follows the agent protocol of :mod:`planners.agents` (it has
+    ``reset(seed, index, env_info)`` besides being callable) is reset as its car at every
+    ``reset``, with the episode's seed, so planners take this env's game and start each
+    episode without a previous plan. Such an agent drives one car only: reusing it for
+    several opponents is refused.
 
     The episode ends (terminated) when the learner finishes or retires, and is truncated
     at ``max_steps``. ``info`` is the learner's PettingZoo info.
@@ -57,6 +68,10 @@ class RaceEnv(gymnasium.Env):
             raise ValueError(f"need {num - 1} opponent policies for {num} cars, got {len(opponents)}")
         if not all(callable(p) for p in opponents):
             raise ValueError("every opponent must be a callable policy(observation, joint_state) -> action")
+        agents = [p for p in opponents if _is_agent(p)]
+        if len({id(p) for p in agents}) != len(agents):
+            raise ValueError("an agent (with reset(seed, index, env_info)) drives one car: give one agent object "
+                             "per opponent")
         if not 0 <= learner < num:
             raise ValueError(f"learner must be a car index in [0, {num - 1}], got {learner}")
         self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
@@ -72,6 +87,9 @@ class RaceEnv(gymnasium.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self._observations, infos = self.race.reset(seed=seed, options=options)
+        for agent, policy in self._opponents.items():
+            if _is_agent(policy):
+                policy.reset(seed, self.race.possible_agents.index(agent), self.race)
         return self._observations[self.learner], infos[self.learner]
 
     def step(self, action):

@@ -92,3 +92,22 @@ def test_single_policy_is_reused_and_learner_can_be_any_car(trefoil):
     env.reset(seed=0)
     env.step(np.zeros(2))
     assert env.learner == "car_1" and seen == [(3, 6), (3, 6)]  # car_0 and car_2
+
+
+def test_agent_opponents_are_reset_as_their_cars_every_episode(trefoil):
+    """Agents (planners.agents) need no reset of their own: the view resets each as its car
+    at every reset, so its history starts over; one agent object cannot drive two cars."""
+    from planners.agents import LaneKeepingAgent
+
+    first, second = LaneKeepingAgent(), LaneKeepingAgent()
+    env = RaceEnv(opponents=[first, second], learner=1, track=trefoil)
+    env.reset(seed=4)
+    assert (first.index, second.index) == (0, 2) and first.game is env.race.game
+    for _ in range(3):
+        env.step(np.zeros(2, np.float32))
+    assert len(first.history) == len(second.history) == 3
+    assert not any(h["fallback"] for h in first.history + second.history)
+    env.reset(seed=5)
+    assert first.history == [] and first.seed == 5
+    with pytest.raises(ValueError, match="one agent object per opponent"):
+        RaceEnv(opponents=[first], num_agents=3, track=trefoil)

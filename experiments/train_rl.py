@@ -1,0 +1,538 @@
+"""`racing train`: train a stable-baselines3 agent against planner or scripted opponents.
+
+The learner drives one car of the Gymnasium view (:class:`racing_env.single_agent.RaceEnv`)
+against agent specs (``lane-keeping``, ``ilqgame-fb``, ``rl:path.zip``, ...) on seeded rolling
+grids. ``envs`` copies of the race run side by side, the learner in starting slot
+``copy % cars``, so it learns both from the front and from behind. Observations (and
+rewards) are normalised by SB3's ``VecNormalize`` unless ``normalize=False``; its statistics
+are saved beside every model, where :class:`planners.agents.SB3Agent` finds them.
+
+Every ``eval_every`` steps the current policy is saved and raced against the opponents
+under tournament rules (:func:`experiments.tournament.race_lineup`: every starting slot, on
+``eval_grids`` grids, off-track and contact penalised but not retiring): win rate, finish
+margin, distance, incidents. Nothing is lost when a run stops: episodes and evaluations are
+appended to JSONL files as they happen, a checkpoint is written every ``checkpoint_every``
+steps and at Ctrl-C, and running the same command again resumes from the last checkpoint
+(or trains further if ``timesteps`` was raised).
+
+Output folder::
+
+    train.json            configuration, status, timesteps, wall time, final evaluation
+    model.zip             the final policy (+ model.vecnormalize.pkl): ``rl:OUT/model.zip``
+    checkpoints/          step_<timesteps>.zip (+ .vecnormalize.pkl, + .replay_buffer.pkl for the latest)
+    episodes.jsonl        one line per finished training episode
+    evaluations.jsonl     one line per evaluation
+    learning_curve.png    episode return and evaluation results against timesteps
+"""
+
+from __future__ import annotations
+
+import ast
+import contextlib
+import dataclasses
+import inspect
+import json
+import os
+import re
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from experiments.bench import write_json_atomically
+from planners.agents import SB3_ALGOS, make_agent, vecnormalize_path
+from racing_env.config import INCIDENT_MODES, RaceConfig, RewardConfig
+from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
+
+CONFIG = "train.json"
+EPISODES = "episodes.jsonl"
+EVALUATIONS = "evaluations.jsonl"
+CHECKPOINTS = "checkpoints"
+MODEL = "model.zip"
+_CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
+# the fields of TrainConfig that may change between a run and its resumption
+_RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """What to train, against whom, and how long.
+
+    Attributes:
+        opponents: agent specs of the other cars (:func:`planners.agents.make_agent`); their
+            number fixes the race's N = len(opponents) + 1.
+        algo: ``ppo`` (default), ``sac``, ``td3``, ``a2c`` or ``ddpg``.
+        timesteps: environment steps to train for, over all copies of the race.
+        track: built-in track name or TUMFTM CSV path.
+        laps / race_distance: the race's length (``race_distance`` [m] overrides ``laps``).
+        max_steps: an episode is truncated after this many steps.
+        seed: seeds the policy, the start grids and the evaluation grids.
+        envs: copies of the race stepped side by side; copy ``k`` puts the learner in slot
+            ``k % N``.
+        normalize: train under ``VecNormalize`` (observations and rewards).
+        on_off_track / on_collision: the training race's incident rules
+            (:data:`racing_env.config.INCIDENT_MODES`). ``terminate`` off track (the default)
+            ends an episode that leaves the track, which teaches staying on it far faster
+            than a penalty per step; evaluations always race under tournament rules.
+        jerk_weight: the planners' jerk weight r in the race's game (as in tournaments).
+        checkpoint_every / eval_every: steps between checkpoints / evaluations (0: only at
+            the end).
+        eval_grids: start grids per evaluation; each is raced once per starting slot.
+        reward: weights of the training race's reward terms that differ from
+            :class:`racing_env.config.RewardConfig`'s defaults, e.g. ``(("position", 0.05),)``.
+        hyperparameters: keyword arguments of the SB3 algorithm, e.g.
+            ``(("n_steps", 1024), ("learning_rate", 1e-4))``.
+        init_model: a saved model of the same algorithm and race size to train further (its
+            VecNormalize statistics too), e.g. one trained against the fast lane keeper,
+            before a planner opponent; ``None`` starts from a fresh policy.
+    """
+
+    opponents: tuple[str, ...] = ("lane-keeping",)
+    algo: str = "ppo"
+    timesteps: int = 200_000
+    track: str = "trefoil"
+    laps: int = 1
+    race_distance: float | None = None
+    max_steps: int = 3000
+    seed: int = 0
+    envs: int = 2
+    normalize: bool = True
+    on_off_track: str = "terminate"
+    on_collision: str = "penalty"
+    jerk_weight: float = RACING_JERK_WEIGHT
+    checkpoint_every: int = 20_000
+    eval_every: int = 50_000
+    eval_grids: int = 2
+    reward: tuple[tuple[str, float], ...] = ()
+    hyperparameters: tuple[tuple[str, Any], ...] = ()
+    init_model: str | None = None
+
+    def __post_init__(self) -> None:
+        if not self.opponents:
+            raise ValueError("training needs at least one opponent spec (e.g. lane-keeping)")
+        if self.algo not in SB3_ALGOS:
+            raise ValueError(f"algo must be one of {SB3_ALGOS}, got {self.algo!r}")
+        for name in ("timesteps", "envs", "eval_grids"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        for name in ("checkpoint_every", "eval_every"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 0:
+                raise ValueError(f"{name} must be an integer >= 0 (0: only at the end), got {value!r}")
+        for name in ("on_off_track", "on_collision"):
+            if getattr(self, name) not in INCIDENT_MODES:
+                raise ValueError(f"{name} must be one of {INCIDENT_MODES}, got {getattr(self, name)!r}")
+        if not self.jerk_weight > 0:
+            raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight}")
+        terms = {f.name for f in dataclasses.fields(RewardConfig)}
+        for name, value in self.reward:
+            if name not in terms:
+                raise ValueError(f"unknown reward term {name!r}; the terms are {sorted(terms)}")
+            if not np.isfinite(value):
+                raise ValueError(f"reward weight {name} must be a finite number, got {value!r}")
+        if self.init_model is not None and not any(Path(p).is_file() for p in (self.init_model,
+                                                                                 f"{self.init_model}.zip")):
+            raise ValueError(f"init_model {self.init_model} does not exist")
+        known = algorithm_parameters(self.algo)
+        for name, _ in self.hyperparameters:
+            if name not in known:
+                raise ValueError(f"{self.algo} has no hyperparameter {name!r}; it takes {sorted(known)}")
+        # the race itself (track name or file, laps, distance, steps) is checked by RaceConfig
+        self.race_config()
+
+    @property
+    def cars(self) -> int:
+        return len(self.opponents) + 1
+
+    def race_config(self, training: bool = True) -> RaceConfig:
+        """The race the learner trains in (``training``) or is evaluated in (tournament rules)."""
+        rules = dict(on_off_track=self.on_off_track, on_collision=self.on_collision,
+                     reward=RewardConfig(**dict(self.reward))) if training else {}
+        return RaceConfig(track=self.track, num_agents=self.cars, scenario="grid", laps=self.laps,
+                          race_distance=self.race_distance, max_steps=self.max_steps,
+                          weights=CostWeights(r_jx=self.jerk_weight, r_jy=self.jerk_weight), **rules)
+
+
+def algorithm_parameters(algo: str) -> set[str]:
+    """The keyword arguments an SB3 algorithm's constructor takes (besides policy and env)."""
+    import stable_baselines3 as sb3
+
+    params = inspect.signature(getattr(sb3, algo.upper()).__init__).parameters
+    return {name for name in params if name not in ("self", "policy", "env")}
+
+
+def parse_hyperparameter(text: str) -> tuple[str, Any]:
+    """``"name=value"`` -> ``(name, value)``; the value is read as a Python literal
+    (``1024``, ``3e-4``, ``True``, ``{"net_arch": [64, 64]}``), else kept as a string."""
+    name, sep, value = text.partition("=")
+    name = name.strip().replace("-", "_")
+    if not sep or not name:
+        raise ValueError(f"expected NAME=VALUE (e.g. n_steps=1024), got {text!r}")
+    try:
+        return name, ast.literal_eval(value.strip())
+    except (ValueError, SyntaxError):
+        return name, value.strip()
+
+
+def parse_reward_weight(text: str) -> tuple[str, float]:
+    """``"position=0.05"`` -> ``("position", 0.05)``."""
+    name, sep, value = text.partition("=")
+    try:
+        return name.strip(), float(value)
+    except ValueError:
+        raise ValueError(f"expected TERM=NUMBER (e.g. position=0.05), got {text!r}") from None
+
+
+def _config_json(config: TrainConfig) -> dict[str, Any]:
+    data = dataclasses.asdict(config)
+    data["hyperparameters"] = dict(config.hyperparameters)
+    data["reward"] = dict(config.reward)
+    return json.loads(json.dumps(data))  # tuples as lists, as read back from disk
+
+
+def latest_checkpoint(out: Path) -> tuple[int, Path] | None:
+    """The checkpoint with the most timesteps in ``out/checkpoints``, or None."""
+    found = [(int(m.group(1)), p) for p in (out / CHECKPOINTS).glob("step_*.zip")
+             if (m := _CHECKPOINT.search(p.name))]
+    return max(found) if found else None
+
+
+def _replay_buffer_path(model_path: Path) -> Path:
+    return model_path.with_name(model_path.name[: -len(".zip")] + ".replay_buffer.pkl")
+
+
+def _replace_atomically(write, path: Path) -> None:
+    """``write(tmp)`` then rename onto ``path``: an interrupted save leaves the old file."""
+    tmp = path.with_name(path.name + ".partial")
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def save_policy(model, venv, path: Path, replay_buffer: bool = False) -> None:
+    """``model.zip`` and, under ``VecNormalize``, its statistics beside it; with
+    ``replay_buffer`` an off-policy model's buffer too (what a resumption needs)."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _replace_atomically(lambda tmp: model.save(tmp), path)
+    if isinstance(venv, VecNormalize):
+        _replace_atomically(lambda tmp: venv.save(str(tmp)), vecnormalize_path(path))
+    if replay_buffer and hasattr(model, "replay_buffer"):
+        _replace_atomically(lambda tmp: model.save_replay_buffer(tmp), _replay_buffer_path(path))
+
+
+def make_training_env(config: TrainConfig):
+    """``config.envs`` monitored copies of the race in a ``DummyVecEnv`` (under
+    ``VecNormalize`` if asked), the learner in slot ``copy % N``, fresh opponent agents each."""
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from racing_env.single_agent import RaceEnv
+
+    def make(copy: int):
+        def build():
+            race = config.race_config()
+            opponents = [make_agent(spec) for spec in config.opponents]
+            fields = {f.name: getattr(race, f.name) for f in dataclasses.fields(race)}
+            return Monitor(RaceEnv(opponents=opponents, learner=copy % config.cars, **fields),
+                           info_keywords=("finished", "position", "out", "finish_time"))
+        return build
+
+    return DummyVecEnv([make(k) for k in range(config.envs)])
+
+
+def evaluate(config: TrainConfig, model_path: Path, timesteps: int) -> dict[str, Any]:
+    """Race the saved policy against the opponents under tournament rules: every starting
+    slot on ``eval_grids`` seeded grids. Returns one evaluation record."""
+    from experiments.tournament import race_lineup
+
+    learner = f"rl:{config.algo}:{model_path}"
+    race = config.race_config(training=False)
+    races = []
+    with _global_rngs_kept():  # SB3Agent.reset seeds the global RNGs, which training draws from
+        for grid in range(config.eval_grids):
+            seed = 1_000_000 + config.seed * 10_000 + grid  # grids the training resets do not start from
+            for slot in range(config.cars):
+                lineup = list(config.opponents)
+                lineup.insert(slot, learner)
+                record, _ = race_lineup(race, lineup, seed)
+                races.append((slot, record))
+    return summarize_evaluation(races, timesteps)
+
+
+@contextlib.contextmanager
+def _global_rngs_kept():
+    """Restore Python's, NumPy's and torch's global random states on exit."""
+    import random
+
+    import torch
+
+    states = random.getstate(), np.random.get_state(), torch.get_rng_state()
+    try:
+        yield
+    finally:
+        random.setstate(states[0])
+        np.random.set_state(states[1])
+        torch.set_rng_state(states[2])
+
+
+def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int) -> dict[str, Any]:
+    """The learner's results over ``(slot, race record)`` pairs."""
+    places, margins, distances, contact, off_track, finished, errors = [], [], [], 0, 0.0, 0, []
+    for slot, record in races:
+        me = record["cars"][slot]
+        others = [c for k, c in enumerate(record["cars"]) if k != slot]
+        places.append(me["place"])
+        distances.append(me["distance"])
+        contact += me["collision_steps"]
+        off_track += me["time_off_track"]
+        finished += me["finish_time"] is not None
+        if me["error"]:
+            errors.append(me["error"])
+        if me["finish_time"] is not None and all(c["finish_time"] is not None for c in others):
+            margins.append(float(np.mean([c["finish_time"] for c in others])) - me["finish_time"])
+    wins = sum(p == 1 for p in places)
+    return {"timesteps": int(timesteps), "races": len(races), "wins": wins, "win_rate": wins / len(races),
+            "mean_place": float(np.mean(places)), "finished": finished,
+            "mean_margin_s": float(np.mean(margins)) if margins else None,
+            "mean_distance": float(np.mean(distances)), "contact_steps": contact,
+            "time_off_track_s": off_track, "errors": errors}
+
+
+def _drop_episodes_after(out: Path, timesteps: int) -> None:
+    """Forget the episodes logged after ``timesteps``: their steps will be collected again."""
+    kept = [e for e in read_jsonl(out / EPISODES) if e["timesteps"] <= timesteps]
+    _replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EPISODES)
+
+
+def _append_jsonl(path: Path, record: dict[str, Any]) -> None:
+    with open(path, "a") as sink:
+        sink.write(json.dumps(record) + "\n")
+
+
+def read_jsonl(path: Path) -> list[dict[str, Any]]:
+    """The records of a JSONL file; a last line cut by an interruption is skipped."""
+    if not path.exists():
+        return []
+    records = []
+    for line in path.read_text().splitlines():
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return records
+
+
+def _training_callback(config: TrainConfig, out: Path, console):
+    """An SB3 callback that logs finished episodes, and writes checkpoints and evaluates
+    right after a policy update (at the start of a rollout), so that a checkpoint's
+    timesteps count exactly the steps its policy was trained on. ``updated_at`` is the
+    timesteps of the last update."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Recorder(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.updated_at = self.num_timesteps
+            self.next_checkpoint = _next_multiple(self.num_timesteps, config.checkpoint_every)
+            self.next_eval = _next_multiple(self.num_timesteps, config.eval_every)
+
+        def _on_rollout_start(self) -> None:
+            self.updated_at = self.num_timesteps
+            if self.next_checkpoint is not None and self.num_timesteps >= self.next_checkpoint:
+                checkpoint(self.model, out)
+                self.next_checkpoint = _next_multiple(self.num_timesteps, config.checkpoint_every)
+            if self.next_eval is not None and self.num_timesteps >= self.next_eval:
+                record = evaluate(config, checkpoint(self.model, out), self.num_timesteps)
+                _append_jsonl(out / EVALUATIONS, record)
+                console.print(_evaluation_line(record))
+                self.next_eval = _next_multiple(self.num_timesteps, config.eval_every)
+
+        def _on_step(self) -> bool:
+            for copy, (done, info) in enumerate(zip(self.locals["dones"], self.locals["infos"])):
+                if done and "episode" in info:
+                    episode = info["episode"]
+                    _append_jsonl(out / EPISODES, {
+                        "timesteps": int(self.num_timesteps), "env": copy, "slot": copy % config.cars,
+                        "return": float(episode["r"]), "length": int(episode["l"]),
+                        "finished": bool(episode["finished"]), "place": int(episode["position"]),
+                        "out": bool(episode["out"]), "finish_time": episode["finish_time"],
+                        "truncated": bool(info.get("TimeLimit.truncated", False))})
+            return True
+
+    return Recorder()
+
+
+def _next_multiple(steps: int, every: int) -> int | None:
+    return None if every == 0 else (steps // every + 1) * every
+
+
+def checkpoint(model, out: Path) -> Path:
+    """Save ``checkpoints/step_<timesteps>.zip`` (with what a resumption needs); only the
+    latest checkpoint keeps an off-policy replay buffer (they are large)."""
+    path = out / CHECKPOINTS / f"step_{model.num_timesteps:09d}.zip"
+    save_policy(model, model.get_env(), path, replay_buffer=True)
+    for old in (out / CHECKPOINTS).glob("*.replay_buffer.pkl"):
+        if old != _replay_buffer_path(path):
+            old.unlink()
+    return path
+
+
+def _evaluation_line(record: dict[str, Any]) -> str:
+    margin = "-" if record["mean_margin_s"] is None else f"{record['mean_margin_s']:+.2f} s"
+    return (f"[bold]evaluation at {record['timesteps']:,} steps[/]: won {record['wins']}/{record['races']}, "
+            f"finished {record['finished']}/{record['races']}, mean margin {margin}, "
+            f"mean distance {record['mean_distance']:.0f} m, contact steps {record['contact_steps']}, "
+            f"off track {record['time_off_track_s']:.1f} s")
+
+
+def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] | None):
+    """A new model, the ``init_model`` to train further, or the checkpointed one, with its
+    env statistics and (off-policy) replay buffer."""
+    import stable_baselines3 as sb3
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    algo = getattr(sb3, config.algo.upper())
+    venv = make_training_env(config)
+    hyperparameters = dict(config.hyperparameters)
+    if resume_from is not None:
+        steps, path = resume_from
+        if config.normalize:
+            venv = VecNormalize.load(str(vecnormalize_path(path)), venv)
+        model = algo.load(path, env=venv, device="cpu")
+        if _replay_buffer_path(path).exists():
+            model.load_replay_buffer(_replay_buffer_path(path))
+        venv.seed(config.seed + steps)  # the resumed episodes start from grids of their own
+        return model
+    if config.init_model is None:
+        try:
+            return algo("MlpPolicy", VecNormalize(venv) if config.normalize else venv, seed=config.seed,
+                        device="cpu", verbose=0, **hyperparameters)
+        except (TypeError, ValueError, AssertionError) as err:
+            raise ValueError(f"{config.algo} refused the hyperparameters {hyperparameters}: {err}") from err
+    stats = vecnormalize_path(config.init_model)
+    if config.normalize != stats.exists():
+        raise ValueError(f"init_model {config.init_model} was trained {'with' if stats.exists() else 'without'} "
+                         f"VecNormalize (statistics {'found' if stats.exists() else 'not found'} at {stats}); "
+                         f"train it further with{'' if stats.exists() else ' --no-normalize'}")
+    try:
+        if config.normalize:
+            venv = VecNormalize.load(str(stats), venv)
+        model = algo.load(config.init_model, env=venv, device="cpu", **hyperparameters)
+    except (TypeError, ValueError, AssertionError, KeyError, AttributeError) as err:  # e.g. a PPO zip for SAC
+        raise ValueError(f"{config.algo} cannot train {config.init_model} further in this race "
+                         f"(hyperparameters {hyperparameters}): {err}") from err
+    model.num_timesteps = 0  # this run's steps count from zero
+    model.set_random_seed(config.seed)
+    return model
+
+
+def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: bool = True) -> dict[str, Any]:
+    """Train (or resume) into ``out``; returns the report also written to ``train.json``
+    (``"status"``: ``completed`` or ``interrupted``, the latter after Ctrl-C, not raised)."""
+    import shutil
+
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    for spec in config.opponents:  # an unknown spec or a missing model fails before any training
+        make_agent(spec)
+    config_path = out / CONFIG
+    if fresh and out.exists():
+        for name in (CONFIG, EPISODES, EVALUATIONS, MODEL, "learning_curve.png"):
+            (out / name).unlink(missing_ok=True)
+        vecnormalize_path(out / MODEL).unlink(missing_ok=True)
+        shutil.rmtree(out / CHECKPOINTS, ignore_errors=True)
+    wanted = _config_json(config)
+    resume_from = latest_checkpoint(out)
+    if config_path.exists():
+        previous = json.loads(config_path.read_text())["config"]
+        differs = sorted(k for k in wanted if k not in _RESUMABLE_CHANGES and previous.get(k) != wanted[k])
+        if differs and (resume_from or (out / EPISODES).exists()):
+            raise ValueError(f"{out} holds a training run with other settings ({', '.join(differs)}); "
+                             "use another --out folder or --fresh to start over")
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict[str, Any] = {"config": wanted, "status": "running", "timesteps": 0}
+    model = _build_model(config, out, resume_from)
+    if resume_from is not None:
+        console.print(f"resuming from {resume_from[1]} ({resume_from[0]:,} of {config.timesteps:,} steps)")
+        _drop_episodes_after(out, resume_from[0])
+    write_json_atomically(report, config_path)
+    remaining = config.timesteps - model.num_timesteps
+    started = time.perf_counter()
+    recorder = _training_callback(config, out, console)
+    try:
+        if remaining > 0:
+            with warnings.catch_warnings():  # SB3's progress bar is tqdm's rich bar, which calls itself experimental
+                warnings.filterwarnings("ignore", message="rich is experimental")
+                model.learn(remaining, callback=recorder, reset_num_timesteps=False, progress_bar=progress)
+            checkpoint(model, out)  # so that running the command again finds the run complete
+        save_policy(model, model.get_env(), out / MODEL)
+        evaluations = read_jsonl(out / EVALUATIONS)
+        if not evaluations or evaluations[-1]["timesteps"] != model.num_timesteps:
+            record = evaluate(config, out / MODEL, model.num_timesteps)
+            _append_jsonl(out / EVALUATIONS, record)
+            console.print(_evaluation_line(record))
+        report["status"] = "completed"
+    except KeyboardInterrupt:
+        # the steps collected since the last update are not trained on: they are collected again
+        model.num_timesteps = getattr(recorder, "updated_at", model.num_timesteps)
+        checkpoint(model, out)
+        _drop_episodes_after(out, model.num_timesteps)
+        report["status"] = "interrupted"
+        console.print(f"interrupted at {model.num_timesteps:,} steps: checkpoint saved; run the same command "
+                      "to resume")
+    report["timesteps"] = int(model.num_timesteps)
+    report["wall_s"] = time.perf_counter() - started
+    evaluations = read_jsonl(out / EVALUATIONS)
+    report["final_evaluation"] = evaluations[-1] if evaluations else None
+    write_json_atomically(report, config_path)
+    plot_learning_curve(read_jsonl(out / EPISODES), evaluations, out / "learning_curve.png",
+                        title=f"{config.algo.upper()} vs {', '.join(config.opponents)} on {Path(config.track).stem}")
+    model.get_env().close()
+    if report["status"] == "completed":
+        console.print(f"wrote {out / MODEL} (race it: racing tournament --agents rl:{out / MODEL} "
+                      f"{' '.join(dict.fromkeys(config.opponents))}), {out / 'learning_curve.png'}, "
+                      f"{out / EVALUATIONS}")
+    return report
+
+
+def plot_learning_curve(episodes: list[dict[str, Any]], evaluations: list[dict[str, Any]], path: Path,
+                        title: str = "") -> None:
+    """Two panels against timesteps: training episode returns (with a moving mean) and the
+    share of training episodes finished; the evaluations' win rate and finished share."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
+    if episodes:
+        steps = np.array([e["timesteps"] for e in episodes])
+        returns = np.array([e["return"] for e in episodes])
+        done = np.array([e["finished"] for e in episodes], dtype=float)
+        window = max(1, min(100, len(episodes) // 10))
+        kernel = np.ones(window) / window
+        top.plot(steps, returns, ".", ms=2, alpha=0.3, color="tab:blue", label="episode return")
+        if len(episodes) >= window:
+            top.plot(steps[window - 1:], np.convolve(returns, kernel, "valid"), color="tab:blue",
+                     label=f"mean of {window}")
+            bottom.plot(steps[window - 1:], np.convolve(done, kernel, "valid"), color="tab:gray",
+                        label=f"training episodes finished (mean of {window})")
+    top.set_ylabel("return")
+    top.legend(loc="lower right", fontsize=8)
+    if evaluations:
+        steps = [e["timesteps"] for e in evaluations]
+        bottom.plot(steps, [e["win_rate"] for e in evaluations], "o-", color="tab:red", label="evaluation: won")
+        bottom.plot(steps, [e["finished"] / e["races"] for e in evaluations], "s--", color="tab:green",
+                    label="evaluation: finished")
+    bottom.set_ylim(-0.05, 1.05)
+    bottom.set_ylabel("fraction")
+    bottom.set_xlabel("timesteps")
+    bottom.legend(loc="upper left", fontsize=8)
+    top.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

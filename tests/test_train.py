@@ -1,0 +1,209 @@
+"""`racing train`: real stable-baselines3 training against the racing agents, its outputs,
+determinism, resumption after Ctrl-C, and refused settings."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from experiments import train_rl
+from experiments.cli import main
+from experiments.train_rl import TrainConfig, run_training
+from planners.agents import SB3Agent, make_agent, vecnormalize_path
+
+# A short race and small PPO rollouts: 2 copies x 256 steps = one update per 512 steps.
+TINY = dict(opponents=("lane-keeping",), timesteps=1024, race_distance=150.0, max_steps=200, envs=2,
+            checkpoint_every=512, eval_every=512, eval_grids=1,
+            hyperparameters=(("n_steps", 256), ("batch_size", 64), ("n_epochs", 2)))
+TINY_ARGS = ["train", "--race-distance", "150", "--max-steps", "200", "--eval-grids", "1",
+             "--hyperparameter", "n_steps=256", "--hyperparameter", "batch_size=64",
+             "--hyperparameter", "n_epochs=2", "--no-compile-cache"]
+
+
+def _policy_parameters(path):
+    return make_agent(f"rl:ppo:{path}").model.policy.state_dict()
+
+
+def test_training_writes_checkpoints_logs_and_a_model_that_races(tmp_path):
+    report = run_training(TrainConfig(**TINY), tmp_path, progress=False)
+    assert report["status"] == "completed" and report["timesteps"] == 1024
+    assert json.loads((tmp_path / "train.json").read_text()) == json.loads(json.dumps(report))
+    steps = [p.name for p in sorted((tmp_path / "checkpoints").glob("step_*.zip"))]
+    assert steps == ["step_000000512.zip", "step_000001024.zip"]
+    assert all(vecnormalize_path(tmp_path / "checkpoints" / name).exists() for name in steps)
+
+    episodes = train_rl.read_jsonl(tmp_path / "episodes.jsonl")
+    assert episodes, "no training episode ended in 1,024 steps"
+    for copy in (0, 1):  # each copy's episodes: in order, in its own slot, no more steps than it took
+        mine = [e for e in episodes if e["env"] == copy]
+        assert all(e["slot"] == copy for e in mine)
+        assert [e["timesteps"] for e in mine] == sorted(e["timesteps"] for e in mine)
+        assert sum(e["length"] for e in mine) <= 1024 // 2
+    assert all(e["out"] or e["finished"] or e["truncated"] for e in episodes)
+
+    evaluations = train_rl.read_jsonl(tmp_path / "evaluations.jsonl")
+    assert [e["timesteps"] for e in evaluations] == [512, 1024]
+    assert all(e["races"] == 2 and e["errors"] == [] for e in evaluations)
+    assert report["final_evaluation"] == evaluations[-1]
+    # an evaluation is a function of the saved policy: re-running it gives the same record
+    assert train_rl.evaluate(TrainConfig(**TINY), tmp_path / "checkpoints" / steps[-1], 1024) == evaluations[-1]
+    assert (tmp_path / "learning_curve.png").stat().st_size > 0
+
+    # the final model is the last checkpoint, and as an agent it applies the saved
+    # VecNormalize statistics exactly as SB3's own VecNormalize.load does on the training env
+    final = _policy_parameters(tmp_path / "model.zip")
+    last = _policy_parameters(tmp_path / "checkpoints" / steps[-1])
+    assert all(torch.equal(final[k], last[k]) for k in final)
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    agent = make_agent(f"rl:{tmp_path / 'model.zip'}")
+    assert isinstance(agent, SB3Agent) and agent.normalizer is not None
+    reference = VecNormalize.load(str(vecnormalize_path(tmp_path / "model.zip")),
+                                  train_rl.make_training_env(TrainConfig(**TINY)))
+    reference.training = False
+    env = reference.venv.envs[0]
+    obs, _ = env.reset(seed=3)
+    agent.reset(3, 0, env.unwrapped)
+    for _ in range(20):
+        expected, _ = agent.model.predict(reference.normalize_obs(obs), deterministic=True)
+        action = agent.act(obs, env.unwrapped.race.state())
+        np.testing.assert_array_equal(action, np.clip(expected, -1, 1).astype(np.float32))
+        obs, *_ = env.step(action)
+    assert not any(h["fallback"] for h in agent.history)
+
+
+def test_training_is_deterministic(tmp_path):
+    config = TrainConfig(**{**TINY, "timesteps": 512, "eval_every": 0})
+    for name in ("a", "b"):
+        run_training(config, tmp_path / name, progress=False)
+    assert (tmp_path / "a" / "episodes.jsonl").read_text() == (tmp_path / "b" / "episodes.jsonl").read_text()
+    assert (tmp_path / "a" / "evaluations.jsonl").read_text() == (tmp_path / "b" / "evaluations.jsonl").read_text()
+    a, b = _policy_parameters(tmp_path / "a" / "model.zip"), _policy_parameters(tmp_path / "b" / "model.zip")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_interrupted_training_process_resumes(tmp_path):
+    """SIGINT a real `racing train` process after its first checkpoint: it saves a
+    checkpoint where it stopped and exits with 130; the same command with a larger
+    --timesteps resumes from there; other settings are refused."""
+    out = tmp_path / "run"
+    args = [*TINY_ARGS, "--eval-every", "0", "--checkpoint-every", "512", "--out", str(out)]
+    process = subprocess.Popen([sys.executable, "-m", "experiments.cli", *args, "--timesteps", "200000"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline and process.poll() is None:
+            if (out / "checkpoints" / "step_000000512.zip").exists():
+                break
+            time.sleep(0.05)
+        assert process.poll() is None, "training ended before it could be interrupted"
+        process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, err
+    report = json.loads((out / "train.json").read_text())
+    assert report["status"] == "interrupted"
+    stopped = report["timesteps"]
+    assert stopped >= 512
+    assert train_rl.latest_checkpoint(out)[0] == stopped
+    assert all(e["timesteps"] <= stopped for e in train_rl.read_jsonl(out / "episodes.jsonl"))
+
+    assert main([*args, "--seed", "1"]) == 2  # another seed is another run
+    target = stopped + 512
+    assert main([*args, "--timesteps", str(target)]) == 0
+    report = json.loads((out / "train.json").read_text())
+    assert report["status"] == "completed" and report["timesteps"] >= target
+    assert train_rl.latest_checkpoint(out)[0] == report["timesteps"]
+    # run again: nothing left to train, nothing re-run
+    before = (out / "episodes.jsonl").read_text()
+    assert main([*args, "--timesteps", str(target)]) == 0
+    assert (out / "episodes.jsonl").read_text() == before
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(opponents=()), "at least one opponent"),
+    (dict(algo="dqn"), "algo"),
+    (dict(timesteps=0), "timesteps"),
+    (dict(envs=0), "envs"),
+    (dict(eval_every=-1), "eval_every"),
+    (dict(on_off_track="bounce"), "on_off_track"),
+    (dict(jerk_weight=0.0), "jerk_weight"),
+    (dict(laps=0), "laps"),
+    (dict(hyperparameters=(("nsteps", 64),)), "no hyperparameter 'nsteps'"),
+])
+def test_bad_settings_are_refused(bad, message):
+    with pytest.raises(ValueError, match=message):
+        TrainConfig(**{**TINY, **bad})
+
+
+def test_bad_command_lines_fail_before_training(tmp_path, capsys):
+    cases = [
+        (["--opponents", "wizard"], "unknown agent spec 'wizard'"),
+        (["--opponents", f"rl:{tmp_path / 'missing.zip'}"], "could not load"),
+        (["--hyperparameter", "n_steps"], "NAME=VALUE"),
+        (["--hyperparameter", "n_steps=-4"], "refused the hyperparameters"),
+        (["--track", str(tmp_path / "nowhere.csv")], "nowhere.csv"),
+    ]
+    for extra, message in cases:
+        out = tmp_path / "out"
+        assert main([*TINY_ARGS, "--timesteps", "512", "--out", str(out), *extra]) == 2, extra
+        assert message in capsys.readouterr().err, extra
+        assert not (out / "checkpoints").exists()
+
+
+def test_parse_hyperparameter():
+    assert train_rl.parse_hyperparameter("n_steps=1024") == ("n_steps", 1024)
+    assert train_rl.parse_hyperparameter("learning-rate=3e-4") == ("learning_rate", 3e-4)
+    assert train_rl.parse_hyperparameter("policy_kwargs={'net_arch': [64, 64]}") == (
+        "policy_kwargs", {"net_arch": [64, 64]})
+    assert train_rl.parse_hyperparameter("device=cpu") == ("device", "cpu")
+
+
+def test_summarize_evaluation_counts_the_learner_slot():
+    def car(place, finish, distance, contact=0, off=0.0, error=None):
+        return {"place": place, "finish_time": finish, "distance": distance, "collision_steps": contact,
+                "time_off_track": off, "error": error}
+
+    races = [
+        (0, {"cars": [car(1, 60.0, 500.0, contact=2), car(2, 61.5, 500.0)]}),  # learner in front, wins by 1.5 s
+        (1, {"cars": [car(1, 59.0, 500.0), car(2, None, 420.0, off=3.0)]}),    # learner behind, did not finish
+    ]
+    record = train_rl.summarize_evaluation(races, timesteps=4096)
+    assert record == {"timesteps": 4096, "races": 2, "wins": 1, "win_rate": 0.5, "mean_place": 1.5,
+                      "finished": 1, "mean_margin_s": 1.5, "mean_distance": 460.0, "contact_steps": 2,
+                      "time_off_track_s": 3.0, "errors": []}
+
+
+def test_init_model_is_trained_further(tmp_path):
+    """--init-model starts from the saved policy and its VecNormalize statistics, counts
+    its own steps from zero, and refuses a model it cannot continue."""
+    first = tmp_path / "first"
+    run_training(TrainConfig(**{**TINY, "timesteps": 512, "eval_every": 0}), first, progress=False)
+    saved = first / "model.zip"
+    config = TrainConfig(**{**TINY, "timesteps": 512, "eval_every": 0, "init_model": str(saved)})
+    model = train_rl._build_model(config, tmp_path / "second", None)
+    start, reference = model.policy.state_dict(), _policy_parameters(saved)
+    assert model.num_timesteps == 0 and all(torch.equal(start[k], reference[k]) for k in start)
+    stats = make_agent(f"rl:{saved}").normalizer.obs_rms
+    np.testing.assert_array_equal(model.get_env().obs_rms.mean, stats.mean)
+    model.get_env().close()
+
+    with pytest.raises(ValueError, match="trained with VecNormalize"):
+        train_rl._build_model(TrainConfig(**{**TINY, "init_model": str(saved), "normalize": False}), tmp_path, None)
+    with pytest.raises(ValueError, match="cannot train .* further in this race .* \\(30,\\) != \\(37,\\)"):  # a 3-car race
+        train_rl._build_model(TrainConfig(**{**TINY, "init_model": str(saved),
+                                             "opponents": ("lane-keeping", "constant-speed")}), tmp_path, None)
+    with pytest.raises(ValueError, match="does not exist"):
+        TrainConfig(**{**TINY, "init_model": str(tmp_path / "none.zip")})
+    with pytest.raises(ValueError, match="sac cannot train .* further"):
+        train_rl._build_model(TrainConfig(**{**TINY, "hyperparameters": (), "algo": "sac",
+                                             "init_model": str(saved)}), tmp_path, None)
