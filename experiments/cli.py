@@ -1,4 +1,4 @@
-"""The `racing` command line: demo, paper, tournament, train, convergence, bench."""
+"""The `racing` command line: demo, paper, tournament, train, sweep, convergence, bench."""
 
 from __future__ import annotations
 
@@ -90,7 +90,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     config = TrainConfig(
         opponents=tuple(a for part in args.opponents for a in part.split(",") if a), algo=args.algo,
         timesteps=args.timesteps, track=args.track, laps=args.laps, race_distance=args.race_distance,
-        max_steps=args.max_steps, seed=args.seed, envs=args.envs, normalize=args.normalize,
+        max_steps=args.max_steps, seed=args.seed, envs=args.envs, subprocesses=args.subprocesses,
+        normalize=args.normalize,
         on_off_track=args.off_track, on_collision=args.collision, checkpoint_every=args.checkpoint_every,
         eval_every=args.eval_every, eval_grids=args.eval_grids,
         reward=tuple(parse_reward_weight(text) for text in args.reward or ()), init_model=args.init_model,
@@ -99,6 +100,21 @@ def _cmd_train(args: argparse.Namespace) -> int:
     )
     report = run_training(config, Path(args.out), fresh=args.fresh)
     return 130 if report["status"] == "interrupted" else 0
+
+
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from experiments.sweep import load_sweep, run_sweep
+
+    config = load_sweep(Path(args.file))
+    if args.backend == "ray":
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            raise ValueError("the ray backend needs Ray: pip install 'racing-games[ray]'") from None
+    out = Path(args.out) if args.out else Path("runs/sweep") / Path(args.file).stem
+    report = run_sweep(config, out, backend=args.backend, workers=args.workers, address=args.address,
+                       fresh=args.fresh)
+    return 130 if report["interrupted"] else 0
 
 
 def _compile_cache_option() -> argparse.ArgumentParser:
@@ -240,6 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--seed", type=int, default=0, help="seed of the policy and the start grids (default: 0)")
     train.add_argument("--envs", type=int, default=2,
                        help="copies of the race stepped side by side; copy k starts in slot k mod cars (default: 2)")
+    train.add_argument("--subprocesses", action="store_true",
+                       help="step each copy of the race in a worker process of its own: against planner "
+                       "opponents their solves then use every core (same results as in one process)")
     train.add_argument("--no-normalize", dest="normalize", action="store_false",
                        help="do not normalise observations and rewards (VecNormalize)")
     train.add_argument("--off-track", default="terminate", choices=["penalty", "terminate", "both", "ignore"],
@@ -267,6 +286,26 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--out", default="runs/train", help="output folder (default: runs/train)")
     train.add_argument("--fresh", action="store_true", help="discard an earlier run in --out and start over")
     train.set_defaults(func=_cmd_train)
+
+    sweep = sub.add_parser(
+        "sweep", parents=[cache],
+        help="races over a grid of settings from a TOML file, on local worker processes or a Ray cluster",
+        description="Race a lineup of agents at every combination of the parameters in a TOML file (see "
+        "experiments/sweep.py and the README for its keys), on --grids seeded grids per point, once per rotation "
+        "of the starting slots. Records go to OUT/results.jsonl as races end; rerunning the same command resumes. "
+        "Prints a table per point and agent; writes summary.csv, summary.json and sweep.png. Backends: local "
+        "(--workers processes; 1 runs in this process) or ray (--address of a running cluster, or a local one "
+        "with --workers CPUs).",
+    )
+    sweep.add_argument("file", help="the sweep's TOML file")
+    sweep.add_argument("--backend", choices=["local", "ray"], default="local", help="where races run (default: local)")
+    sweep.add_argument("--workers", type=int, default=1,
+                       help="worker processes (local) or CPUs of a local Ray instance (default: 1)")
+    sweep.add_argument("--address", default=None,
+                       help="Ray cluster to join, e.g. auto or ray://head:10001 (default: start a local one)")
+    sweep.add_argument("--out", default=None, help="output folder (default: runs/sweep/<file name>)")
+    sweep.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")
+    sweep.set_defaults(func=_cmd_sweep)
 
     bench = sub.add_parser(
         "bench", help="performance figures as JSON (stdout) and a table (stderr)",

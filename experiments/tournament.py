@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
 from racing_env.config import RaceConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
 from racing_env.env import RacingParallelEnv
@@ -262,18 +263,9 @@ def plot_head_to_head(table: dict[str, Any], path: Path) -> None:
 
 
 def load_results(out: Path) -> list[dict[str, Any]]:
-    path = out / RESULTS
-    if not path.exists():
-        return []
-    records = []
-    for line in path.read_text().splitlines():
-        line = line.strip()
-        if line:
-            try:
-                records.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue  # a line cut by an interruption: that race is re-run
-    return records
+    """The race records in ``out/results.jsonl`` (a line cut by an interruption is skipped:
+    that race is run again)."""
+    return read_jsonl(out / RESULTS)
 
 
 def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progress: bool = True,
@@ -300,15 +292,14 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     todo = [r for r in races if r["id"] not in done]
     if done:
         console.print(f"resuming: {len(done)} of {len(races)} races already in {out / RESULTS}")
-    with open(out / RESULTS, "a") as sink:
-        for race in tqdm(todo, desc="tournament", disable=not progress):
-            want_gif = gif and not (out / "race.gif").exists()
-            record, frames = run_one_race(config, race, render_every=3 if want_gif else 0)
-            sink.write(json.dumps(record) + "\n")
-            sink.flush()
-            done[record["id"]] = record
-            if want_gif and frames:
-                save_gif(frames, out / "race.gif", fps=10.0 / 3)
+    drop_cut_line(out / RESULTS)
+    for race in tqdm(todo, desc="tournament", disable=not progress):
+        want_gif = gif and not (out / "race.gif").exists()
+        record, frames = run_one_race(config, race, render_every=3 if want_gif else 0)
+        append_jsonl(out / RESULTS, record)
+        done[record["id"]] = record
+        if want_gif and frames:
+            save_gif(frames, out / "race.gif", fps=10.0 / 3)
     records = [done[r["id"]] for r in races if r["id"] in done]
     board = leaderboard(config, records)
     with open(out / "summary.csv", "w", newline="") as handle:

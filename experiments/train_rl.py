@@ -34,6 +34,7 @@ import inspect
 import json
 import os
 import re
+import signal
 import time
 import warnings
 from pathlib import Path
@@ -42,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from experiments.bench import write_json_atomically
+from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
 from planners.agents import SB3_ALGOS, make_agent, vecnormalize_path
 from racing_env.config import INCIDENT_MODES, RaceConfig, RewardConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
@@ -53,7 +55,7 @@ CHECKPOINTS = "checkpoints"
 MODEL = "model.zip"
 _CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
 # the fields of TrainConfig that may change between a run and its resumption
-_RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every")
+_RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,6 +73,9 @@ class TrainConfig:
         seed: seeds the policy, the start grids and the evaluation grids.
         envs: copies of the race stepped side by side; copy ``k`` puts the learner in slot
             ``k % N``.
+        subprocesses: step each copy in a worker process of its own (``SubprocVecEnv``),
+            worth it against planner opponents, whose solves then run on several cores;
+            the results are the same as in one process.
         normalize: train under ``VecNormalize`` (observations and rewards).
         on_off_track / on_collision: the training race's incident rules
             (:data:`racing_env.config.INCIDENT_MODES`). ``terminate`` off track (the default)
@@ -98,6 +103,7 @@ class TrainConfig:
     max_steps: int = 3000
     seed: int = 0
     envs: int = 2
+    subprocesses: bool = False
     normalize: bool = True
     on_off_track: str = "terminate"
     on_collision: str = "penalty"
@@ -224,24 +230,63 @@ def save_policy(model, venv, path: Path, replay_buffer: bool = False) -> None:
         _replace_atomically(lambda tmp: model.save_replay_buffer(tmp), _replay_buffer_path(path))
 
 
+@dataclasses.dataclass(frozen=True)
+class _RaceCopy:
+    """Builds copy ``copy`` of the training race (picklable, for worker processes, which
+    also get the parent's compilation cache so they load the planners it compiled)."""
+
+    config: TrainConfig
+    copy: int
+    in_worker: bool = False
+    compile_cache: str | None = None
+
+    def __call__(self):
+        from stable_baselines3.common.monitor import Monitor
+
+        from racing_env.single_agent import RaceEnv
+
+        if self.in_worker:  # Ctrl-C reaches the whole process group: the parent stops the workers itself
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if self.compile_cache is not None:
+            from planners.compile_cache import enable_compile_cache
+
+            enable_compile_cache(self.compile_cache)
+        race = self.config.race_config()
+        opponents = [make_agent(spec) for spec in self.config.opponents]
+        fields = {f.name: getattr(race, f.name) for f in dataclasses.fields(race)}
+        return Monitor(RaceEnv(opponents=opponents, learner=self.copy % self.config.cars, **fields),
+                       info_keywords=("finished", "position", "out", "finish_time"))
+
+
 def make_training_env(config: TrainConfig):
-    """``config.envs`` monitored copies of the race in a ``DummyVecEnv`` (under
-    ``VecNormalize`` if asked), the learner in slot ``copy % N``, fresh opponent agents each."""
-    from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv
+    """``config.envs`` monitored copies of the race, the learner in slot ``copy % N``, each
+    with opponent agents of its own: a ``DummyVecEnv``, or with ``subprocesses`` a
+    ``SubprocVecEnv`` (one worker process per copy)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    from racing_env.single_agent import RaceEnv
+    from planners.compile_cache import compile_cache_dir
 
-    def make(copy: int):
-        def build():
-            race = config.race_config()
-            opponents = [make_agent(spec) for spec in config.opponents]
-            fields = {f.name: getattr(race, f.name) for f in dataclasses.fields(race)}
-            return Monitor(RaceEnv(opponents=opponents, learner=copy % config.cars, **fields),
-                           info_keywords=("finished", "position", "out", "finish_time"))
-        return build
+    if not config.subprocesses:
+        return DummyVecEnv([_RaceCopy(config, k) for k in range(config.envs)])
+    cache = compile_cache_dir()
+    return _with_float32_rewards(SubprocVecEnv([_RaceCopy(config, k, True, cache) for k in range(config.envs)],
+                                                 start_method="spawn"))
 
-    return DummyVecEnv([make(k) for k in range(config.envs)])
+
+def _with_float32_rewards(venv):
+    """The rewards of a ``SubprocVecEnv`` rounded to float32, as ``DummyVecEnv`` stores
+    them: the observations of the two are identical, so training is too."""
+    from stable_baselines3.common.vec_env import VecEnvWrapper
+
+    class Float32Rewards(VecEnvWrapper):
+        def reset(self):
+            return self.venv.reset()
+
+        def step_wait(self):
+            observations, rewards, dones, infos = self.venv.step_wait()
+            return observations, rewards.astype(np.float32), dones, infos
+
+    return Float32Rewards(venv)
 
 
 def evaluate(config: TrainConfig, model_path: Path, timesteps: int) -> dict[str, Any]:
@@ -295,7 +340,10 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
         if me["finish_time"] is not None and all(c["finish_time"] is not None for c in others):
             margins.append(float(np.mean([c["finish_time"] for c in others])) - me["finish_time"])
     wins = sum(p == 1 for p in places)
+    slots = range(1 + max(slot for slot, _ in races))
+    wins_by_slot = [sum(p == 1 for (s, _), p in zip(races, places) if s == slot) for slot in slots]
     return {"timesteps": int(timesteps), "races": len(races), "wins": wins, "win_rate": wins / len(races),
+            "wins_by_slot": wins_by_slot,
             "mean_place": float(np.mean(places)), "finished": finished,
             "mean_margin_s": float(np.mean(margins)) if margins else None,
             "mean_distance": float(np.mean(distances)), "contact_steps": contact,
@@ -306,24 +354,6 @@ def _drop_episodes_after(out: Path, timesteps: int) -> None:
     """Forget the episodes logged after ``timesteps``: their steps will be collected again."""
     kept = [e for e in read_jsonl(out / EPISODES) if e["timesteps"] <= timesteps]
     _replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EPISODES)
-
-
-def _append_jsonl(path: Path, record: dict[str, Any]) -> None:
-    with open(path, "a") as sink:
-        sink.write(json.dumps(record) + "\n")
-
-
-def read_jsonl(path: Path) -> list[dict[str, Any]]:
-    """The records of a JSONL file; a last line cut by an interruption is skipped."""
-    if not path.exists():
-        return []
-    records = []
-    for line in path.read_text().splitlines():
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    return records
 
 
 def _training_callback(config: TrainConfig, out: Path, console):
@@ -346,7 +376,7 @@ def _training_callback(config: TrainConfig, out: Path, console):
                 self.next_checkpoint = _next_multiple(self.num_timesteps, config.checkpoint_every)
             if self.next_eval is not None and self.num_timesteps >= self.next_eval:
                 record = evaluate(config, checkpoint(self.model, out), self.num_timesteps)
-                _append_jsonl(out / EVALUATIONS, record)
+                append_jsonl(out / EVALUATIONS, record)
                 console.print(_evaluation_line(record))
                 self.next_eval = _next_multiple(self.num_timesteps, config.eval_every)
 
@@ -354,7 +384,7 @@ def _training_callback(config: TrainConfig, out: Path, console):
             for copy, (done, info) in enumerate(zip(self.locals["dones"], self.locals["infos"])):
                 if done and "episode" in info:
                     episode = info["episode"]
-                    _append_jsonl(out / EPISODES, {
+                    append_jsonl(out / EPISODES, {
                         "timesteps": int(self.num_timesteps), "env": copy, "slot": copy % config.cars,
                         "return": float(episode["r"]), "length": int(episode["l"]),
                         "finished": bool(episode["finished"]), "place": int(episode["position"]),
@@ -382,7 +412,9 @@ def checkpoint(model, out: Path) -> Path:
 
 def _evaluation_line(record: dict[str, Any]) -> str:
     margin = "-" if record["mean_margin_s"] is None else f"{record['mean_margin_s']:+.2f} s"
-    return (f"[bold]evaluation at {record['timesteps']:,} steps[/]: won {record['wins']}/{record['races']}, "
+    by_slot = ", ".join(str(w) for w in record["wins_by_slot"])
+    return (f"[bold]evaluation at {record['timesteps']:,} steps[/]: won {record['wins']}/{record['races']} "
+            f"(by starting slot: {by_slot}), "
             f"finished {record['finished']}/{record['races']}, mean margin {margin}, "
             f"mean distance {record['mean_distance']:.0f} m, contact steps {record['contact_steps']}, "
             f"off track {record['time_off_track_s']:.1f} s")
@@ -460,6 +492,7 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
         console.print(f"resuming from {resume_from[1]} ({resume_from[0]:,} of {config.timesteps:,} steps)")
         _drop_episodes_after(out, resume_from[0])
     write_json_atomically(report, config_path)
+    drop_cut_line(out / EVALUATIONS)
     remaining = config.timesteps - model.num_timesteps
     started = time.perf_counter()
     recorder = _training_callback(config, out, console)
@@ -468,12 +501,13 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
             with warnings.catch_warnings():  # SB3's progress bar is tqdm's rich bar, which calls itself experimental
                 warnings.filterwarnings("ignore", message="rich is experimental")
                 model.learn(remaining, callback=recorder, reset_num_timesteps=False, progress_bar=progress)
+            recorder.updated_at = model.num_timesteps  # learn ends with an update
             checkpoint(model, out)  # so that running the command again finds the run complete
         save_policy(model, model.get_env(), out / MODEL)
         evaluations = read_jsonl(out / EVALUATIONS)
         if not evaluations or evaluations[-1]["timesteps"] != model.num_timesteps:
             record = evaluate(config, out / MODEL, model.num_timesteps)
-            _append_jsonl(out / EVALUATIONS, record)
+            append_jsonl(out / EVALUATIONS, record)
             console.print(_evaluation_line(record))
         report["status"] = "completed"
     except KeyboardInterrupt:
@@ -491,7 +525,7 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     write_json_atomically(report, config_path)
     plot_learning_curve(read_jsonl(out / EPISODES), evaluations, out / "learning_curve.png",
                         title=f"{config.algo.upper()} vs {', '.join(config.opponents)} on {Path(config.track).stem}")
-    model.get_env().close()
+    _close(model.get_env(), interrupted=report["status"] == "interrupted")
     if report["status"] == "completed":
         console.print(f"wrote {out / MODEL} (race it: racing tournament --agents rl:{out / MODEL} "
                       f"{' '.join(dict.fromkeys(config.opponents))}), {out / 'learning_curve.png'}, "
@@ -499,16 +533,32 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     return report
 
 
+def _close(venv, interrupted: bool) -> None:
+    """Close the training envs. After Ctrl-C, worker processes are terminated instead: the
+    interrupt may have cut a step between two workers' replies, and a polite close would
+    then wait for a reply that never comes."""
+    from stable_baselines3.common.vec_env import SubprocVecEnv
+
+    inner = venv.unwrapped
+    if interrupted and isinstance(inner, SubprocVecEnv):
+        for process in inner.processes:
+            process.terminate()
+            process.join()
+        return
+    venv.close()
+
+
 def plot_learning_curve(episodes: list[dict[str, Any]], evaluations: list[dict[str, Any]], path: Path,
                         title: str = "") -> None:
-    """Two panels against timesteps: training episode returns (with a moving mean) and the
-    share of training episodes finished; the evaluations' win rate and finished share."""
+    """Three panels against timesteps: training episode returns (with a moving mean); the
+    share of training episodes finished and the evaluations' win and finish rates; the
+    evaluations' mean finish-time margin over the opponents [s] (races all cars finished)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
+    fig, (top, middle, bottom) = plt.subplots(3, 1, figsize=(8, 8.5), sharex=True)
     if episodes:
         steps = np.array([e["timesteps"] for e in episodes])
         returns = np.array([e["return"] for e in episodes])
@@ -516,22 +566,29 @@ def plot_learning_curve(episodes: list[dict[str, Any]], evaluations: list[dict[s
         window = max(1, min(100, len(episodes) // 10))
         kernel = np.ones(window) / window
         top.plot(steps, returns, ".", ms=2, alpha=0.3, color="tab:blue", label="episode return")
-        if len(episodes) >= window:
-            top.plot(steps[window - 1:], np.convolve(returns, kernel, "valid"), color="tab:blue",
-                     label=f"mean of {window}")
-            bottom.plot(steps[window - 1:], np.convolve(done, kernel, "valid"), color="tab:gray",
-                        label=f"training episodes finished (mean of {window})")
+        top.plot(steps[window - 1:], np.convolve(returns, kernel, "valid"), color="tab:blue",
+                 label=f"mean of {window}")
+        middle.plot(steps[window - 1:], np.convolve(done, kernel, "valid"), color="tab:gray",
+                    label=f"training episodes finished (mean of {window})")
+        top.legend(loc="lower right", fontsize=8)
     top.set_ylabel("return")
-    top.legend(loc="lower right", fontsize=8)
     if evaluations:
         steps = [e["timesteps"] for e in evaluations]
-        bottom.plot(steps, [e["win_rate"] for e in evaluations], "o-", color="tab:red", label="evaluation: won")
-        bottom.plot(steps, [e["finished"] / e["races"] for e in evaluations], "s--", color="tab:green",
+        middle.plot(steps, [e["win_rate"] for e in evaluations], "o-", color="tab:red", label="evaluation: won")
+        middle.plot(steps, [e["finished"] / e["races"] for e in evaluations], "s--", color="tab:green",
                     label="evaluation: finished")
-    bottom.set_ylim(-0.05, 1.05)
-    bottom.set_ylabel("fraction")
+        timed = [(e["timesteps"], e["mean_margin_s"]) for e in evaluations if e["mean_margin_s"] is not None]
+        if timed:
+            bottom.plot(*zip(*timed), "o-", color="tab:purple", label="evaluation: mean margin")
+    bottom.axhline(0.0, color="black", lw=0.8)
+    bottom.set_ylabel("finish margin [s]\n(> 0: ahead)")
     bottom.set_xlabel("timesteps")
-    bottom.legend(loc="upper left", fontsize=8)
+    middle.set_ylim(-0.05, 1.05)
+    middle.set_ylabel("fraction")
+    if middle.lines:
+        middle.legend(loc="lower right", fontsize=8)
+    if len(bottom.lines) > 1:  # more than the zero line
+        bottom.legend(loc="lower right", fontsize=8)
     top.set_title(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -5,7 +5,7 @@ converged solve. With the cache on, a process that needs a solver another proces
 already compiled (same shapes, options and jaxlib) loads it from disk instead::
 
     import planners.compile_cache
-    planners.compile_cache.enable_compile_cache()   # `racing demo|paper|tournament` do this
+    planners.compile_cache.enable_compile_cache()   # `racing demo|paper|tournament|train|convergence` do this
 
 Where the cache lives, in order: the ``directory`` argument; the environment variable
 ``RACING_COMPILE_CACHE`` (a directory, or ``off`` to disable the cache); a directory the

@@ -133,10 +133,13 @@ def test_interrupted_tournament_resumes_without_rerunning_and_matches(tmp_path, 
         tour.run_tournament(config, tmp_path / "cut", gif=False, progress=False)
     before = (tmp_path / "cut" / tour.RESULTS).read_text().splitlines()
     assert 0 < len(before) < len(tour.schedule(config))
+    with open(tmp_path / "cut" / tour.RESULTS, "a") as sink:
+        sink.write('{"id": "lane-keeping|constant-sp')  # a record cut mid-write by a kill
     resumed = tour.run_tournament(config, tmp_path / "cut", gif=False, progress=False)
     after = (tmp_path / "cut" / tour.RESULTS).read_text().splitlines()
     assert after[: len(before)] == before  # finished races were not re-run (timings would differ)
-    assert len(after) == len(tour.schedule(config))
+    assert len(after) == len(tour.schedule(config))  # the cut line is gone, every record whole
+    assert len(tour.load_results(tmp_path / "cut")) == len(after)
     InterruptingAgent.armed = False
     full = tour.run_tournament(config, tmp_path / "full", gif=False, progress=False)
     assert _without_timing(resumed) == _without_timing(full)

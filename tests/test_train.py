@@ -3,7 +3,9 @@ determinism, resumption after Ctrl-C, and refused settings."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -15,6 +17,7 @@ import torch
 
 from experiments import train_rl
 from experiments.cli import main
+from experiments.jsonl import read_jsonl
 from experiments.train_rl import TrainConfig, run_training
 from planners.agents import SB3Agent, make_agent, vecnormalize_path
 
@@ -39,7 +42,7 @@ def test_training_writes_checkpoints_logs_and_a_model_that_races(tmp_path):
     assert steps == ["step_000000512.zip", "step_000001024.zip"]
     assert all(vecnormalize_path(tmp_path / "checkpoints" / name).exists() for name in steps)
 
-    episodes = train_rl.read_jsonl(tmp_path / "episodes.jsonl")
+    episodes = read_jsonl(tmp_path / "episodes.jsonl")
     assert episodes, "no training episode ended in 1,024 steps"
     for copy in (0, 1):  # each copy's episodes: in order, in its own slot, no more steps than it took
         mine = [e for e in episodes if e["env"] == copy]
@@ -48,7 +51,7 @@ def test_training_writes_checkpoints_logs_and_a_model_that_races(tmp_path):
         assert sum(e["length"] for e in mine) <= 1024 // 2
     assert all(e["out"] or e["finished"] or e["truncated"] for e in episodes)
 
-    evaluations = train_rl.read_jsonl(tmp_path / "evaluations.jsonl")
+    evaluations = read_jsonl(tmp_path / "evaluations.jsonl")
     assert [e["timesteps"] for e in evaluations] == [512, 1024]
     assert all(e["races"] == 2 and e["errors"] == [] for e in evaluations)
     assert report["final_evaluation"] == evaluations[-1]
@@ -79,24 +82,28 @@ def test_training_writes_checkpoints_logs_and_a_model_that_races(tmp_path):
     assert not any(h["fallback"] for h in agent.history)
 
 
-def test_training_is_deterministic(tmp_path):
+def test_training_is_deterministic_in_one_process_or_several(tmp_path):
     config = TrainConfig(**{**TINY, "timesteps": 512, "eval_every": 0})
-    for name in ("a", "b"):
-        run_training(config, tmp_path / name, progress=False)
+    run_training(config, tmp_path / "a", progress=False)
+    run_training(dataclasses.replace(config, subprocesses=True), tmp_path / "b", progress=False)
     assert (tmp_path / "a" / "episodes.jsonl").read_text() == (tmp_path / "b" / "episodes.jsonl").read_text()
     assert (tmp_path / "a" / "evaluations.jsonl").read_text() == (tmp_path / "b" / "evaluations.jsonl").read_text()
     a, b = _policy_parameters(tmp_path / "a" / "model.zip"), _policy_parameters(tmp_path / "b" / "model.zip")
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
-def test_interrupted_training_process_resumes(tmp_path):
-    """SIGINT a real `racing train` process after its first checkpoint: it saves a
-    checkpoint where it stopped and exits with 130; the same command with a larger
-    --timesteps resumes from there; other settings are refused."""
+@pytest.mark.parametrize("subprocesses", [False, True], ids=["one-process", "worker-processes"])
+def test_interrupted_training_process_resumes(tmp_path, subprocesses):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) on a real `racing train`
+    after its first checkpoint: it saves a checkpoint where it stopped, exits with 130 and
+    leaves no process behind; the same command with a larger --timesteps resumes from
+    there; other settings are refused."""
     out = tmp_path / "run"
     args = [*TINY_ARGS, "--eval-every", "0", "--checkpoint-every", "512", "--out", str(out)]
-    process = subprocess.Popen([sys.executable, "-m", "experiments.cli", *args, "--timesteps", "200000"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    extra = ["--subprocesses"] if subprocesses else []
+    process = subprocess.Popen([sys.executable, "-m", "experiments.cli", *args, *extra, "--timesteps", "200000"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
     try:
         deadline = time.monotonic() + 180
         while time.monotonic() < deadline and process.poll() is None:
@@ -104,8 +111,17 @@ def test_interrupted_training_process_resumes(tmp_path):
                 break
             time.sleep(0.05)
         assert process.poll() is None, "training ended before it could be interrupted"
-        process.send_signal(signal.SIGINT)
+        os.killpg(process.pid, signal.SIGINT)
         _, err = process.communicate(timeout=120)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            try:
+                os.killpg(process.pid, 0)  # anyone left in the group?
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail("processes of the interrupted run are still alive")
     finally:
         if process.poll() is None:
             process.kill()
@@ -115,7 +131,7 @@ def test_interrupted_training_process_resumes(tmp_path):
     stopped = report["timesteps"]
     assert stopped >= 512
     assert train_rl.latest_checkpoint(out)[0] == stopped
-    assert all(e["timesteps"] <= stopped for e in train_rl.read_jsonl(out / "episodes.jsonl"))
+    assert all(e["timesteps"] <= stopped for e in read_jsonl(out / "episodes.jsonl"))
 
     assert main([*args, "--seed", "1"]) == 2  # another seed is another run
     target = stopped + 512
@@ -178,7 +194,8 @@ def test_summarize_evaluation_counts_the_learner_slot():
         (1, {"cars": [car(1, 59.0, 500.0), car(2, None, 420.0, off=3.0)]}),    # learner behind, did not finish
     ]
     record = train_rl.summarize_evaluation(races, timesteps=4096)
-    assert record == {"timesteps": 4096, "races": 2, "wins": 1, "win_rate": 0.5, "mean_place": 1.5,
+    assert record == {"timesteps": 4096, "races": 2, "wins": 1, "win_rate": 0.5, "wins_by_slot": [1, 0],
+                      "mean_place": 1.5,
                       "finished": 1, "mean_margin_s": 1.5, "mean_distance": 460.0, "contact_steps": 2,
                       "time_off_track_s": 3.0, "errors": []}
 

@@ -1,0 +1,41 @@
+"""Append-only JSON Lines files: the records a long run writes as it goes (races,
+episodes, evaluations), so that an interrupted run keeps them and can resume."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+
+def read_jsonl(path: Path) -> list[dict[str, Any]]:
+    """The records of ``path`` (none if it does not exist); a line cut by an interruption
+    is skipped."""
+    if not path.exists():
+        return []
+    records = []
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if not line:
+            continue
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return records
+
+
+def drop_cut_line(path: Path) -> None:
+    """Remove an unfinished last line (one without its newline), which an interrupted
+    write leaves behind, so that the next appended record starts on a line of its own."""
+    if not path.exists():
+        return
+    data = path.read_bytes()
+    if data and not data.endswith(b"\n"):
+        path.write_bytes(data[: data.rfind(b"\n") + 1])
+
+
+def append_jsonl(path: Path, record: dict[str, Any]) -> None:
+    """Append one record as a line and flush it."""
+    with open(path, "a") as sink:
+        sink.write(json.dumps(record) + "\n")

@@ -1,0 +1,377 @@
+"""`racing sweep`: races over a grid of settings, on local worker processes or a Ray cluster.
+
+A sweep is a TOML file: a ``lineup`` of agent specs (agent 0 is the one the sweep is
+about), the race (``track``, ``laps`` or ``race_distance``, ``grids``, ``seed``,
+``max_steps``, ``jerk_weight``) and a ``[parameters]`` table whose values are lists; every
+combination of them (a point) is raced on ``grids`` seeded rolling grids, once per rotation
+of the starting slots::
+
+    lineup = ["ilqgame-fb", "ilqgame-ol"]
+    grids = 2
+
+    [parameters]
+    "agent0.c_collision" = [1.0, 10.0, 100.0]   # cost weight of agent 0's car, wherever it starts
+    jerk_weight = [0.01, 0.03]                 # every car's jerk weight r
+
+Parameter names: the race's ``track``, ``laps``, ``race_distance``, ``max_steps``,
+``jerk_weight``; ``weights.<field>`` (a :class:`racing_env.costs.CostWeights` field, for
+every car) and ``agent<i>.<field>`` (that field for agent ``i`` of the lineup).
+
+Each race is one job (:func:`run_job`, a pure function of the sweep and the job, so any
+process can run it). Backends: ``local`` (this process for one worker, else a pool of
+worker processes) and ``ray`` (tasks on a Ray cluster: ``address`` of a running one, or a
+local one started for the sweep). Records are appended to ``results.jsonl`` as races end,
+in whatever order they end; rerunning the sweep skips the races already there, and the
+summary is built in schedule order, so it does not depend on the backend, the number of
+workers or interruptions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import signal
+import sys
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
+from racing_env.config import RaceConfig
+from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+RESULTS = "results.jsonl"
+CONFIG = "sweep.json"
+RACE_PARAMETERS = ("track", "laps", "race_distance", "max_steps", "jerk_weight")
+WEIGHT_FIELDS = tuple(f.name for f in dataclasses.fields(CostWeights))
+BACKENDS = ("local", "ray")
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepConfig:
+    """A sweep: the lineup, the race, and the swept parameters with their values.
+
+    Attributes:
+        lineup: agent specs by agent index (:func:`planners.agents.make_agent`); agent 0 is
+            the subject of the summary, which reports every agent.
+        parameters: ``(name, values)`` pairs; every combination is a point.
+        track, laps, race_distance, max_steps, jerk_weight: the race (as in tournaments)
+            where a parameter does not set them.
+        grids: seeded start grids per point, each raced once per rotation of the slots.
+        seed: seeds the grids.
+        step_budget_s: an action slower than this loses the race (None: no budget).
+    """
+
+    lineup: tuple[str, ...]
+    parameters: tuple[tuple[str, tuple[Any, ...]], ...]
+    track: str = "trefoil"
+    laps: int = 1
+    race_distance: float | None = None
+    max_steps: int = 3000
+    jerk_weight: float = RACING_JERK_WEIGHT
+    grids: int = 2
+    seed: int = 0
+    step_budget_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if len(self.lineup) < 2:
+            raise ValueError(f"a lineup needs at least 2 agent specs, got {list(self.lineup)}")
+        if not isinstance(self.grids, int) or self.grids < 1:
+            raise ValueError(f"grids must be an integer >= 1, got {self.grids!r}")
+        if not self.parameters:
+            raise ValueError("a sweep needs a [parameters] table with at least one parameter")
+        for name, values in self.parameters:
+            check_parameter_name(name, len(self.lineup))
+            if not isinstance(values, tuple) or not values:
+                raise ValueError(f"parameter {name} needs a non-empty list of values, got {values!r}")
+        for point in self.points():  # every value is checked where it is used, before any race
+            self.race_config(point, rotation=0)
+
+    def points(self) -> list[dict[str, Any]]:
+        """Every combination of the parameters' values, in order (the last varies fastest)."""
+        names = [name for name, _ in self.parameters]
+        return [dict(zip(names, combo)) for combo in itertools.product(*(v for _, v in self.parameters))]
+
+    def race_config(self, point: dict[str, Any], rotation: int) -> RaceConfig:
+        """The race of a point with the lineup rotated by ``rotation`` (slot k holds agent
+        ``(k + rotation) % N``); per-agent weights follow their agent into its slot."""
+        race = {name: point.get(name, getattr(self, name)) for name in RACE_PARAMETERS}
+        cars = len(self.lineup)
+        everyone = {k.split(".", 1)[1]: v for k, v in point.items() if k.startswith("weights.")}
+        weights = []
+        for slot in range(cars):
+            agent = (slot + rotation) % cars
+            own = {k.split(".", 1)[1]: v for k, v in point.items() if k.startswith(f"agent{agent}.")}
+            weights.append(CostWeights(r_jx=race["jerk_weight"], r_jy=race["jerk_weight"], **{**everyone, **own}))
+        return RaceConfig(track=race["track"], num_agents=cars, scenario="grid", laps=race["laps"],
+                          race_distance=race["race_distance"], max_steps=race["max_steps"], weights=weights)
+
+
+def check_parameter_name(name: str, cars: int) -> None:
+    """Refuse a parameter the sweep does not know, saying which it does."""
+    head, _, field = name.partition(".")
+    known_agent = head.startswith("agent") and head[5:].isdigit() and int(head[5:]) < cars
+    if name in RACE_PARAMETERS or ((head == "weights" or known_agent) and field in WEIGHT_FIELDS):
+        return
+    raise ValueError(f"unknown sweep parameter {name!r}; use one of {list(RACE_PARAMETERS)}, "
+                     f"weights.<field> or agent<i>.<field> (i < {cars}) with <field> one of {list(WEIGHT_FIELDS)}")
+
+
+def load_sweep(path: Path) -> SweepConfig:
+    """Read a sweep TOML file (see the module docstring)."""
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except tomllib.TOMLDecodeError as err:
+        raise ValueError(f"{path} is not valid TOML: {err}") from None
+    allowed = {f.name for f in dataclasses.fields(SweepConfig)}
+    unknown = sorted(set(data) - allowed)
+    if unknown:
+        raise ValueError(f"{path}: unknown keys {unknown}; a sweep file has {sorted(allowed)}")
+    if "lineup" not in data:
+        raise ValueError(f"{path}: a sweep needs a lineup, e.g. lineup = [\"ilqgame-fb\", \"lane-keeping\"]")
+    table = data.get("parameters", {})
+    if not isinstance(table, dict):
+        raise ValueError(f"{path}: parameters must be a table ([parameters]), got {table!r}")
+    parameters = tuple((name, tuple(v) if isinstance(v, list) else v) for name, v in table.items())
+    return SweepConfig(**{**data, "lineup": tuple(data["lineup"]), "parameters": parameters})
+
+
+def schedule(config: SweepConfig) -> list[dict[str, Any]]:
+    """Every race of the sweep in a fixed order: ``id``, point index and values, rotation, grid seed."""
+    jobs = []
+    for index, point in enumerate(config.points()):
+        for grid in range(config.grids):
+            for rotation in range(len(config.lineup)):
+                jobs.append({"id": f"p{index}/grid{grid}/r{rotation}", "point_index": index, "point": point,
+                             "rotation": rotation, "grid": grid, "seed": config.seed * 10_000 + grid})
+    return jobs
+
+
+def run_job(config: SweepConfig, job: dict[str, Any], compile_cache: str | None = None) -> dict[str, Any]:
+    """Race one job and return its record: the job, and per agent (by lineup index) its
+    car's result in that race (place, finish time, distance, speed, incidents, errors)."""
+    import racing_env  # noqa: F401 - float64 and the XLA set-up, before any JAX work in a worker
+    from experiments.tournament import race_lineup
+
+    if compile_cache is not None:
+        from planners.compile_cache import enable_compile_cache
+
+        enable_compile_cache(compile_cache)
+    cars = len(config.lineup)
+    rotation = job["rotation"]
+    order = [(slot + rotation) % cars for slot in range(cars)]  # the agent index in each slot
+    record, _ = race_lineup(config.race_config(job["point"], rotation), [config.lineup[a] for a in order],
+                            job["seed"], step_budget_s=config.step_budget_s)
+    by_agent = [None] * cars
+    for slot, agent in enumerate(order):
+        by_agent[agent] = {**record["cars"][slot], "slot": slot}
+    return {**job, "steps": record["steps"], "overtakes": record["overtakes"], "gap": record["gap"],
+            "agents": by_agent}
+
+
+def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per point and agent: races, wins, mean place, mean finish-time margin over the other
+    cars (races all finished), overtakes per race, contact steps, time off track, errors."""
+    by_point: dict[int, list[dict[str, Any]]] = {}
+    for record in records:
+        by_point.setdefault(record["point_index"], []).append(record)
+    rows = []
+    for index, point in enumerate(config.points()):
+        races = sorted(by_point.get(index, []), key=lambda r: r["id"])
+        for agent, spec in enumerate(config.lineup):
+            mine = [r["agents"][agent] for r in races]
+            margins = []
+            for race in races:
+                times = [car["finish_time"] for car in race["agents"]]
+                if all(t is not None for t in times):
+                    others = [t for k, t in enumerate(times) if k != agent]
+                    margins.append(float(np.mean(others)) - times[agent])
+            rows.append({
+                "point": index, **point, "agent": agent, "spec": spec, "races": len(mine),
+                "wins": sum(car["place"] == 1 for car in mine),
+                "mean_place": float(np.mean([car["place"] for car in mine])) if mine else None,
+                "mean_margin_s": float(np.mean(margins)) if margins else None,
+                "overtakes_per_race": float(np.mean([r["overtakes"] for r in races])) if races else None,
+                "contact_steps": sum(car["collision_steps"] for car in mine),
+                "time_off_track_s": float(sum(car["time_off_track"] for car in mine)),
+                "errors": sum(car["error"] is not None for car in mine),
+            })
+    return rows
+
+
+def read_results(out: Path) -> list[dict[str, Any]]:
+    """The race records in ``out/results.jsonl``; a line cut by an interruption is skipped."""
+    return read_jsonl(out / RESULTS)
+
+
+def _ignore_interrupts() -> None:
+    """Worker initialiser: Ctrl-C reaches the whole process group, and the parent stops the
+    workers itself (a worker interrupted mid-race would only print a traceback)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _run_local(config, jobs, workers, compile_cache):
+    """Yield records as races end: in this process for one worker, else in a pool of
+    spawned worker processes (terminated if the caller stops early, e.g. at Ctrl-C)."""
+    if workers == 1:
+        for job in jobs:
+            yield run_job(config, job)
+        return
+    import functools
+    import multiprocessing
+
+    pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_ignore_interrupts)
+    try:
+        yield from pool.imap_unordered(functools.partial(run_job, config, compile_cache=compile_cache), jobs)
+        pool.close()
+    finally:
+        pool.terminate()
+        pool.join()
+
+
+def _run_ray(config, jobs, address, workers, compile_cache):
+    """Yield records as races end, each race a Ray task (one CPU) on the cluster at
+    ``address``, or on a local Ray instance of ``workers`` CPUs started (and stopped) here."""
+    import ray
+
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
+                 log_to_driver=False)
+    try:
+        task = ray.remote(num_cpus=1)(run_job)
+        pending = [task.remote(config, job, compile_cache) for job in jobs]
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                yield ray.get(done[0])
+        except BaseException:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            raise
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: int = 1,
+              address: str | None = None, fresh: bool = False, progress: bool = True) -> dict[str, Any]:
+    """Run (or resume) a sweep into ``out``; returns ``{"rows": summary, "interrupted": bool}``
+    and writes ``results.jsonl``, ``summary.csv``, ``summary.json`` and ``sweep.png``."""
+    from rich.console import Console
+    from tqdm import tqdm
+
+    from planners.agents import make_agent
+    from planners.compile_cache import compile_cache_dir
+
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    for spec in dict.fromkeys(config.lineup):  # an unknown spec or a missing model fails before any race
+        make_agent(spec)
+    console = Console(stderr=True, width=160)
+    out.mkdir(parents=True, exist_ok=True)
+    config_json = json.dumps(dataclasses.asdict(config), sort_keys=True)
+    if fresh:
+        (out / RESULTS).unlink(missing_ok=True)
+    elif (out / CONFIG).exists() and (out / CONFIG).read_text() != config_json and (out / RESULTS).exists():
+        raise ValueError(f"{out} holds results of a different sweep; use another --out folder or --fresh")
+    (out / CONFIG).write_text(config_json)
+    jobs = schedule(config)
+    done = {r["id"]: r for r in read_results(out)}
+    todo = [job for job in jobs if job["id"] not in done]
+    if done:
+        console.print(f"resuming: {len(done)} of {len(jobs)} races already in {out / RESULTS}")
+    cache = compile_cache_dir()
+    records = (_run_local(config, todo, workers, cache) if backend == "local"
+               else _run_ray(config, todo, address, workers, cache))
+    interrupted = False
+    drop_cut_line(out / RESULTS)
+    with tqdm(total=len(todo), desc="sweep", disable=not progress) as bar:
+        try:
+            for record in records:
+                append_jsonl(out / RESULTS, record)
+                done[record["id"]] = record
+                bar.update(1)
+        except KeyboardInterrupt:
+            records.close()  # stops the workers or the Ray tasks
+            interrupted = True
+    rows = summarize(config, [done[job["id"]] for job in jobs if job["id"] in done])
+    _write_summary(config, rows, out, console)
+    if interrupted:
+        console.print(f"interrupted: {len(done)} of {len(jobs)} races in {out / RESULTS}; run the same command "
+                      "to resume")
+    return {"rows": rows, "interrupted": interrupted}
+
+
+def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, console) -> None:
+    import csv
+
+    from rich.table import Table
+
+    (out / "summary.json").write_text(json.dumps(rows, indent=2))
+    with open(out / "summary.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    names = [name for name, _ in config.parameters]
+    table = Table(title=f"sweep: {' vs '.join(config.lineup)}")
+    for column in (*names, "agent", "races", "wins", "mean place", "margin [s]", "overtakes/race",
+                   "contact steps", "off track [s]", "errors"):
+        table.add_column(column)
+    for row in rows:
+        margin = "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}"
+        place = "-" if row["mean_place"] is None else f"{row['mean_place']:.2f}"
+        overtakes = "-" if row["overtakes_per_race"] is None else f"{row['overtakes_per_race']:.2f}"
+        table.add_row(*(str(row[n]) for n in names), f"{row['agent']}: {row['spec']}", str(row["races"]),
+                      str(row["wins"]), place, margin, overtakes, str(row["contact_steps"]),
+                      f"{row['time_off_track_s']:.1f}", str(row["errors"]))
+    console.print(table)
+    plot_sweep(config, rows, out / "sweep.png")
+    console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'summary.json'}, {out / 'sweep.png'}")
+
+
+def plot_sweep(config: SweepConfig, rows: list[dict[str, Any]], path: Path) -> None:
+    """Agent 0's win rate and mean margin against the first parameter, one line per
+    combination of the others."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    names = [name for name, _ in config.parameters]
+    first, rest = names[0], names[1:]
+    subject = [row for row in rows if row["agent"] == 0]
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    labels = {}
+    for row in subject:
+        labels.setdefault(tuple(row[n] for n in rest), []).append(row)
+    categorical = not all(isinstance(v, (int, float)) for v in dict(config.parameters)[first])
+    for key, line in labels.items():
+        xs = list(range(len(line))) if categorical else [row[first] for row in line]
+        label = ", ".join(f"{n}={v}" for n, v in zip(rest, key)) or None
+        top.plot(xs, [row["wins"] / row["races"] if row["races"] else np.nan for row in line], "o-", label=label)
+        bottom.plot(xs, [np.nan if row["mean_margin_s"] is None else row["mean_margin_s"] for row in line],
+                    "o-", label=label)
+    if categorical:
+        bottom.set_xticks(range(len(dict(config.parameters)[first])),
+                          [str(v) for v in dict(config.parameters)[first]])
+    top.set_ylabel(f"win rate of {config.lineup[0]}")
+    top.set_ylim(-0.05, 1.05)
+    bottom.axhline(0.0, color="black", lw=0.8)
+    bottom.set_ylabel("mean finish margin [s]")
+    bottom.set_xlabel(first)
+    if rest:
+        top.legend(fontsize=8)
+    top.set_title(f"{config.lineup[0]} vs {', '.join(config.lineup[1:])}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,143 @@
+"""`racing sweep`: the same results on every backend (a real local Ray cluster included),
+resumption, interruption, where the swept settings go, and refused files."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from experiments import sweep
+from experiments.cli import main
+from experiments.sweep import SweepConfig, load_sweep, run_sweep
+
+# Scripted cars on short races: the backends, not the driving, are under test here.
+TINY_TOML = """
+lineup = ["lane-keeping", "constant-speed"]
+race_distance = 150.0
+grids = 2
+
+[parameters]
+max_steps = [60, 400]
+track = ["trefoil", "straight"]
+"""
+
+
+def _without_timing(record):
+    """A record without the wall-clock fields (action times), which differ run to run."""
+    cars = [{k: v for k, v in car.items() if not k.startswith("act_time")} for car in record["agents"]]
+    return {**record, "agents": cars}
+
+
+@pytest.fixture()
+def tiny(tmp_path):
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY_TOML)
+    return load_sweep(path)
+
+
+def test_every_backend_gives_the_same_records_and_summary(tiny, tmp_path):
+    runs = {"in-process": dict(backend="local", workers=1), "two processes": dict(backend="local", workers=2),
+            "ray": dict(backend="ray", workers=2)}
+    results = {}
+    for name, options in runs.items():
+        report = run_sweep(tiny, tmp_path / name, progress=False, **options)
+        assert report["interrupted"] is False
+        records = sweep.read_results(tmp_path / name)
+        assert sorted(r["id"] for r in records) == sorted(job["id"] for job in sweep.schedule(tiny))
+        results[name] = ({r["id"]: _without_timing(r) for r in records}, report["rows"])
+    reference = results["in-process"]
+    assert all(result == reference for result in results.values())
+    rows = reference[1]
+    assert len(rows) == 4 * 2  # points x agents
+    assert all(row["races"] == 2 * 2 for row in rows)  # grids x rotations
+    # the lane keeper (v_max) is faster than the 20 m/s cruiser in every race long enough to finish
+    finished = [row for row in rows if row["max_steps"] == 400]
+    assert all(row["wins"] == (4 if row["agent"] == 0 else 0) for row in finished)
+    assert all(row["mean_margin_s"] > 0 if row["agent"] == 0 else row["mean_margin_s"] < 0 for row in finished)
+    for name in ("summary.csv", "summary.json", "sweep.png"):
+        assert (tmp_path / "ray" / name).stat().st_size > 0
+
+
+def test_a_sweep_resumes_without_rerunning_finished_races(tiny, tmp_path):
+    run_sweep(tiny, tmp_path / "full", progress=False)
+    full = (tmp_path / "full" / "summary.json").read_text()
+    lines = (tmp_path / "full" / sweep.RESULTS).read_text().splitlines()
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    (cut / sweep.RESULTS).write_text("\n".join(lines[:3]) + "\n" + lines[3][:40])  # a line cut mid-write
+    run_sweep(tiny, cut, progress=False)
+    resumed = (cut / sweep.RESULTS).read_text().splitlines()
+    assert resumed[:3] == lines[:3]
+    assert len(sweep.read_results(cut)) == len(sweep.schedule(tiny))
+    assert json.loads((cut / "summary.json").read_text()) == json.loads(full)
+    with pytest.raises(ValueError, match="different sweep"):
+        run_sweep(SweepConfig(**{**tiny.__dict__, "grids": 1}), cut, progress=False)
+
+
+def test_interrupted_sweep_keeps_its_races(tiny, tmp_path, monkeypatch, capsys):
+    real = sweep.run_job
+    calls = []
+
+    def interrupted_at_the_third_race(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(sweep, "run_job", interrupted_at_the_third_race)
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY_TOML)
+    assert main(["sweep", str(path), "--out", str(tmp_path / "out"), "--no-compile-cache"]) == 130
+    assert len(sweep.read_results(tmp_path / "out")) == 2
+    assert "run the same command to resume" in capsys.readouterr().err
+    monkeypatch.setattr(sweep, "run_job", real)
+    assert main(["sweep", str(path), "--out", str(tmp_path / "out"), "--no-compile-cache"]) == 0
+    assert len(sweep.read_results(tmp_path / "out")) == len(sweep.schedule(load_sweep(path)))
+
+
+def test_swept_weights_follow_their_agent_into_every_slot():
+    config = SweepConfig(lineup=("ilqgame-fb", "ilqr", "lane-keeping"),
+                         parameters=(("agent1.c_collision", (50.0,)), ("weights.c_gap", (2.0,)),
+                                     ("jerk_weight", (0.03,))))
+    (point,) = config.points()
+    for rotation in range(3):
+        race = config.race_config(point, rotation)
+        for slot, weights in enumerate(race.weights):
+            agent = (slot + rotation) % 3
+            assert weights.c_collision == (50.0 if agent == 1 else 10.0)
+            assert (weights.c_gap, weights.r_jx, weights.r_jy) == (2.0, 0.03, 0.03)
+    jobs = sweep.schedule(config)
+    assert [(j["rotation"], j["grid"]) for j in jobs] == [(r, g) for g in range(2) for r in range(3)]
+
+
+@pytest.mark.parametrize("text, message", [
+    ('lineup = ["lane-keeping", "constant-speed"]\ncolour = "red"\n[parameters]\nlaps = [1]', "unknown keys"),
+    ('[parameters]\nlaps = [1]', "needs a lineup"),
+    ('lineup = ["lane-keeping", "constant-speed"]', "at least one parameter"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nspeed = [1]', "unknown sweep parameter 'speed'"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent2.c_gap" = [1]', "agent2.c_gap"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"weights.c_grip" = [1]', "weights.c_grip"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nlaps = []', "non-empty list"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nlaps = [0]', "laps must be"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent0.c_collision" = [-1.0]', "c_collision"),
+    ('lineup = ["lane-keeping"]\n[parameters]\nlaps = [1]', "at least 2 agent specs"),
+    ('lineup = ["lane-keeping", "constant-speed"\n', "not valid TOML"),
+])
+def test_bad_sweep_files_are_refused(tmp_path, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        load_sweep(path)
+
+
+def test_bad_command_lines_fail_before_any_race(tmp_path, capsys):
+    path = tmp_path / "sweep.toml"
+    path.write_text(TINY_TOML.replace('"constant-speed"', '"wizard"'))
+    assert main(["sweep", str(path), "--out", str(tmp_path / "a")]) == 2
+    assert "unknown agent spec 'wizard'" in capsys.readouterr().err
+    path.write_text(TINY_TOML)
+    assert main(["sweep", str(path), "--workers", "0", "--out", str(tmp_path / "b")]) == 2
+    assert "workers must be" in capsys.readouterr().err
+    assert main(["sweep", str(tmp_path / "missing.toml")]) == 2
+    assert not (tmp_path / "a" / sweep.RESULTS).exists() and not (tmp_path / "b" / sweep.RESULTS).exists()
