@@ -134,8 +134,10 @@ def load_sweep(path: Path) -> SweepConfig:
     unknown = sorted(set(data) - allowed)
     if unknown:
         raise ValueError(f"{path}: unknown keys {unknown}; a sweep file has {sorted(allowed)}")
-    if "lineup" not in data:
-        raise ValueError(f"{path}: a sweep needs a lineup, e.g. lineup = [\"ilqgame-fb\", \"lane-keeping\"]")
+    lineup = data.get("lineup")
+    if not isinstance(lineup, list) or not all(isinstance(spec, str) for spec in lineup):
+        raise ValueError(f"{path}: a sweep needs a lineup, a list of agent specs, e.g. "
+                         f"lineup = [\"ilqgame-fb\", \"lane-keeping\"]; got {lineup!r}")
     table = data.get("parameters", {})
     if not isinstance(table, dict):
         raise ValueError(f"{path}: parameters must be a table ([parameters]), got {table!r}")
@@ -177,8 +179,9 @@ def run_job(config: SweepConfig, job: dict[str, Any], compile_cache: str | None 
 
 
 def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per point and agent: races, wins, mean place, mean finish-time margin over the other
-    cars (races all finished), overtakes per race, contact steps, time off track, errors."""
+    """Per point and agent: races, wins (and of those started in front, how many were
+    won), mean place, mean finish-time margin over the other cars (races all finished),
+    overtakes per race, contact steps, time off track, errors."""
     by_point: dict[int, list[dict[str, Any]]] = {}
     for record in records:
         by_point.setdefault(record["point_index"], []).append(record)
@@ -196,6 +199,8 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
             rows.append({
                 "point": index, **point, "agent": agent, "spec": spec, "races": len(mine),
                 "wins": sum(car["place"] == 1 for car in mine),
+                "races_from_front": sum(car["start_place"] == 1 for car in mine),
+                "wins_from_front": sum(car["start_place"] == 1 and car["place"] == 1 for car in mine),
                 "mean_place": float(np.mean([car["place"] for car in mine])) if mine else None,
                 "mean_margin_s": float(np.mean(margins)) if margins else None,
                 "overtakes_per_race": float(np.mean([r["overtakes"] for r in races])) if races else None,
@@ -243,8 +248,11 @@ def _run_ray(config, jobs, address, workers, compile_cache):
 
     started = not ray.is_initialized()
     if started:
-        ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
-                 log_to_driver=False)
+        try:
+            ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
+                     log_to_driver=False)
+        except ConnectionError as err:
+            raise ValueError(f"could not join the Ray cluster at {address!r}: {err}") from None
     try:
         task = ray.remote(num_cpus=1)(run_job)
         pending = [task.remote(config, job, compile_cache) for job in jobs]
@@ -270,6 +278,7 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
 
     from planners.agents import make_agent
     from planners.compile_cache import compile_cache_dir
+    from racing_env.track import get_track
 
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -277,6 +286,8 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     for spec in dict.fromkeys(config.lineup):  # an unknown spec or a missing model fails before any race
         make_agent(spec)
+    for track in dict.fromkeys(point.get("track", config.track) for point in config.points()):
+        get_track(track)  # so does a track that is not built in and not a readable file
     console = Console(stderr=True, width=160)
     out.mkdir(parents=True, exist_ok=True)
     config_json = json.dumps(dataclasses.asdict(config), sort_keys=True)
@@ -324,7 +335,7 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         writer.writerows(rows)
     names = [name for name, _ in config.parameters]
     table = Table(title=f"sweep: {' vs '.join(config.lineup)}")
-    for column in (*names, "agent", "races", "wins", "mean place", "margin [s]", "overtakes/race",
+    for column in (*names, "agent", "races", "wins", "from the front", "mean place", "margin [s]", "overtakes/race",
                    "contact steps", "off track [s]", "errors"):
         table.add_column(column)
     for row in rows:
@@ -332,7 +343,8 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         place = "-" if row["mean_place"] is None else f"{row['mean_place']:.2f}"
         overtakes = "-" if row["overtakes_per_race"] is None else f"{row['overtakes_per_race']:.2f}"
         table.add_row(*(str(row[n]) for n in names), f"{row['agent']}: {row['spec']}", str(row["races"]),
-                      str(row["wins"]), place, margin, overtakes, str(row["contact_steps"]),
+                      str(row["wins"]), f"{row['wins_from_front']}/{row['races_from_front']}", place, margin,
+                      overtakes, str(row["contact_steps"]),
                       f"{row['time_off_track_s']:.1f}", str(row["errors"]))
     console.print(table)
     plot_sweep(config, rows, out / "sweep.png")
@@ -340,8 +352,8 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
 
 
 def plot_sweep(config: SweepConfig, rows: list[dict[str, Any]], path: Path) -> None:
-    """Agent 0's win rate and mean margin against the first parameter, one line per
-    combination of the others."""
+    """Agent 0's win rate, mean margin and contact steps per race against the first
+    parameter, one line per combination of the others."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -350,24 +362,29 @@ def plot_sweep(config: SweepConfig, rows: list[dict[str, Any]], path: Path) -> N
     names = [name for name, _ in config.parameters]
     first, rest = names[0], names[1:]
     subject = [row for row in rows if row["agent"] == 0]
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    fig, (top, middle, bottom) = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
     labels = {}
     for row in subject:
         labels.setdefault(tuple(row[n] for n in rest), []).append(row)
-    categorical = not all(isinstance(v, (int, float)) for v in dict(config.parameters)[first])
+    categorical = not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in dict(config.parameters)[first])
     for key, line in labels.items():
         xs = list(range(len(line))) if categorical else [row[first] for row in line]
         label = ", ".join(f"{n}={v}" for n, v in zip(rest, key)) or None
         top.plot(xs, [row["wins"] / row["races"] if row["races"] else np.nan for row in line], "o-", label=label)
-        bottom.plot(xs, [np.nan if row["mean_margin_s"] is None else row["mean_margin_s"] for row in line],
+        middle.plot(xs, [np.nan if row["mean_margin_s"] is None else row["mean_margin_s"] for row in line],
                     "o-", label=label)
+        bottom.plot(xs, [row["contact_steps"] / row["races"] if row["races"] else np.nan for row in line],
+                    "o-", label=label)
+    values = dict(config.parameters)[first]
     if categorical:
-        bottom.set_xticks(range(len(dict(config.parameters)[first])),
-                          [str(v) for v in dict(config.parameters)[first]])
+        bottom.set_xticks(range(len(values)), [str(v) for v in values])
+    elif min(values) > 0 and max(values) >= 100 * min(values):  # values spread over decades
+        bottom.set_xscale("log")
     top.set_ylabel(f"win rate of {config.lineup[0]}")
     top.set_ylim(-0.05, 1.05)
-    bottom.axhline(0.0, color="black", lw=0.8)
-    bottom.set_ylabel("mean finish margin [s]")
+    middle.axhline(0.0, color="black", lw=0.8)
+    middle.set_ylabel("mean finish margin [s]")
+    bottom.set_ylabel("contact steps per race")
     bottom.set_xlabel(first)
     if rest:
         top.legend(fontsize=8)

@@ -121,8 +121,9 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     """Race agent specs (one per starting slot) on grid ``seed``; returns ``(record, frames)``.
 
     The record holds the finishing ``order`` (specs), the ``gap`` to the second car, the
-    ``overtakes`` and, per car, place, finish time, distance, mean speed, contact steps,
-    time off track, action times, solver failures and the ``error`` of a car that faulted.
+    ``overtakes`` and, per car, its place on the grid (``start_place``, 1 = in front), place,
+    finish time, distance, mean speed, contact steps, time off track, action times, solver
+    failures and the ``error`` of a car that faulted.
     Faults are recorded, never raised: a car that raises or blows ``step_budget_s`` is last.
     """
     from experiments.race import run_race
@@ -152,6 +153,8 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
 
     order = sorted(range(len(lineup)), key=key)
     places = {i: p + 1 for p, i in enumerate(order)}
+    grid = sorted(range(len(lineup)), key=lambda i: -xs[0, i, 0])  # s is cumulative: behind the line < 0
+    start_places = {i: p + 1 for p, i in enumerate(grid)}
     winner, second = order[0], order[1]
     if finish[winner] is not None and finish[second] is not None:
         gap = {"seconds": finish[second] - finish[winner]}
@@ -163,7 +166,8 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
         summary = agent.summary() if agent is not None and hasattr(agent, "summary") else {}
         times = np.array(result.act_times[i]) if result.act_times[i] else np.array([np.nan])
         cars.append({
-            "agent": spec, "car": car["agent"], "place": places[i], "finish_time": finish[i],
+            "agent": spec, "car": car["agent"], "start_place": start_places[i], "place": places[i],
+            "finish_time": finish[i],
             "distance": car["distance"], "mean_speed": car["mean_speed"],
             "collision_steps": car["collision_steps"], "time_off_track": car["time_off_track"],
             "act_time_mean_s": float(np.nanmean(times)), "act_time_max_s": float(np.nanmax(times)),

@@ -340,10 +340,12 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
         if me["finish_time"] is not None and all(c["finish_time"] is not None for c in others):
             margins.append(float(np.mean([c["finish_time"] for c in others])) - me["finish_time"])
     wins = sum(p == 1 for p in places)
-    slots = range(1 + max(slot for slot, _ in races))
-    wins_by_slot = [sum(p == 1 for (s, _), p in zip(races, places) if s == slot) for slot in slots]
+    starts = [record["cars"][slot]["start_place"] for slot, record in races]
+    cars = len(races[0][1]["cars"])
+    races_from = [sum(s == k for s in starts) for k in range(1, cars + 1)]
+    wins_from = [sum(s == k and p == 1 for s, p in zip(starts, places)) for k in range(1, cars + 1)]
     return {"timesteps": int(timesteps), "races": len(races), "wins": wins, "win_rate": wins / len(races),
-            "wins_by_slot": wins_by_slot,
+            "races_by_start_place": races_from, "wins_by_start_place": wins_from,
             "mean_place": float(np.mean(places)), "finished": finished,
             "mean_margin_s": float(np.mean(margins)) if margins else None,
             "mean_distance": float(np.mean(distances)), "contact_steps": contact,
@@ -412,9 +414,9 @@ def checkpoint(model, out: Path) -> Path:
 
 def _evaluation_line(record: dict[str, Any]) -> str:
     margin = "-" if record["mean_margin_s"] is None else f"{record['mean_margin_s']:+.2f} s"
-    by_slot = ", ".join(str(w) for w in record["wins_by_slot"])
+    by_start = ", ".join(f"{w}/{n}" for w, n in zip(record["wins_by_start_place"], record["races_by_start_place"]))
     return (f"[bold]evaluation at {record['timesteps']:,} steps[/]: won {record['wins']}/{record['races']} "
-            f"(by starting slot: {by_slot}), "
+            f"(starting 1st, 2nd, ...: {by_start}), "
             f"finished {record['finished']}/{record['races']}, mean margin {margin}, "
             f"mean distance {record['mean_distance']:.0f} m, contact steps {record['contact_steps']}, "
             f"off track {record['time_off_track_s']:.1f} s")

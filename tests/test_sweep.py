@@ -114,6 +114,7 @@ def test_swept_weights_follow_their_agent_into_every_slot():
 @pytest.mark.parametrize("text, message", [
     ('lineup = ["lane-keeping", "constant-speed"]\ncolour = "red"\n[parameters]\nlaps = [1]', "unknown keys"),
     ('[parameters]\nlaps = [1]', "needs a lineup"),
+    ('lineup = "ilqr"\n[parameters]\nlaps = [1]', "needs a lineup, a list of agent specs"),
     ('lineup = ["lane-keeping", "constant-speed"]', "at least one parameter"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nspeed = [1]', "unknown sweep parameter 'speed'"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent2.c_gap" = [1]', "agent2.c_gap"),
@@ -140,4 +141,7 @@ def test_bad_command_lines_fail_before_any_race(tmp_path, capsys):
     assert main(["sweep", str(path), "--workers", "0", "--out", str(tmp_path / "b")]) == 2
     assert "workers must be" in capsys.readouterr().err
     assert main(["sweep", str(tmp_path / "missing.toml")]) == 2
-    assert not (tmp_path / "a" / sweep.RESULTS).exists() and not (tmp_path / "b" / sweep.RESULTS).exists()
+    path.write_text(TINY_TOML.replace('"straight"', f'"{tmp_path / "nowhere.csv"}"'))
+    assert main(["sweep", str(path), "--out", str(tmp_path / "c")]) == 2
+    assert "nowhere.csv" in capsys.readouterr().err
+    assert not any((tmp_path / name / sweep.RESULTS).exists() for name in "abc")

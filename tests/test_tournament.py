@@ -15,6 +15,7 @@ from experiments import tournament as tour
 from experiments.cli import main
 from planners import agents as agents_module
 from planners.agents import LaneKeepingAgent
+from racing_env.env import RacingParallelEnv
 
 SHORT = dict(track="straight", race_distance=120.0, grids=1, max_steps=400)
 TIMING_KEYS = ("act_time_mean_s", "act_time_max_s")
@@ -155,6 +156,13 @@ def test_same_seed_gives_identical_results(tmp_path):
     assert records_a == records_b
     assert _without_timing(first) == _without_timing(second)
     assert (tmp_path / "a" / "race.gif").stat().st_size > 0
+    # start places are the grid order of the race's start state: the car furthest along is 1st
+    for record in records_a:
+        env = RacingParallelEnv(tour.race_config(config))
+        env.reset(seed=record["seed"])
+        s0 = env.state()[:, 0]
+        places = [car["start_place"] for car in record["cars"]]
+        assert sorted(places) == [1, 2] and s0[places.index(1)] > s0[places.index(2)]
 
 
 def test_overtakes_count_sign_changes():

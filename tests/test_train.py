@@ -185,17 +185,17 @@ def test_parse_hyperparameter():
 
 
 def test_summarize_evaluation_counts_the_learner_slot():
-    def car(place, finish, distance, contact=0, off=0.0, error=None):
-        return {"place": place, "finish_time": finish, "distance": distance, "collision_steps": contact,
-                "time_off_track": off, "error": error}
+    def car(start, place, finish, distance, contact=0, off=0.0, error=None):
+        return {"start_place": start, "place": place, "finish_time": finish, "distance": distance,
+                "collision_steps": contact, "time_off_track": off, "error": error}
 
-    races = [
-        (0, {"cars": [car(1, 60.0, 500.0, contact=2), car(2, 61.5, 500.0)]}),  # learner in front, wins by 1.5 s
-        (1, {"cars": [car(1, 59.0, 500.0), car(2, None, 420.0, off=3.0)]}),    # learner behind, did not finish
+    races = [  # (learner's slot, race)
+        (0, {"cars": [car(2, 1, 60.0, 500.0, contact=2), car(1, 2, 61.5, 500.0)]}),  # from behind, wins by 1.5 s
+        (1, {"cars": [car(2, 1, 59.0, 500.0), car(1, 2, None, 420.0, off=3.0)]}),    # from the front, not finished
     ]
     record = train_rl.summarize_evaluation(races, timesteps=4096)
-    assert record == {"timesteps": 4096, "races": 2, "wins": 1, "win_rate": 0.5, "wins_by_slot": [1, 0],
-                      "mean_place": 1.5,
+    assert record == {"timesteps": 4096, "races": 2, "wins": 1, "win_rate": 0.5, "races_by_start_place": [1, 1],
+                      "wins_by_start_place": [0, 1], "mean_place": 1.5,
                       "finished": 1, "mean_margin_s": 1.5, "mean_distance": 460.0, "contact_steps": 2,
                       "time_off_track_s": 3.0, "errors": []}
 
