@@ -42,7 +42,9 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
         cars=args.cars, seed=args.seed, versus=args.versus, max_steps=args.max_steps, step_budget_s=args.step_budget,
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
     )
-    run_tournament(config, Path(args.out), gif=not args.no_gif, fresh=args.fresh)
+    _check_ray(args.backend)
+    run_tournament(config, Path(args.out), gif=not args.no_gif, fresh=args.fresh, backend=args.backend,
+                   workers=args.workers, address=args.address)
     return 0
 
 
@@ -106,11 +108,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from experiments.sweep import load_sweep, run_sweep
 
     config = load_sweep(Path(args.file))
-    if args.backend == "ray":
-        try:
-            import ray  # noqa: F401
-        except ImportError:
-            raise ValueError("the ray backend needs Ray: pip install 'racing-games[ray]'") from None
+    _check_ray(args.backend)
     out = Path(args.out) if args.out else Path("runs/sweep") / Path(args.file).stem
     report = run_sweep(config, out, backend=args.backend, workers=args.workers, address=args.address,
                        fresh=args.fresh)
@@ -129,8 +127,30 @@ def _compile_cache_option() -> argparse.ArgumentParser:
     return parent
 
 
+def _backend_options() -> argparse.ArgumentParser:
+    """``--backend``, ``--workers``, ``--address``: where the races of a sweep or a
+    tournament run (experiments.backends)."""
+    parent = argparse.ArgumentParser(add_help=False)
+    parent.add_argument("--backend", choices=["local", "ray"], default="local",
+                        help="where races run: local (this process, or --workers processes) or ray (default: local)")
+    parent.add_argument("--workers", type=int, default=1,
+                        help="worker processes (local) or CPUs of a local Ray instance (default: 1: this process)")
+    parent.add_argument("--address", default=None,
+                        help="Ray cluster to join, e.g. auto or ray://head:10001 (default: start a local one)")
+    return parent
+
+
+def _check_ray(backend: str) -> None:
+    if backend == "ray":
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            raise ValueError("the ray backend needs Ray: pip install 'racing-games[ray]'") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     cache = _compile_cache_option()
+    backends = _backend_options()
     parser = argparse.ArgumentParser(
         prog="racing",
         description="racing-games: race game-theoretic planners and RL agents on point-mass cars.",
@@ -165,11 +185,13 @@ def build_parser() -> argparse.ArgumentParser:
     paper.set_defaults(func=_cmd_paper)
 
     tour = sub.add_parser(
-        "tournament", parents=[cache],
+        "tournament", parents=[cache, backends],
         help="round robin of agents over seeded start grids (resumable; leaderboard, CSV, PNG, GIF)",
         description="Every combination of --cars agents races on --grids start grids, once per rotation of "
         "the starting slots. Results are appended to OUT/results.jsonl as races end; rerunning the same "
-        "command resumes. Agent specs: ilqr, ilqgame-ol, ilqgame-fb, lane-keeping, constant-speed, rl:PATH.zip",
+        "command resumes. Races run here, on --workers local processes, or on Ray (--backend ray); the "
+        "leaderboard is the same. Agent specs: ilqr, ilqgame-ol, ilqgame-fb, lane-keeping, constant-speed, "
+        "rl:PATH.zip",
     )
     tour.add_argument("--agents", nargs="+", default=["ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping"],
                       help="agent specs (space- or comma-separated)")
@@ -288,7 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.set_defaults(func=_cmd_train)
 
     sweep = sub.add_parser(
-        "sweep", parents=[cache],
+        "sweep", parents=[cache, backends],
         help="races over a grid of settings from a TOML file, on local worker processes or a Ray cluster",
         description="Race a lineup of agents at every combination of the parameters in a TOML file (see "
         "experiments/sweep.py and the README for its keys), on --grids seeded grids per point, once per rotation "
@@ -298,11 +320,6 @@ def build_parser() -> argparse.ArgumentParser:
         "with --workers CPUs).",
     )
     sweep.add_argument("file", help="the sweep's TOML file")
-    sweep.add_argument("--backend", choices=["local", "ray"], default="local", help="where races run (default: local)")
-    sweep.add_argument("--workers", type=int, default=1,
-                       help="worker processes (local) or CPUs of a local Ray instance (default: 1)")
-    sweep.add_argument("--address", default=None,
-                       help="Ray cluster to join, e.g. auto or ray://head:10001 (default: start a local one)")
     sweep.add_argument("--out", default=None, help="output folder (default: runs/sweep/<file name>)")
     sweep.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")
     sweep.set_defaults(func=_cmd_sweep)

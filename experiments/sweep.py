@@ -29,15 +29,16 @@ workers or interruptions.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import json
-import signal
 import sys
 from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
 
+from experiments.backends import check_backend, run_jobs
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
 from racing_env.config import RaceConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
@@ -51,7 +52,6 @@ RESULTS = "results.jsonl"
 CONFIG = "sweep.json"
 RACE_PARAMETERS = ("track", "laps", "race_distance", "max_steps", "jerk_weight")
 WEIGHT_FIELDS = tuple(f.name for f in dataclasses.fields(CostWeights))
-BACKENDS = ("local", "ray")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -156,16 +156,12 @@ def schedule(config: SweepConfig) -> list[dict[str, Any]]:
     return jobs
 
 
-def run_job(config: SweepConfig, job: dict[str, Any], compile_cache: str | None = None) -> dict[str, Any]:
+def run_job(config: SweepConfig, job: dict[str, Any]) -> dict[str, Any]:
     """Race one job and return its record: the job, and per agent (by lineup index) its
-    car's result in that race (place, finish time, distance, speed, incidents, errors)."""
-    import racing_env  # noqa: F401 - float64 and the XLA set-up, before any JAX work in a worker
+    car's result in that race (start place, place, finish time, distance, speed, incidents,
+    errors)."""
     from experiments.tournament import race_lineup
 
-    if compile_cache is not None:
-        from planners.compile_cache import enable_compile_cache
-
-        enable_compile_cache(compile_cache)
     cars = len(config.lineup)
     rotation = job["rotation"]
     order = [(slot + rotation) % cars for slot in range(cars)]  # the agent index in each slot
@@ -216,59 +212,6 @@ def read_results(out: Path) -> list[dict[str, Any]]:
     return read_jsonl(out / RESULTS)
 
 
-def _ignore_interrupts() -> None:
-    """Worker initialiser: Ctrl-C reaches the whole process group, and the parent stops the
-    workers itself (a worker interrupted mid-race would only print a traceback)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _run_local(config, jobs, workers, compile_cache):
-    """Yield records as races end: in this process for one worker, else in a pool of
-    spawned worker processes (terminated if the caller stops early, e.g. at Ctrl-C)."""
-    if workers == 1:
-        for job in jobs:
-            yield run_job(config, job)
-        return
-    import functools
-    import multiprocessing
-
-    pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_ignore_interrupts)
-    try:
-        yield from pool.imap_unordered(functools.partial(run_job, config, compile_cache=compile_cache), jobs)
-        pool.close()
-    finally:
-        pool.terminate()
-        pool.join()
-
-
-def _run_ray(config, jobs, address, workers, compile_cache):
-    """Yield records as races end, each race a Ray task (one CPU) on the cluster at
-    ``address``, or on a local Ray instance of ``workers`` CPUs started (and stopped) here."""
-    import ray
-
-    started = not ray.is_initialized()
-    if started:
-        try:
-            ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
-                     log_to_driver=False)
-        except ConnectionError as err:
-            raise ValueError(f"could not join the Ray cluster at {address!r}: {err}") from None
-    try:
-        task = ray.remote(num_cpus=1)(run_job)
-        pending = [task.remote(config, job, compile_cache) for job in jobs]
-        try:
-            while pending:
-                done, pending = ray.wait(pending, num_returns=1)
-                yield ray.get(done[0])
-        except BaseException:
-            for ref in pending:
-                ray.cancel(ref, force=True)
-            raise
-    finally:
-        if started:
-            ray.shutdown()
-
-
 def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: int = 1,
               address: str | None = None, fresh: bool = False, progress: bool = True) -> dict[str, Any]:
     """Run (or resume) a sweep into ``out``; returns ``{"rows": summary, "interrupted": bool}``
@@ -277,13 +220,9 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
     from tqdm import tqdm
 
     from planners.agents import make_agent
-    from planners.compile_cache import compile_cache_dir
     from racing_env.track import get_track
 
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    if not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    check_backend(backend, workers)
     for spec in dict.fromkeys(config.lineup):  # an unknown spec or a missing model fails before any race
         make_agent(spec)
     for track in dict.fromkeys(point.get("track", config.track) for point in config.points()):
@@ -301,9 +240,7 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
     todo = [job for job in jobs if job["id"] not in done]
     if done:
         console.print(f"resuming: {len(done)} of {len(jobs)} races already in {out / RESULTS}")
-    cache = compile_cache_dir()
-    records = (_run_local(config, todo, workers, cache) if backend == "local"
-               else _run_ray(config, todo, address, workers, cache))
+    records = run_jobs(functools.partial(run_job, config), todo, backend, workers, address)
     interrupted = False
     drop_cut_line(out / RESULTS)
     with tqdm(total=len(todo), desc="sweep", disable=not progress) as bar:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import itertools
 import json
 import math
@@ -23,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from experiments.backends import check_backend, run_jobs
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
 from racing_env.config import RaceConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
@@ -272,9 +274,20 @@ def load_results(out: Path) -> list[dict[str, Any]]:
     return read_jsonl(out / RESULTS)
 
 
+def _race_record(config: TournamentConfig, race: dict[str, Any]) -> dict[str, Any]:
+    """The record of one scheduled race (a job for :func:`experiments.backends.run_jobs`)."""
+    return run_one_race(config, race)[0]
+
+
 def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progress: bool = True,
-                   fresh: bool = False) -> dict[str, Any]:
-    """Run (or resume) a tournament into ``out``; returns the leaderboard."""
+                   fresh: bool = False, backend: str = "local", workers: int = 1,
+                   address: str | None = None) -> dict[str, Any]:
+    """Run (or resume) a tournament into ``out``; returns the leaderboard.
+
+    The races run in this process, or with ``workers > 1`` or ``backend="ray"`` on worker
+    processes or a Ray cluster (:func:`experiments.backends.run_jobs`; the race drawn as a
+    GIF runs here first). Records are appended as races end; the leaderboard is built in
+    schedule order, so it does not depend on where or in which order the races ran."""
     from rich.console import Console
     from rich.table import Table
     from tqdm import tqdm
@@ -296,14 +309,24 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     todo = [r for r in races if r["id"] not in done]
     if done:
         console.print(f"resuming: {len(done)} of {len(races)} races already in {out / RESULTS}")
+    check_backend(backend, workers)
     drop_cut_line(out / RESULTS)
-    for race in tqdm(todo, desc="tournament", disable=not progress):
-        want_gif = gif and not (out / "race.gif").exists()
-        record, frames = run_one_race(config, race, render_every=3 if want_gif else 0)
-        append_jsonl(out / RESULTS, record)
-        done[record["id"]] = record
-        if want_gif and frames:
+    with tqdm(total=len(todo), desc="tournament", disable=not progress) as bar:
+        if todo and gif and not (out / "race.gif").exists():
+            record, frames = run_one_race(config, todo[0], render_every=3)
+            append_jsonl(out / RESULTS, record)
+            done[record["id"]] = record
             save_gif(frames, out / "race.gif", fps=10.0 / 3)
+            todo = todo[1:]
+            bar.update(1)
+        records = run_jobs(functools.partial(_race_record, config), todo, backend, workers, address)
+        try:
+            for record in records:
+                append_jsonl(out / RESULTS, record)
+                done[record["id"]] = record
+                bar.update(1)
+        finally:
+            records.close()  # at an interruption: stops the workers or the Ray tasks
     records = [done[r["id"]] for r in races if r["id"] in done]
     board = leaderboard(config, records)
     with open(out / "summary.csv", "w", newline="") as handle:

@@ -165,6 +165,21 @@ def test_same_seed_gives_identical_results(tmp_path):
         assert sorted(places) == [1, 2] and s0[places.index(1)] > s0[places.index(2)]
 
 
+@pytest.mark.parametrize("backend, workers", [("local", 2), ("ray", 2)], ids=["two-processes", "ray"])
+def test_races_on_workers_give_the_same_records_and_leaderboard(tmp_path, backend, workers):
+    """The races of a tournament run on worker processes or a real local Ray instance:
+    the same records (timings aside) and the same leaderboard as in this process."""
+    config = tour.TournamentConfig(agents=("lane-keeping", "constant-speed"), **{**SHORT, "grids": 2})
+    here = tour.run_tournament(config, tmp_path / "here", gif=False, progress=False)
+    there = tour.run_tournament(config, tmp_path / "there", gif=True, progress=False, backend=backend,
+                                workers=workers)
+    by_id = {r["id"]: _strip_timing(r) for r in tour.load_results(tmp_path / "here")}
+    assert {r["id"]: _strip_timing(r) for r in tour.load_results(tmp_path / "there")} == by_id
+    assert len(by_id) == len(tour.schedule(config))
+    assert _without_timing(here) == _without_timing(there)
+    assert (tmp_path / "there" / "race.gif").stat().st_size > 0
+
+
 def test_overtakes_count_sign_changes():
     """Two cars swapping the lead twice make two overtakes."""
     s = np.array([[0.0, 1.0], [2.0, 1.5], [3.0, 3.5]])

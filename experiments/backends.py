@@ -1,0 +1,107 @@
+"""Where independent jobs run: this process, a pool of local worker processes, or a Ray
+cluster. Sweeps and tournaments hand their races to :func:`run_jobs` and get the results
+back as the races end, in whatever order that is.
+
+A job's function must be importable by name (a module-level function, or a
+``functools.partial`` of one) so that worker processes and Ray tasks can run it. Workers
+use the caller's compilation cache (:mod:`planners.compile_cache`), so a planner compiled by
+an earlier run is loaded, not compiled again.
+"""
+
+from __future__ import annotations
+
+import functools
+import signal
+from typing import Any, Callable, Iterable, Iterator
+
+BACKENDS = ("local", "ray")
+
+
+def check_backend(backend: str, workers: int) -> None:
+    """Refuse an unknown backend or a worker count below one."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+
+
+def run_jobs(function: Callable[[Any], Any], jobs: Iterable[Any], backend: str = "local", workers: int = 1,
+             address: str | None = None) -> Iterator[Any]:
+    """Yield ``function(job)`` for every job as each finishes.
+
+    ``local`` with one worker runs the jobs here, in order; with more, in a pool of spawned
+    processes. ``ray`` runs each job as a task of one CPU on the cluster at ``address``, or
+    on a local Ray instance of ``workers`` CPUs started and stopped here. Closing the
+    iterator early (e.g. at Ctrl-C) terminates the workers or cancels the pending tasks.
+    """
+    from planners.compile_cache import compile_cache_dir
+
+    check_backend(backend, workers)
+    jobs = list(jobs)
+    if backend == "local" and workers == 1:
+        return (function(job) for job in jobs)
+    task = functools.partial(_in_worker, function, compile_cache_dir())
+    if backend == "local":
+        return _run_pool(task, jobs, workers)
+    return _run_ray(task, jobs, workers, address)
+
+
+def _in_worker(function, compile_cache: str | None, job):
+    """Run one job in a worker: the package's JAX set-up and the caller's compilation
+    cache first."""
+    import racing_env  # noqa: F401 - float64 and the XLA set-up, before any JAX work
+
+    if compile_cache is not None:
+        from planners.compile_cache import enable_compile_cache
+
+        enable_compile_cache(compile_cache)
+    return function(job)
+
+
+def _ignore_interrupts() -> None:
+    """Pool initialiser: Ctrl-C reaches the whole process group, and the parent stops the
+    workers itself (a worker interrupted mid-job would only print a traceback)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _run_pool(task, jobs, workers: int) -> Iterator[Any]:
+    import multiprocessing
+
+    pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_ignore_interrupts)
+    try:
+        yield from pool.imap_unordered(task, jobs)
+        pool.close()
+    finally:
+        pool.terminate()
+        pool.join()
+
+
+def _run_ray(task, jobs, workers: int, address: str | None) -> Iterator[Any]:
+    import ray
+
+    started = not ray.is_initialized()
+    if started:
+        try:
+            ray.init(address=address, num_cpus=None if address else workers, include_dashboard=False,
+                     log_to_driver=False)
+        except ConnectionError as err:
+            raise ValueError(f"could not join the Ray cluster at {address!r}: {err}") from None
+    try:
+        remote = ray.remote(num_cpus=1)(_call)
+        pending = [remote.remote(task, job) for job in jobs]
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                yield ray.get(done[0])
+        except BaseException:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            raise
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def _call(task, job):
+    """The Ray task: ``task(job)`` (Ray wants a plain function to make remote)."""
+    return task(job)
