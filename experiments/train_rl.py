@@ -588,7 +588,7 @@ def plot_learning_curve(episodes: list[dict[str, Any]], evaluations: list[dict[s
     middle.set_ylim(-0.05, 1.05)
     middle.set_ylabel("fraction")
     if middle.lines:
-        middle.legend(loc="lower right", fontsize=8)
+        middle.legend(loc="best", fontsize=8)
     if len(bottom.lines) > 1:  # more than the zero line
         bottom.legend(loc="lower right", fontsize=8)
     top.set_title(title)
