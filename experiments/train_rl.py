@@ -2,8 +2,9 @@
 
 The learner drives one car of the Gymnasium view (:class:`racing_env.single_agent.RaceEnv`)
 against agent specs (``lane-keeping``, ``ilqgame-fb``, ``rl:path.zip``, ...) on seeded rolling
-grids. ``envs`` copies of the race run side by side, the learner in starting slot
-``copy % cars``, so it learns both from the front and from behind. Observations (and
+grids. ``envs`` copies of the race run side by side, the learner driving car
+``copy % cars`` in each; every episode draws its own grid order, so the learner starts
+both in front and behind. Observations (and
 rewards) are normalised by SB3's ``VecNormalize`` unless ``normalize=False``; its statistics
 are saved beside every model, where :class:`planners.agents.SB3Agent` finds them.
 
@@ -71,7 +72,7 @@ class TrainConfig:
         laps / race_distance: the race's length (``race_distance`` [m] overrides ``laps``).
         max_steps: an episode is truncated after this many steps.
         seed: seeds the policy, the start grids and the evaluation grids.
-        envs: copies of the race stepped side by side; copy ``k`` puts the learner in slot
+        envs: copies of the race stepped side by side; in copy ``k`` the learner drives car
             ``k % N``.
         subprocesses: step each copy in a worker process of its own (``SubprocVecEnv``),
             worth it against planner opponents, whose solves then run on several cores;
@@ -259,7 +260,7 @@ class _RaceCopy:
 
 
 def make_training_env(config: TrainConfig):
-    """``config.envs`` monitored copies of the race, the learner in slot ``copy % N``, each
+    """``config.envs`` monitored copies of the race, the learner as car ``copy % N``, each
     with opponent agents of its own: a ``DummyVecEnv``, or with ``subprocesses`` a
     ``SubprocVecEnv`` (one worker process per copy)."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
@@ -299,7 +300,7 @@ def evaluate(config: TrainConfig, model_path: Path, timesteps: int) -> dict[str,
     races = []
     with _global_rngs_kept():  # SB3Agent.reset seeds the global RNGs, which training draws from
         for grid in range(config.eval_grids):
-            seed = 1_000_000 + config.seed * 10_000 + grid  # grids the training resets do not start from
+            seed = 1_000_000 + config.seed * 10_000 + grid  # seeds of their own: the training's are seed + copy
             for slot in range(config.cars):
                 lineup = list(config.opponents)
                 lineup.insert(slot, learner)
@@ -387,7 +388,7 @@ def _training_callback(config: TrainConfig, out: Path, console):
                 if done and "episode" in info:
                     episode = info["episode"]
                     append_jsonl(out / EPISODES, {
-                        "timesteps": int(self.num_timesteps), "env": copy, "slot": copy % config.cars,
+                        "timesteps": int(self.num_timesteps), "env": copy, "car": copy % config.cars,
                         "return": float(episode["r"]), "length": int(episode["l"]),
                         "finished": bool(episode["finished"]), "place": int(episode["position"]),
                         "out": bool(episode["out"]), "finish_time": episode["finish_time"],

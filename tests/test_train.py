@@ -44,9 +44,9 @@ def test_training_writes_checkpoints_logs_and_a_model_that_races(tmp_path):
 
     episodes = read_jsonl(tmp_path / "episodes.jsonl")
     assert episodes, "no training episode ended in 1,024 steps"
-    for copy in (0, 1):  # each copy's episodes: in order, in its own slot, no more steps than it took
+    for copy in (0, 1):  # each copy's episodes: in order, as its own car, no more steps than it took
         mine = [e for e in episodes if e["env"] == copy]
-        assert all(e["slot"] == copy for e in mine)
+        assert all(e["car"] == copy for e in mine)
         assert [e["timesteps"] for e in mine] == sorted(e["timesteps"] for e in mine)
         assert sum(e["length"] for e in mine) <= 1024 // 2
     assert all(e["out"] or e["finished"] or e["truncated"] for e in episodes)
