@@ -4,6 +4,11 @@ resumption, interruption, where the swept settings go, and refused files."""
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 
 import pytest
 
@@ -94,6 +99,44 @@ def test_interrupted_sweep_keeps_its_races(tiny, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(sweep, "run_job", real)
     assert main(["sweep", str(path), "--out", str(tmp_path / "out"), "--no-compile-cache"]) == 0
     assert len(sweep.read_results(tmp_path / "out")) == len(sweep.schedule(load_sweep(path)))
+
+
+def test_ctrl_c_stops_the_worker_processes_and_the_sweep_resumes(tmp_path):
+    """SIGINT to the process group of a real `racing sweep --workers 2` (as a terminal sends
+    Ctrl-C): exit status 130, the finished races kept, no process left; rerun: complete."""
+    path = tmp_path / "long.toml"
+    path.write_text(TINY_TOML.replace("grids = 2", "grids = 40"))
+    out = tmp_path / "out"
+    args = ["sweep", str(path), "--workers", "2", "--out", str(out), "--no-compile-cache"]
+    process = subprocess.Popen([sys.executable, "-m", "experiments.cli", *args], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and process.poll() is None:
+            if len(sweep.read_results(out)) >= 4:
+                break
+            time.sleep(0.05)
+        assert process.poll() is None, "the sweep ended before it could be interrupted"
+        os.killpg(process.pid, signal.SIGINT)
+        _, err = process.communicate(timeout=60)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            try:
+                os.killpg(process.pid, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail("worker processes of the interrupted sweep are still alive")
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, err
+    kept = sweep.read_results(out)
+    total = len(sweep.schedule(load_sweep(path)))
+    assert 4 <= len(kept) < total
+    assert main(args) == 0
+    assert len(sweep.read_results(out)) == total
 
 
 def test_swept_weights_follow_their_agent_into_every_slot():
