@@ -4,17 +4,13 @@ resumption, interruption, where the swept settings go, and refused files."""
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 
 import pytest
 
 from experiments import sweep
 from experiments.cli import main
 from experiments.sweep import SweepConfig, load_sweep, run_sweep
+from interrupting import ctrl_c_when, start_racing
 
 # Scripted cars on short races: the backends, not the driving, are under test here.
 TINY_TOML = """
@@ -108,29 +104,8 @@ def test_ctrl_c_stops_the_worker_processes_and_the_sweep_resumes(tmp_path):
     path.write_text(TINY_TOML.replace("grids = 2", "grids = 40"))
     out = tmp_path / "out"
     args = ["sweep", str(path), "--workers", "2", "--out", str(out), "--no-compile-cache"]
-    process = subprocess.Popen([sys.executable, "-m", "experiments.cli", *args], stdout=subprocess.DEVNULL,
-                               stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and process.poll() is None:
-            if len(sweep.read_results(out)) >= 4:
-                break
-            time.sleep(0.05)
-        assert process.poll() is None, "the sweep ended before it could be interrupted"
-        os.killpg(process.pid, signal.SIGINT)
-        _, err = process.communicate(timeout=60)
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            try:
-                os.killpg(process.pid, 0)
-            except ProcessLookupError:
-                break
-            time.sleep(0.1)
-        else:
-            pytest.fail("worker processes of the interrupted sweep are still alive")
-    finally:
-        if process.poll() is None:
-            process.kill()
+    process = start_racing(args)
+    err = ctrl_c_when(process, lambda: len(sweep.read_results(out)) >= 4, timeout=120)
     assert process.returncode == 130, err
     kept = sweep.read_results(out)
     total = len(sweep.schedule(load_sweep(path)))

@@ -5,11 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
@@ -19,6 +14,7 @@ from experiments import train_rl
 from experiments.cli import main
 from experiments.jsonl import read_jsonl
 from experiments.train_rl import TrainConfig, run_training
+from interrupting import ctrl_c_when, start_racing
 from planners.agents import SB3Agent, make_agent, vecnormalize_path
 
 # A short race and small PPO rollouts: 2 copies x 256 steps = one update per 512 steps.
@@ -101,30 +97,8 @@ def test_interrupted_training_process_resumes(tmp_path, subprocesses):
     out = tmp_path / "run"
     args = [*TINY_ARGS, "--eval-every", "0", "--checkpoint-every", "512", "--out", str(out)]
     extra = ["--subprocesses"] if subprocesses else []
-    process = subprocess.Popen([sys.executable, "-m", "experiments.cli", *args, *extra, "--timesteps", "200000"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                               start_new_session=True)
-    try:
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline and process.poll() is None:
-            if (out / "checkpoints" / "step_000000512.zip").exists():
-                break
-            time.sleep(0.05)
-        assert process.poll() is None, "training ended before it could be interrupted"
-        os.killpg(process.pid, signal.SIGINT)
-        _, err = process.communicate(timeout=120)
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            try:
-                os.killpg(process.pid, 0)  # anyone left in the group?
-            except ProcessLookupError:
-                break
-            time.sleep(0.1)
-        else:
-            pytest.fail("processes of the interrupted run are still alive")
-    finally:
-        if process.poll() is None:
-            process.kill()
+    process = start_racing([*args, *extra, "--timesteps", "200000"])
+    err = ctrl_c_when(process, (out / "checkpoints" / "step_000000512.zip").exists)
     assert process.returncode == 130, err
     report = json.loads((out / "train.json").read_text())
     assert report["status"] == "interrupted"
