@@ -667,12 +667,17 @@ def _verdict_text(row: dict[str, Any], verdict: tuple[str, bool], missed: str = 
     return text
 
 
-def write_json_atomically(report: dict[str, Any], path: Path) -> None:
-    """Write ``report`` as JSON to ``path`` through a ``.partial`` file and a rename, so a
-    reader (or an interrupted run) never finds a half-written file."""
+def replace_atomically(write: Callable[[Path], Any], path: Path) -> None:
+    """``write(partial)`` to ``path`` + ``.partial``, then rename it onto ``path``, so a
+    reader (or an interrupted run) never finds a half-written file: the old one stays."""
     partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(report, indent=2))
+    write(partial)
     partial.replace(path)
+
+
+def write_json_atomically(report: dict[str, Any], path: Path) -> None:
+    """Write ``report`` as JSON to ``path`` with :func:`replace_atomically`."""
+    replace_atomically(lambda partial: partial.write_text(json.dumps(report, indent=2)), path)
 
 
 def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[str, Any]:

@@ -39,3 +39,24 @@ def append_jsonl(path: Path, record: dict[str, Any]) -> None:
     """Append one record as a line and flush it."""
     with open(path, "a") as sink:
         sink.write(json.dumps(record) + "\n")
+
+
+def open_run_log(out: Path, log: str, settings_file: str, settings_json: str, fresh: bool,
+                 what: str) -> dict[str, dict[str, Any]]:
+    """Prepare ``out`` for a resumable run that appends its records (each with an ``id``)
+    to ``out/log``, and return the records already there by id.
+
+    ``fresh`` discards them. Otherwise a log written under other settings (``settings_file``
+    holds those of the last run) is refused: its records would mix two ``what``s. A line
+    cut by an interruption is dropped, so the next record starts on a line of its own.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    settings = out / settings_file
+    if fresh:
+        (out / log).unlink(missing_ok=True)
+    elif settings.exists() and settings.read_text() != settings_json and (out / log).exists():
+        raise ValueError(f"{out} holds results of a different {what}; use another --out folder or --fresh "
+                         "to start over")
+    settings.write_text(settings_json)
+    drop_cut_line(out / log)
+    return {record["id"]: record for record in read_jsonl(out / log)}

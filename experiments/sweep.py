@@ -39,7 +39,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from experiments.backends import check_backend, run_jobs
-from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
+from experiments.jsonl import append_jsonl, open_run_log, read_jsonl
 from racing_env.config import RaceConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
 
@@ -178,12 +178,13 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
     """Per point and agent: races, wins (and of those started in front, how many were
     won), mean place, mean finish-time margin over the other cars (races all finished),
     overtakes per race, contact steps, time off track, errors."""
+    position = {job["id"]: k for k, job in enumerate(schedule(config))}
     by_point: dict[int, list[dict[str, Any]]] = {}
-    for record in records:
+    for record in sorted(records, key=lambda r: position[r["id"]]):  # sums in one order, however they came
         by_point.setdefault(record["point_index"], []).append(record)
     rows = []
     for index, point in enumerate(config.points()):
-        races = sorted(by_point.get(index, []), key=lambda r: r["id"])
+        races = by_point.get(index, [])
         for agent, spec in enumerate(config.lineup):
             mine = [r["agents"][agent] for r in races]
             margins = []
@@ -228,21 +229,14 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
     for track in dict.fromkeys(point.get("track", config.track) for point in config.points()):
         get_track(track)  # so does a track that is not built in and not a readable file
     console = Console(stderr=True, width=160)
-    out.mkdir(parents=True, exist_ok=True)
-    config_json = json.dumps(dataclasses.asdict(config), sort_keys=True)
-    if fresh:
-        (out / RESULTS).unlink(missing_ok=True)
-    elif (out / CONFIG).exists() and (out / CONFIG).read_text() != config_json and (out / RESULTS).exists():
-        raise ValueError(f"{out} holds results of a different sweep; use another --out folder or --fresh")
-    (out / CONFIG).write_text(config_json)
+    done = open_run_log(out, RESULTS, CONFIG, json.dumps(dataclasses.asdict(config), sort_keys=True), fresh,
+                        "sweep")
     jobs = schedule(config)
-    done = {r["id"]: r for r in read_results(out)}
     todo = [job for job in jobs if job["id"] not in done]
     if done:
         console.print(f"resuming: {len(done)} of {len(jobs)} races already in {out / RESULTS}")
     records = run_jobs(functools.partial(run_job, config), todo, backend, workers, address)
     interrupted = False
-    drop_cut_line(out / RESULTS)
     with tqdm(total=len(todo), desc="sweep", disable=not progress) as bar:
         try:
             for record in records:

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from experiments.backends import check_backend, run_jobs
-from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
+from experiments.jsonl import append_jsonl, open_run_log, read_jsonl
 from racing_env.config import RaceConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
 from racing_env.env import RacingParallelEnv
@@ -295,22 +295,13 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     from racing_env.render import save_gif
 
     console = Console(width=140)
-    out.mkdir(parents=True, exist_ok=True)
-    config_json = json.dumps(dataclasses.asdict(config), sort_keys=True)
-    config_path = out / CONFIG
-    if fresh:
-        (out / RESULTS).unlink(missing_ok=True)
-    elif config_path.exists() and config_path.read_text() != config_json and (out / RESULTS).exists():
-        raise ValueError(f"{out} holds results of a different tournament configuration; "
-                         "use another --out folder or --fresh to start over")
-    config_path.write_text(config_json)
+    check_backend(backend, workers)
+    done = open_run_log(out, RESULTS, CONFIG, json.dumps(dataclasses.asdict(config), sort_keys=True), fresh,
+                        "tournament configuration")
     races = schedule(config)
-    done = {r["id"]: r for r in load_results(out)}
     todo = [r for r in races if r["id"] not in done]
     if done:
         console.print(f"resuming: {len(done)} of {len(races)} races already in {out / RESULTS}")
-    check_backend(backend, workers)
-    drop_cut_line(out / RESULTS)
     with tqdm(total=len(todo), desc="tournament", disable=not progress) as bar:
         if todo and gif and not (out / "race.gif").exists():
             record, frames = run_one_race(config, todo[0], render_every=3)

@@ -33,7 +33,6 @@ import contextlib
 import dataclasses
 import inspect
 import json
-import os
 import re
 import signal
 import time
@@ -43,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from experiments.bench import write_json_atomically
+from experiments.bench import replace_atomically, write_json_atomically
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
 from planners.agents import SB3_ALGOS, make_agent, vecnormalize_path
 from racing_env.config import INCIDENT_MODES, RaceConfig, RewardConfig
@@ -211,24 +210,17 @@ def _replay_buffer_path(model_path: Path) -> Path:
     return model_path.with_name(model_path.name[: -len(".zip")] + ".replay_buffer.pkl")
 
 
-def _replace_atomically(write, path: Path) -> None:
-    """``write(tmp)`` then rename onto ``path``: an interrupted save leaves the old file."""
-    tmp = path.with_name(path.name + ".partial")
-    write(tmp)
-    os.replace(tmp, path)
-
-
 def save_policy(model, venv, path: Path, replay_buffer: bool = False) -> None:
     """``model.zip`` and, under ``VecNormalize``, its statistics beside it; with
     ``replay_buffer`` an off-policy model's buffer too (what a resumption needs)."""
     from stable_baselines3.common.vec_env import VecNormalize
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    _replace_atomically(lambda tmp: model.save(tmp), path)
+    replace_atomically(lambda tmp: model.save(tmp), path)
     if isinstance(venv, VecNormalize):
-        _replace_atomically(lambda tmp: venv.save(str(tmp)), vecnormalize_path(path))
+        replace_atomically(lambda tmp: venv.save(str(tmp)), vecnormalize_path(path))
     if replay_buffer and hasattr(model, "replay_buffer"):
-        _replace_atomically(lambda tmp: model.save_replay_buffer(tmp), _replay_buffer_path(path))
+        replace_atomically(lambda tmp: model.save_replay_buffer(tmp), _replay_buffer_path(path))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -356,7 +348,7 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
 def _drop_episodes_after(out: Path, timesteps: int) -> None:
     """Forget the episodes logged after ``timesteps``: their steps will be collected again."""
     kept = [e for e in read_jsonl(out / EPISODES) if e["timesteps"] <= timesteps]
-    _replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EPISODES)
+    replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EPISODES)
 
 
 def _training_callback(config: TrainConfig, out: Path, console):
@@ -374,11 +366,12 @@ def _training_callback(config: TrainConfig, out: Path, console):
 
         def _on_rollout_start(self) -> None:
             self.updated_at = self.num_timesteps
+            saved = None
             if self.next_checkpoint is not None and self.num_timesteps >= self.next_checkpoint:
-                checkpoint(self.model, out)
+                saved = checkpoint(self.model, out)
                 self.next_checkpoint = _next_multiple(self.num_timesteps, config.checkpoint_every)
             if self.next_eval is not None and self.num_timesteps >= self.next_eval:
-                record = evaluate(config, checkpoint(self.model, out), self.num_timesteps)
+                record = evaluate(config, saved or checkpoint(self.model, out), self.num_timesteps)
                 append_jsonl(out / EVALUATIONS, record)
                 console.print(_evaluation_line(record))
                 self.next_eval = _next_multiple(self.num_timesteps, config.eval_every)
