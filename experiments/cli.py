@@ -1,4 +1,4 @@
-"""The `racing` command line: demo, paper, tournament, train, sweep, convergence, bench."""
+"""The `racing` command line: demo, agents, paper, tournament, train, sweep, convergence, bench."""
 
 from __future__ import annotations
 
@@ -35,9 +35,10 @@ def _cmd_paper(args: argparse.Namespace) -> int:
 
 def _cmd_tournament(args: argparse.Namespace) -> int:
     from experiments.tournament import TournamentConfig, run_tournament
+    from planners.agent_specs import split_spec_list
 
     config = TournamentConfig(
-        agents=tuple(a for part in args.agents for a in part.split(",") if a),
+        agents=tuple(split_spec_list(args.agents)),
         track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
         cars=args.cars, seed=args.seed, versus=args.versus, max_steps=args.max_steps, step_budget_s=args.step_budget,
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
@@ -45,6 +46,31 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
     _check_ray(args.backend)
     run_tournament(config, Path(args.out), gif=not args.no_gif, fresh=args.fresh, backend=args.backend,
                    workers=args.workers, address=args.address)
+    return 0
+
+
+def _cmd_agents(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from planners.agents import AGENT_SPECS, AGENT_SUMMARIES, agent_options
+
+    names = [args.name] if args.name else list(AGENT_SPECS)
+    console = Console(width=max(Console().width, 120))
+    for name in names:
+        rows = agent_options(name)  # refuses an unknown name, listing the known ones
+        table = Table(title=f"{name}: {AGENT_SUMMARIES[name]}", title_justify="left")
+        for column in ("option", "type", "default", "meaning"):
+            table.add_column(column)
+        for row in rows:
+            if not args.name and row[0].startswith(("leading.", "trailing.")):
+                continue  # one line per prefix below, unless the agent was asked for by name
+            table.add_row(*row)
+        console.print(table)
+        if any(row[0].startswith("leading.") for row in rows):
+            console.print("  leading.<weight>, trailing.<weight>: that cost weight in re-plans made while the car "
+                          "leads, or trails (e.g. trailing.c_collision=1)")
+    console.print("rl:PATH.zip, rl:ALGO:PATH.zip: a saved stable-baselines3 policy (no options)")
     return 0
 
 
@@ -88,9 +114,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     except ImportError:
         raise ValueError("racing train needs stable-baselines3: pip install 'racing-games[rl]'") from None
     from experiments.train_rl import TrainConfig, parse_hyperparameter, parse_reward_weight, run_training
+    from planners.agent_specs import split_spec_list
 
     config = TrainConfig(
-        opponents=tuple(a for part in args.opponents for a in part.split(",") if a), algo=args.algo,
+        opponents=tuple(split_spec_list(args.opponents)), algo=args.algo,
         timesteps=args.timesteps, track=args.track, laps=args.laps, race_distance=args.race_distance,
         max_steps=args.max_steps, seed=args.seed, envs=args.envs, subprocesses=args.subprocesses,
         normalize=args.normalize,
@@ -172,6 +199,18 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--laps", type=int, default=1, help="race length in laps (default: 1)")
     demo.add_argument("--seed", type=int, default=0, help="start-grid seed (default: 0)")
     demo.set_defaults(func=_cmd_demo)
+
+    agents = sub.add_parser(
+        "agents", help="list the agent specs and the options each accepts (name:option=value,...)",
+        description="Agents are named by specs wherever the commands take them (tournament --agents, train "
+        "--opponents, a sweep's lineup). A spec is a name with optional options after a colon, comma-separated: "
+        "ilqgame-fb:max_iterations=100,replan_every=2. Planners also take their own cost weights (c_collision=1: "
+        "private to the agent's plans; the other cars plan with the race's weights for it) and weights by race "
+        "position (leading.c_collision=10,trailing.c_collision=1). This command lists every option with its type "
+        "and default.",
+    )
+    agents.add_argument("name", nargs="?", help="one agent (default: all)")
+    agents.set_defaults(func=_cmd_agents)
 
     paper = sub.add_parser(
         "paper", parents=[cache], help="reproduce the paper's Figures 1-2 and claims (PNG figures + paper.json)",

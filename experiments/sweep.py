@@ -15,7 +15,9 @@ of the starting slots::
 
 Parameter names: the race's ``track``, ``laps``, ``race_distance``, ``max_steps``,
 ``jerk_weight``; ``weights.<field>`` (a :class:`racing_env.costs.CostWeights` field, for
-every car) and ``agent<i>.<field>`` (that field for agent ``i`` of the lineup).
+every car) and ``agent<i>.<field>`` (that field for agent ``i`` of the lineup: a cost
+weight of its car, known to every planner in the race, or an option of its agent spec such
+as ``max_iterations`` or ``trailing.c_collision``, see :mod:`planners.agent_specs`).
 
 Each race is one job (:func:`run_job`, a pure function of the sweep and the job, so any
 process can run it). Backends: ``local`` (this process for one worker, else a pool of
@@ -40,6 +42,7 @@ import numpy as np
 
 from experiments.backends import check_backend, run_jobs
 from experiments.jsonl import append_jsonl, open_run_log, read_jsonl
+from planners.agent_specs import with_options
 from racing_env.config import RaceConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
 
@@ -88,11 +91,25 @@ class SweepConfig:
         if not self.parameters:
             raise ValueError("a sweep needs a [parameters] table with at least one parameter")
         for name, values in self.parameters:
-            check_parameter_name(name, len(self.lineup))
+            check_parameter_name(name, self.lineup)
             if not isinstance(values, tuple) or not values:
                 raise ValueError(f"parameter {name} needs a non-empty list of values, got {values!r}")
+        from planners.agents import make_agent
+
         for point in self.points():  # every value is checked where it is used, before any race
             self.race_config(point, rotation=0)
+            for spec, base in zip(self.lineup_specs(point), self.lineup):
+                if spec != base:
+                    make_agent(spec)
+
+    def lineup_specs(self, point: dict[str, Any]) -> list[str]:
+        """The lineup's specs (by agent index) with the point's agent options added."""
+        specs = []
+        for agent, spec in enumerate(self.lineup):
+            options = {key.split(".", 1)[1]: value for key, value in point.items()
+                       if key.startswith(f"agent{agent}.") and key.split(".", 1)[1] not in WEIGHT_FIELDS}
+            specs.append(with_options(spec, options))
+        return specs
 
     def points(self) -> list[dict[str, Any]]:
         """Every combination of the parameters' values, in order (the last varies fastest)."""
@@ -108,20 +125,37 @@ class SweepConfig:
         weights = []
         for slot in range(cars):
             agent = (slot + rotation) % cars
-            own = {k.split(".", 1)[1]: v for k, v in point.items() if k.startswith(f"agent{agent}.")}
+            own = {k.split(".", 1)[1]: v for k, v in point.items()
+                   if k.startswith(f"agent{agent}.") and k.split(".", 1)[1] in WEIGHT_FIELDS}
             weights.append(CostWeights(r_jx=race["jerk_weight"], r_jy=race["jerk_weight"], **{**everyone, **own}))
         return RaceConfig(track=race["track"], num_agents=cars, scenario="grid", laps=race["laps"],
                           race_distance=race["race_distance"], max_steps=race["max_steps"], weights=weights)
 
 
-def check_parameter_name(name: str, cars: int) -> None:
+def _spec_option_types(spec: str) -> dict[str, type]:
+    """The options (other than the car's cost weights) a sweep may set on an agent spec."""
+    from planners.agent_specs import split_spec
+    from planners.agents import AGENT_SPECS
+
+    if spec.strip().lower().startswith("rl:"):
+        return {}
+    agent = AGENT_SPECS.get(split_spec(spec)[0])
+    options = agent.spec_options() if agent is not None else {}
+    return {key: kind for key, kind in options.items() if key not in WEIGHT_FIELDS}
+
+
+def check_parameter_name(name: str, lineup: tuple[str, ...]) -> None:
     """Refuse a parameter the sweep does not know, saying which it does."""
+    cars = len(lineup)
     head, _, field = name.partition(".")
     known_agent = head.startswith("agent") and head[5:].isdigit() and int(head[5:]) < cars
     if name in RACE_PARAMETERS or ((head == "weights" or known_agent) and field in WEIGHT_FIELDS):
         return
+    if known_agent and field in _spec_option_types(lineup[int(head[5:])]):
+        return
     raise ValueError(f"unknown sweep parameter {name!r}; use one of {list(RACE_PARAMETERS)}, "
-                     f"weights.<field> or agent<i>.<field> (i < {cars}) with <field> one of {list(WEIGHT_FIELDS)}")
+                     f"weights.<field> or agent<i>.<field> (i < {cars}) with <field> one of {list(WEIGHT_FIELDS)} "
+                     f"or an option of agent i's spec (`racing agents` lists them)")
 
 
 def load_sweep(path: Path) -> SweepConfig:
@@ -165,7 +199,8 @@ def run_job(config: SweepConfig, job: dict[str, Any]) -> dict[str, Any]:
     cars = len(config.lineup)
     rotation = job["rotation"]
     order = [(slot + rotation) % cars for slot in range(cars)]  # the agent index in each slot
-    record, _ = race_lineup(config.race_config(job["point"], rotation), [config.lineup[a] for a in order],
+    specs = config.lineup_specs(job["point"])
+    record, _ = race_lineup(config.race_config(job["point"], rotation), [specs[a] for a in order],
                             job["seed"], step_budget_s=config.step_budget_s)
     by_agent = [None] * cars
     for slot, agent in enumerate(order):

@@ -166,13 +166,14 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     for i, (spec, car) in enumerate(zip(lineup, result.summary)):
         agent = agents[i]
         summary = agent.summary() if agent is not None and hasattr(agent, "summary") else {}
-        times = np.array(result.act_times[i]) if result.act_times[i] else np.array([np.nan])
+        times = result.act_times[i]
         cars.append({
             "agent": spec, "car": car["agent"], "start_place": start_places[i], "place": places[i],
             "finish_time": finish[i],
             "distance": car["distance"], "mean_speed": car["mean_speed"],
             "collision_steps": car["collision_steps"], "time_off_track": car["time_off_track"],
-            "act_time_mean_s": float(np.nanmean(times)), "act_time_max_s": float(np.nanmax(times)),
+            "act_time_mean_s": float(np.mean(times)) if times else float("nan"),
+            "act_time_max_s": float(np.max(times)) if times else float("nan"),
             "solver_failures": int(summary.get("fallbacks", 0)),
             "solver_converged_fraction": summary.get("converged_fraction"), "error": faults.get(i),
         })
@@ -224,7 +225,8 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
             st["wins"] += car["place"] == 1
             st["errors"] += car["error"] is not None
             st["collision_steps"] += car["collision_steps"]
-            st["act_times"].append(car["act_time_mean_s"])
+            if np.isfinite(car["act_time_mean_s"]):  # NaN: the car faulted before a timed action
+                st["act_times"].append(car["act_time_mean_s"])
             others = [c["finish_time"] for c in record["cars"] if c is not car]
             if car["finish_time"] is not None and all(t is not None for t in others):
                 st["margins"].append(float(np.mean(others)) - car["finish_time"])
@@ -239,7 +241,7 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
                      "rating": r.mu - 3 * r.sigma, "errors": st["errors"], "collision_steps": st["collision_steps"],
                      # finish-time lead over the mean of the other cars, in races where all finished
                      "mean_margin_s": float(np.mean(st["margins"])) if st["margins"] else None,
-                     "mean_act_time_s": float(np.nanmean(st["act_times"])) if st["act_times"] else float("nan")})
+                     "mean_act_time_s": float(np.mean(st["act_times"])) if st["act_times"] else float("nan")})
     rows.sort(key=lambda row: -row["rating"])
     return {"rows": rows, "head_to_head": {"agents": names, "wins": h2h.tolist()}}
 
@@ -292,10 +294,13 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     from rich.table import Table
     from tqdm import tqdm
 
+    from planners.agents import make_agent
     from racing_env.render import save_gif
 
     console = Console(width=140)
     check_backend(backend, workers)
+    for spec in config.agents:  # an unknown spec, a bad option or a missing model fails before any race
+        make_agent(spec)
     done = open_run_log(out, RESULTS, CONFIG, json.dumps(dataclasses.asdict(config), sort_keys=True), fresh,
                         "tournament configuration")
     races = schedule(config)

@@ -32,11 +32,13 @@ from typing import Any, Protocol, Sequence, runtime_checkable
 import numpy as np
 
 from planners import ilq, ilqr
+from planners.agent_specs import convert_options, describe_options, split_spec
 from planners.scripted import ConstantSpeed, LaneKeeping
 
 __all__ = [
     "Agent",
     "AGENT_SPECS",
+    "AGENT_SUMMARIES",
     "BaseAgent",
     "ConstantSpeedAgent",
     "FeedbackGameAgent",
@@ -45,6 +47,7 @@ __all__ = [
     "OpenLoopGameAgent",
     "RecedingHorizonAgent",
     "SB3Agent",
+    "agent_options",
     "game_of",
     "make_agent",
     "reset_agents",
@@ -115,6 +118,26 @@ class BaseAgent:
     """Common bookkeeping: index, game, jerk limits, the per-step diagnostics history."""
 
     name = "agent"
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        """The options an agent spec may set (``name:option=value,...``) and their types."""
+        return {}
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        """The value each spec option has when the spec leaves it out (for help text)."""
+        return {}
+
+    @classmethod
+    def spec_help(cls) -> dict[str, str]:
+        """One line on what each spec option does (for help text)."""
+        return {}
+
+    @classmethod
+    def from_spec_options(cls, options: dict[str, Any], **kwargs: Any) -> "BaseAgent":
+        """The agent with converted spec options (keyword arguments win over them)."""
+        return cls(**{**options, **kwargs})
 
     def __init__(self) -> None:
         self.index: int | None = None
@@ -219,6 +242,9 @@ class BaseAgent:
             # share of re-plans that met the solver's tolerance (the rest use the last iterate)
             "converged_fraction": float(np.mean(converged)) if converged else None,
         }
+        leading = [bool(r["leading"]) for r in self.history if r.get("leading") is not None]
+        if leading:  # place-dependent weights: share of re-plans made in the lead
+            out["leading_fraction"] = float(np.mean(leading))
         if times.size:
             out.update(
                 solve_time_median=float(np.median(times)),
@@ -267,6 +293,45 @@ def _weights_for(game, index: int, belief) -> Any:
     return stack_weights(belief)
 
 
+def _weight_names() -> list[str]:
+    from racing_env.costs import CostWeights
+
+    return [f.name for f in dataclasses.fields(CostWeights)]
+
+
+def _checked_weight_changes(label: str, changes: Any) -> dict[str, float]:
+    """``{field: value}`` of :class:`racing_env.CostWeights` changes, checked like the weights."""
+    from racing_env.costs import CostWeights
+
+    changes = dict(changes or {})
+    unknown = sorted(set(changes) - set(_weight_names()))
+    if unknown:
+        raise ValueError(f"{label}: unknown cost weights {unknown}; the fields are {_weight_names()}")
+    values = {k: float(v) for k, v in changes.items()}
+    try:
+        CostWeights(**values)  # refuses e.g. a negative collision weight, with the field's rule
+    except ValueError as err:
+        raise ValueError(f"{label}: {err}") from None
+    return values
+
+
+def _with_player_weights(weights, index: int, changes: dict[str, float]):
+    """Stacked weights ``(N,)`` with player ``index``'s fields in ``changes`` replaced."""
+    if not changes:
+        return weights
+    n = np.shape(weights.r_jx)[0]
+    fields = {}
+    for name in _weight_names():
+        column = np.array(np.broadcast_to(np.asarray(getattr(weights, name), dtype=np.float64), (n,)))
+        if name in changes:
+            column[index] = changes[name]
+        fields[name] = column
+    return type(weights)(**fields)
+
+
+_PLACE_PREFIXES = ("leading", "trailing")
+
+
 class RecedingHorizonAgent(BaseAgent):
     """Re-plans a game (or iLQR) solution from the current joint state.
 
@@ -281,8 +346,15 @@ class RecedingHorizonAgent(BaseAgent):
         warm_start: warm start from the previous solution (else zeros every re-plan).
         require_converged: treat a non-converged solve as a failure (fallback); by default
             the last iterate is used (it is a dynamically feasible, finite plan).
+        own_weights: :class:`racing_env.CostWeights` fields ``{name: value}`` that replace
+            the agent's own weights in its plans. They are private: the other cars plan
+            with the race's weights for this car, as they would against an unknown driver.
+        leading_weights, trailing_weights: own weights used (on top of ``own_weights``) for
+            re-plans made while the car is ahead of every other car in race distance, or
+            behind at least one (the paper's outlook: aggression that depends on place).
         solver_options: further :class:`planners.ilq.SolverOptions` fields; the
-            ``tolerance`` defaults to :data:`REPLAN_TOLERANCE`.
+            ``tolerance`` defaults to :data:`REPLAN_TOLERANCE`. Checked here, so a bad
+            option fails when the agent is made.
     """
 
     name = "receding-horizon"
@@ -296,9 +368,14 @@ class RecedingHorizonAgent(BaseAgent):
         pad: str = "repeat",
         warm_start: bool = True,
         require_converged: bool = False,
+        own_weights: dict[str, float] | None = None,
+        leading_weights: dict[str, float] | None = None,
+        trailing_weights: dict[str, float] | None = None,
         **solver_options: Any,
     ) -> None:
         super().__init__()
+        if int(max_iterations) < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {max_iterations!r}")
         if int(replan_every) < 1:
             raise ValueError(f"replan_every must be >= 1, got {replan_every!r}")
         if pad not in ("repeat", "zeros"):
@@ -309,15 +386,101 @@ class RecedingHorizonAgent(BaseAgent):
         self.pad = pad
         self.warm_start = bool(warm_start)
         self.require_converged = bool(require_converged)
+        self.own_weights = _checked_weight_changes("own_weights", own_weights)
+        self.leading_weights = _checked_weight_changes("leading_weights", leading_weights)
+        self.trailing_weights = _checked_weight_changes("trailing_weights", trailing_weights)
         self.solver_options = {"tolerance": REPLAN_TOLERANCE, **solver_options}
+        unknown = sorted(set(self.solver_options) - set(self._solver_option_types()) - {"mode"})
+        if unknown:
+            raise ValueError(f"unknown solver options {unknown}; allowed: {sorted(self._solver_option_types())}")
+        ilq.SolverOptions(**self.solver_options)  # refuses bad values now, not at the first solve
+
+    @staticmethod
+    def _solver_option_types() -> dict[str, type]:
+        return {f.name: type(f.default) for f in dataclasses.fields(ilq.SolverOptions)
+                if f.name not in ("mode", "max_iterations")}
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        options = {"max_iterations": int, "replan_every": int, "pad": str, "warm_start": bool,
+                   "require_converged": bool, **cls._solver_option_types()}
+        for name in _weight_names():
+            options[name] = float
+            options.update({f"{place}.{name}": float for place in _PLACE_PREFIXES})
+        return options
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        defaults = {f.name: f.default for f in dataclasses.fields(ilq.SolverOptions)}
+        defaults.update(max_iterations=30, replan_every=1, pad="repeat", warm_start=True,
+                        require_converged=False, tolerance=REPLAN_TOLERANCE)
+        for name in _weight_names():
+            defaults[name] = "the race's"
+            defaults.update({f"{place}.{name}": name for place in _PLACE_PREFIXES})
+        return defaults
+
+    @classmethod
+    def spec_help(cls) -> dict[str, str]:
+        lines = {
+            "max_iterations": "solver iterations per re-plan; the last iterate is used if it has not converged",
+            "replan_every": "re-plan every this many steps and follow the stored plan in between",
+            "pad": "end of the shifted warm start: repeat (the last input) or zeros",
+            "warm_start": "start each re-plan from the previous plan (false: from zero inputs)",
+            "require_converged": "treat a re-plan that did not converge as a failure (previous plan, else brake)",
+            "tolerance": "convergence: largest state change of a full step [m, m/s, ...]",
+            "step_control": "trust_region (shrink the step to stay inside trust_radius) or none (fixed step)",
+            "trust_radius": "largest accepted change of the state trajectory per iteration",
+            "initial_step": "the first step size tried, in (0, 1]",
+            "step_decay": "factor by which the step size shrinks per trial, in (0, 1)",
+            "max_backtracks": "step-size trials after the first before the search gives up",
+            "oscillation_damping": "start shorter after a step that reverses the recent direction",
+            "damping_memory": "decay of the running sum of step directions, in [0, 1)",
+            "state_regularization": "added to the diagonal of every Q",
+            "control_regularization": "added to the diagonal of every R^ii",
+            "convexify": "auto, gauss_newton, eig, diag or none: how the cost Hessians are made convex",
+        }
+        weights = {"r_jx": "longitudinal jerk weight", "r_jy": "lateral jerk weight",
+                   "c_collision": "collision weight c_c", "c_track": "track-boundary weight c_w",
+                   "c_ax": "weight on exceeding ax_max(V)", "c_acc": "weight on exceeding the gg radius",
+                   "c_gap": "weight c_g of the others' progress at the horizon"}
+        lines.update({name: f"{weights.get(name, name)} of this car in its own plans only"
+                      for name in _weight_names()})
+        for place in _PLACE_PREFIXES:
+            lines.update({f"{place}.{name}": f"{name} in re-plans made while the car is {place}"
+                          for name in _weight_names()})
+        return lines
+
+    @classmethod
+    def from_spec_options(cls, options: dict[str, Any], **kwargs: Any) -> "RecedingHorizonAgent":
+        grouped: dict[str, Any] = {"own_weights": {}, "leading_weights": {}, "trailing_weights": {}}
+        for key, value in options.items():
+            place, dot, field = key.partition(".")
+            if dot:
+                grouped[f"{place}_weights"][field] = value
+            elif key in _weight_names():
+                grouped["own_weights"][key] = value
+            else:
+                grouped[key] = value
+        return cls(**{**grouped, **kwargs})
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
-        self.planning_game = self.game.replace(
-            weights=_weights_for(self.game, self.index, self.belief_weights)
-        )
+        weights = _weights_for(self.game, self.index, self.belief_weights)
+        weights = _with_player_weights(weights, self.index, self.own_weights)
+        self.planning_game = self.game.replace(weights=weights)
+        self._games_by_place = None  # {leading?: game} when the weights depend on the place
+        if self.leading_weights or self.trailing_weights:
+            self._games_by_place = {
+                True: self.game.replace(weights=_with_player_weights(weights, self.index, self.leading_weights)),
+                False: self.game.replace(weights=_with_player_weights(weights, self.index, self.trailing_weights)),
+            }
         self._plan: dict | None = None  # {"us": (T,N,2), "xs": (T+1,N,6), "K": (T,N,2,6N) | None}
         self._age = 0  # steps since the stored plan was made
+
+    def _is_leading(self, x: np.ndarray) -> bool:
+        """Ahead of every other car in race distance (``s`` is cumulative, laps included)."""
+        others = np.delete(x[:, 0], self.index)
+        return bool(np.all(x[self.index, 0] > others))
 
     # the solve itself (subclasses) -> (us, xs, K or None, result)
     def _solve(self, x0: np.ndarray, init: np.ndarray | None):
@@ -351,6 +514,9 @@ class RecedingHorizonAgent(BaseAgent):
         record["step"] = self._steps
         if self._plan is None or self._age + 1 >= self.replan_every or self._age + 1 >= self._plan["us"].shape[0]:
             record["replanned"] = True
+            if self._games_by_place is not None:
+                record["leading"] = self._is_leading(x)
+                self.planning_game = self._games_by_place[record["leading"]]
             init = None
             if self.warm_start and self._plan is not None:
                 init = self._shifted(self._plan["us"], self._age + 1)
@@ -453,8 +619,26 @@ class _ScriptedAgent(BaseAgent):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__()
+        unknown = sorted(set(kwargs) - set(self.spec_options()))
+        if unknown:
+            raise ValueError(f"{self.name} has no option {unknown}; its options: {sorted(self.spec_options())}")
+        speed = kwargs.get("target_speed")
+        if speed is not None and not float(speed) > 0:
+            raise ValueError(f"target_speed must be > 0 m/s, got {speed!r}")
         self.kwargs = kwargs
         self.controller = None
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        return {"target_speed": float, "target_n": float}
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        return {"target_speed": "v_max", "target_n": 0.0}
+
+    @classmethod
+    def spec_help(cls) -> dict[str, str]:
+        return {"target_speed": "cruise speed [m/s]", "target_n": "lateral offset to hold [m], positive left"}
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
@@ -478,6 +662,14 @@ class ConstantSpeedAgent(_ScriptedAgent):
 
     name = "constant-speed"
     controller_class = ConstantSpeed
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        return {"target_speed": float}
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        return {"target_speed": 15.0}
 
 
 # --------------------------------------------------------------------------------------
@@ -588,19 +780,32 @@ AGENT_SPECS = {
     "constant-speed": ConstantSpeedAgent,
 }
 
+AGENT_SUMMARIES = {
+    "ilqr": "iLQR against constant-velocity, constant-offset predictions of the opponents",
+    "ilqgame-ol": "open-loop Nash iLQGame, re-planned every step",
+    "ilqgame-fb": "feedback Nash iLQGame, re-planned every step, its feedback law applied in between",
+    "lane-keeping": "scripted: holds a lateral offset at a cruise speed, slowing for curves within grip",
+    "constant-speed": "scripted: the centre line at a constant speed (slowing only for curves)",
+}
+"""One line per agent name, for help text."""
+
 
 def make_agent(spec: str, **kwargs: Any) -> Agent:
     """An agent from a spec: ``ilqr``, ``ilqgame-ol``, ``ilqgame-fb``, ``lane-keeping``,
     ``constant-speed`` or ``rl:path/to/model.zip`` (``rl:sac:path`` names the algorithm).
 
-    ``kwargs`` go to the agent's constructor. Raises ``ValueError`` for an unknown spec.
+    A non-RL spec may carry options, ``name:option=value,...`` (see
+    :mod:`planners.agent_specs` and :func:`agent_options`), e.g.
+    ``ilqgame-fb:max_iterations=100,c_collision=1``. ``kwargs`` go to the agent's
+    constructor and win over the spec's options. Raises ``ValueError`` for an unknown spec,
+    an unknown option or a bad value.
     """
     valid = list(AGENT_SPECS) + ["rl:<path/to/model.zip>", "rl:<algo>:<path>"]
     if not isinstance(spec, str):
         raise ValueError(f"agent spec must be a string, one of {valid}; got {spec!r}")
     key = spec.strip()
-    if key.lower() in AGENT_SPECS:
-        return AGENT_SPECS[key.lower()](**kwargs)
+    if not key:
+        raise ValueError(f"agent spec is empty; valid specs: {', '.join(valid)}")
     if key.lower().startswith("rl:"):
         rest = key[3:]
         head, sep, tail = rest.partition(":")
@@ -612,7 +817,19 @@ def make_agent(spec: str, **kwargs: Any) -> Agent:
                 f"agent spec {spec!r} needs a model path (rl:path/to/model.zip); valid specs: {', '.join(valid)}"
             )
         return SB3Agent(rest, **kwargs)
-    raise ValueError(f"unknown agent spec {spec!r}; valid specs: {', '.join(valid)}")
+    name, raw = split_spec(key)
+    if name not in AGENT_SPECS:
+        raise ValueError(f"unknown agent spec {spec!r}; valid specs: {', '.join(valid)}")
+    cls = AGENT_SPECS[name]
+    return cls.from_spec_options(convert_options(name, raw, cls.spec_options()), **kwargs)
+
+
+def agent_options(name: str) -> list[tuple[str, str, str, str]]:
+    """``(option, type, default, meaning)`` rows of the options a spec of agent ``name`` may set."""
+    if name not in AGENT_SPECS:
+        raise ValueError(f"unknown agent {name!r}; agents with options: {', '.join(AGENT_SPECS)}")
+    cls = AGENT_SPECS[name]
+    return describe_options(cls.spec_options(), cls.spec_defaults(), cls.spec_help())
 
 
 def reset_agents(agents: Sequence[Agent], env_info: Any, seed: int | None = None) -> None:

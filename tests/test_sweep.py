@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 import pytest
 
 from experiments import sweep
@@ -129,6 +131,24 @@ def test_swept_weights_follow_their_agent_into_every_slot():
     assert [(j["rotation"], j["grid"]) for j in jobs] == [(r, g) for g in range(2) for r in range(3)]
 
 
+def test_agent_options_are_swept_through_the_agent_specs(tmp_path):
+    path = tmp_path / "speeds.toml"
+    path.write_text('lineup = ["lane-keeping:target_n=1", "constant-speed"]\nrace_distance = 100.0\ngrids = 1\n'
+                    '[parameters]\n"agent0.target_speed" = [8.0, 16.0]\n"agent1.c_gap" = [0.0]\n')
+    config = load_sweep(path)
+    assert config.lineup_specs(config.points()[0]) == ["lane-keeping:target_n=1,target_speed=8.0", "constant-speed"]
+    records = [sweep.run_job(config, job) for job in sweep.schedule(config)]
+    for record in records:  # the option follows agent 0 into both slots; the weight stays a race weight
+        target = record["point"]["agent0.target_speed"]
+        assert record["agents"][0]["agent"] == f"lane-keeping:target_n=1,target_speed={target}"
+        assert record["agents"][1]["agent"] == "constant-speed"
+    planner = SweepConfig(lineup=("ilqgame-fb", "lane-keeping"),
+                          parameters=(("agent0.trailing.c_collision", (1.0,)), ("agent0.max_iterations", (50,))))
+    assert planner.lineup_specs(planner.points()[0])[0] == "ilqgame-fb:trailing.c_collision=1.0,max_iterations=50"
+    slow, fast = (np.mean([r["agents"][0]["mean_speed"] for r in records if r["point_index"] == p]) for p in (0, 1))
+    assert slow < 8.5 < 15.0 < fast  # a point's option really drives the car
+
+
 @pytest.mark.parametrize("text, message", [
     ('lineup = ["lane-keeping", "constant-speed"]\ncolour = "red"\n[parameters]\nlaps = [1]', "unknown keys"),
     ('[parameters]\nlaps = [1]', "needs a lineup"),
@@ -137,6 +157,9 @@ def test_swept_weights_follow_their_agent_into_every_slot():
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nspeed = [1]', "unknown sweep parameter 'speed'"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent2.c_gap" = [1]', "agent2.c_gap"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"weights.c_grip" = [1]', "weights.c_grip"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent1.target_n" = [1]', "agent1.target_n"),
+    ('lineup = ["ilqr", "constant-speed"]\n[parameters]\n"agent0.max_iterations" = [0]', "max_iterations must be"),
+    ('lineup = ["rl:x.zip", "ilqr"]\n[parameters]\n"agent0.max_iterations" = [5]', "agent0.max_iterations"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nlaps = []', "non-empty list"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nlaps = [0]', "laps must be"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent0.c_collision" = [-1.0]', "c_collision"),
