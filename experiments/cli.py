@@ -117,7 +117,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from planners.agent_specs import split_spec_list
 
     config = TrainConfig(
-        opponents=tuple(split_spec_list(args.opponents)), algo=args.algo,
+        opponents=tuple(split_spec_list(args.opponents)), pool=args.pool, pool_cars=args.pool_cars, algo=args.algo,
         timesteps=args.timesteps, track=args.track, laps=args.laps, race_distance=args.race_distance,
         max_steps=args.max_steps, seed=args.seed, envs=args.envs, subprocesses=args.subprocesses,
         normalize=args.normalize,
@@ -306,7 +306,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.add_argument("--opponents", nargs="+", default=["lane-keeping"],
                        help="agent specs of the other cars (default: lane-keeping); e.g. ilqgame-fb, ilqr, "
-                       "rl:PATH.zip")
+                       "rl:PATH.zip; with --pool, the drivers to draw from")
+    train.add_argument("--pool", action="store_true",
+                       help="every episode, draw each opponent car's driver at random from --opponents (a spec "
+                       "given twice is drawn twice as often); evaluations race each of them in turn")
+    train.add_argument("--pool-cars", type=int, default=2, help="cars per race with --pool (default: 2)")
     train.add_argument("--algo", default="ppo", choices=["ppo", "sac", "td3", "a2c", "ddpg"],
                        help="stable-baselines3 algorithm (default: ppo)")
     train.add_argument("--timesteps", type=int, default=200_000, help="environment steps in all (default: 200000)")

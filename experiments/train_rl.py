@@ -64,7 +64,13 @@ class TrainConfig:
 
     Attributes:
         opponents: agent specs of the other cars (:func:`planners.agents.make_agent`); their
-            number fixes the race's N = len(opponents) + 1.
+            number fixes the race's N = len(opponents) + 1. With ``pool`` they are a pool
+            instead: every episode each opponent car is driven by one of them, drawn at
+            random (a spec given twice is drawn twice as often).
+        pool: draw the opponents from ``opponents`` every episode
+            (:class:`racing_env.single_agent.OpponentPool`); evaluations then race the
+            learner against each of them in turn, and report them apart.
+        pool_cars: cars per race with ``pool`` (the learner included).
         algo: ``ppo`` (default), ``sac``, ``td3``, ``a2c`` or ``ddpg``.
         timesteps: environment steps to train for, over all copies of the race.
         track: built-in track name or TUMFTM CSV path.
@@ -95,6 +101,8 @@ class TrainConfig:
     """
 
     opponents: tuple[str, ...] = ("lane-keeping",)
+    pool: bool = False
+    pool_cars: int = 2
     algo: str = "ppo"
     timesteps: int = 200_000
     track: str = "trefoil"
@@ -120,6 +128,8 @@ class TrainConfig:
             raise ValueError("training needs at least one opponent spec (e.g. lane-keeping)")
         if self.algo not in SB3_ALGOS:
             raise ValueError(f"algo must be one of {SB3_ALGOS}, got {self.algo!r}")
+        if not isinstance(self.pool_cars, (int, np.integer)) or self.pool_cars < 2:
+            raise ValueError(f"pool_cars must be an integer >= 2, got {self.pool_cars!r}")
         for name in ("timesteps", "envs", "eval_grids"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
@@ -151,7 +161,14 @@ class TrainConfig:
 
     @property
     def cars(self) -> int:
-        return len(self.opponents) + 1
+        return self.pool_cars if self.pool else len(self.opponents) + 1
+
+    def evaluation_lineups(self) -> list[tuple[str, list[str]]]:
+        """``(label, opponent specs)`` the learner is evaluated against: the lineup, or with
+        a pool every distinct spec of it driving every opponent car."""
+        if not self.pool:
+            return [(", ".join(self.opponents), list(self.opponents))]
+        return [(spec, [spec] * (self.cars - 1)) for spec in dict.fromkeys(self.opponents)]
 
     def race_config(self, training: bool = True) -> RaceConfig:
         """The race the learner trains in (``training``) or is evaluated in (tournament rules)."""
@@ -244,8 +261,15 @@ class _RaceCopy:
             from planners.compile_cache import enable_compile_cache
 
             enable_compile_cache(self.compile_cache)
+        from racing_env.single_agent import OpponentPool
+
         race = self.config.race_config()
-        opponents = [make_agent(spec) for spec in self.config.opponents]
+        specs = self.config.opponents
+        if self.config.pool:
+            opponents = [OpponentPool([make_agent(spec) for spec in specs], names=specs)
+                         for _ in range(self.config.cars - 1)]
+        else:
+            opponents = [make_agent(spec) for spec in specs]
         fields = {f.name: getattr(race, f.name) for f in dataclasses.fields(race)}
         return Monitor(RaceEnv(opponents=opponents, learner=self.copy % self.config.cars, **fields),
                        info_keywords=("finished", "position", "out", "finish_time"))
@@ -289,16 +313,24 @@ def evaluate(config: TrainConfig, model_path: Path, timesteps: int) -> dict[str,
 
     learner = f"rl:{config.algo}:{model_path}"
     race = config.race_config(training=False)
-    races = []
+    by_lineup = {}
     with _global_rngs_kept():  # SB3Agent.reset seeds the global RNGs, which training draws from
-        for grid in range(config.eval_grids):
-            seed = 1_000_000 + config.seed * 10_000 + grid  # seeds of their own: the training's are seed + copy
-            for slot in range(config.cars):
-                lineup = list(config.opponents)
-                lineup.insert(slot, learner)
-                record, _ = race_lineup(race, lineup, seed)
-                races.append((slot, record))
-    return summarize_evaluation(races, timesteps)
+        for label, opponents in config.evaluation_lineups():
+            races = by_lineup.setdefault(label, [])
+            for grid in range(config.eval_grids):
+                seed = 1_000_000 + config.seed * 10_000 + grid  # seeds of their own: the training's are seed + copy
+                for slot in range(config.cars):
+                    lineup = list(opponents)
+                    lineup.insert(slot, learner)
+                    record, _ = race_lineup(race, lineup, seed)
+                    races.append((slot, record))
+    record = summarize_evaluation([race for races in by_lineup.values() for race in races], timesteps)
+    if config.pool:
+        keys = ("races", "wins", "win_rate", "wins_by_start_place", "finished", "mean_margin_s", "contact_steps",
+                "time_off_track_s")
+        record["by_opponent"] = {label: {k: v for k, v in summarize_evaluation(races, timesteps).items() if k in keys}
+                                 for label, races in by_lineup.items()}
+    return record
 
 
 @contextlib.contextmanager
@@ -385,7 +417,8 @@ def _training_callback(config: TrainConfig, out: Path, console):
                         "return": float(episode["r"]), "length": int(episode["l"]),
                         "finished": bool(episode["finished"]), "place": int(episode["position"]),
                         "out": bool(episode["out"]), "finish_time": episode["finish_time"],
-                        "truncated": bool(info.get("TimeLimit.truncated", False))})
+                        "truncated": bool(info.get("TimeLimit.truncated", False)),
+                        **({"opponents": info["opponents"]} if "opponents" in info else {})})
             return True
 
     return Recorder()
@@ -409,11 +442,15 @@ def checkpoint(model, out: Path) -> Path:
 def _evaluation_line(record: dict[str, Any]) -> str:
     margin = "-" if record["mean_margin_s"] is None else f"{record['mean_margin_s']:+.2f} s"
     by_start = ", ".join(f"{w}/{n}" for w, n in zip(record["wins_by_start_place"], record["races_by_start_place"]))
-    return (f"[bold]evaluation at {record['timesteps']:,} steps[/]: won {record['wins']}/{record['races']} "
+    line = (f"[bold]evaluation at {record['timesteps']:,} steps[/]: won {record['wins']}/{record['races']} "
             f"(starting 1st, 2nd, ...: {by_start}), "
             f"finished {record['finished']}/{record['races']}, mean margin {margin}, "
             f"mean distance {record['mean_distance']:.0f} m, contact steps {record['contact_steps']}, "
             f"off track {record['time_off_track_s']:.1f} s")
+    for label, part in record.get("by_opponent", {}).items():
+        margin = "-" if part["mean_margin_s"] is None else f"{part['mean_margin_s']:+.2f} s"
+        line += f"\n  vs {label}: won {part['wins']}/{part['races']}, mean margin {margin}"
+    return line
 
 
 def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] | None):
@@ -520,7 +557,8 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     report["final_evaluation"] = evaluations[-1] if evaluations else None
     write_json_atomically(report, config_path)
     plot_learning_curve(read_jsonl(out / EPISODES), evaluations, out / "learning_curve.png",
-                        title=f"{config.algo.upper()} vs {', '.join(config.opponents)} on {Path(config.track).stem}")
+                        title=f"{config.algo.upper()} vs {'a pool of ' if config.pool else ''}"
+                              f"{', '.join(dict.fromkeys(config.opponents))} on {Path(config.track).stem}")
     _close(model.get_env(), interrupted=report["status"] == "interrupted")
     if report["status"] == "completed":
         console.print(f"wrote {out / MODEL} (race it: racing tournament --agents rl:{out / MODEL} "
@@ -576,6 +614,12 @@ def plot_learning_curve(episodes: list[dict[str, Any]], evaluations: list[dict[s
         timed = [(e["timesteps"], e["mean_margin_s"]) for e in evaluations if e["mean_margin_s"] is not None]
         if timed:
             bottom.plot(*zip(*timed), "o-", color="tab:purple", label="evaluation: mean margin")
+        labels = dict.fromkeys(label for e in evaluations for label in e.get("by_opponent", {}))
+        for label in labels:  # a pool: the margin against each of its drivers
+            part = [(e["timesteps"], e["by_opponent"][label]["mean_margin_s"]) for e in evaluations
+                    if e.get("by_opponent", {}).get(label, {}).get("mean_margin_s") is not None]
+            if part:
+                bottom.plot(*zip(*part), ".--", label=f"vs {label}")
     bottom.axhline(0.0, color="black", lw=0.8)
     bottom.set_ylabel("finish margin [s]\n(> 0: ahead)")
     bottom.set_xlabel("timesteps")

@@ -20,7 +20,7 @@ from racing_env.config import RaceConfig, RewardConfig  # noqa: E402
 from racing_env.costs import CostWeights  # noqa: E402
 from racing_env.env import RacingParallelEnv, parallel_env  # noqa: E402
 from racing_env.game import RaceGame  # noqa: E402
-from racing_env.single_agent import RaceEnv, register  # noqa: E402
+from racing_env.single_agent import OpponentPool, RaceEnv, register  # noqa: E402
 from racing_env.track import Track  # noqa: E402
 from racing_env.vehicle import VehicleParams  # noqa: E402
 
@@ -28,6 +28,7 @@ register()
 
 __all__ = [
     "CostWeights",
+    "OpponentPool",
     "RaceConfig",
     "RaceEnv",
     "RaceGame",

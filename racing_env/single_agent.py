@@ -30,11 +30,53 @@ def _is_agent(policy: OpponentPolicy) -> bool:
     return callable(getattr(policy, "reset", None)) and callable(getattr(policy, "act", None))
 
 
+class OpponentPool:
+    """Several drivers for one opponent car: every episode drives with one of them.
+
+    :class:`RaceEnv` draws the driver at each ``reset``, uniformly, from its own seeded
+    generator, so the same seed gives the same sequence of opponents. The drawn names are
+    in the learner's ``info["opponents"]``.
+
+    Args:
+        policies: the drivers (callables, or agents resettable as a car).
+        names: one name per driver (default: the agents' ``name`` or ``driver<k>``).
+    """
+
+    def __init__(self, policies: Sequence[OpponentPolicy], names: Sequence[str] | None = None) -> None:
+        self.policies = list(policies)
+        if not self.policies:
+            raise ValueError("an opponent pool needs at least one policy")
+        if not all(callable(p) for p in self.policies):
+            raise ValueError("every driver of an opponent pool must be a callable policy(observation, joint_state)")
+        if names is None:
+            names = [getattr(p, "name", f"driver{k}") for k, p in enumerate(self.policies)]
+        self.names = [str(name) for name in names]
+        if len(self.names) != len(self.policies):
+            raise ValueError(f"{len(self.names)} names for {len(self.policies)} drivers")
+        self.current = 0
+
+    def draw(self, rng: np.random.Generator) -> None:
+        """Pick this episode's driver."""
+        self.current = int(rng.integers(len(self.policies)))
+
+    @property
+    def driver(self) -> OpponentPolicy:
+        return self.policies[self.current]
+
+    @property
+    def name(self) -> str:
+        return self.names[self.current]
+
+    def __call__(self, observation: np.ndarray, joint_state: np.ndarray) -> Any:
+        return self.driver(observation, joint_state)
+
+
 class RaceEnv(gymnasium.Env):
     """One learner (``car_<learner>``) against ``N - 1`` opponent policies.
 
     Args:
-        opponents: one policy per opponent (in car order, skipping the learner); default:
+        opponents: one policy per opponent (in car order, skipping the learner), or an
+            :class:`OpponentPool` that draws the car's driver every episode; default:
             coasting cars. Their number fixes N = len(opponents) + 1 unless ``num_agents``
             is given, in which case a single policy is reused for every opponent.
         learner: index of the learner's car.
@@ -68,7 +110,10 @@ class RaceEnv(gymnasium.Env):
             raise ValueError(f"need {num - 1} opponent policies for {num} cars, got {len(opponents)}")
         if not all(callable(p) for p in opponents):
             raise ValueError("every opponent must be a callable policy(observation, joint_state) -> action")
-        agents = [p for p in opponents if _is_agent(p)]
+        drivers = [d for p in opponents for d in (p.policies if isinstance(p, OpponentPool) else [p])]
+        agents = [p for p in drivers if _is_agent(p)]
+        if len({id(p) for p in opponents}) != len(opponents) and any(isinstance(p, OpponentPool) for p in opponents):
+            raise ValueError("an opponent pool drives one car: give one pool per opponent")
         if len({id(p) for p in agents}) != len(agents):
             raise ValueError("an agent (with reset(seed, index, env_info)) drives one car: give one agent object "
                              "per opponent")
@@ -88,9 +133,18 @@ class RaceEnv(gymnasium.Env):
         super().reset(seed=seed)
         self._observations, infos = self.race.reset(seed=seed, options=options)
         for agent, policy in self._opponents.items():
+            if isinstance(policy, OpponentPool):
+                policy.draw(self.np_random)
+                policy = policy.driver
             if _is_agent(policy):
                 policy.reset(seed, self.race.possible_agents.index(agent), self.race)
-        return self._observations[self.learner], infos[self.learner]
+        return self._observations[self.learner], self._with_opponents(infos[self.learner])
+
+    def _with_opponents(self, info: dict) -> dict:
+        """The learner's info, with this episode's drawn drivers when a pool is raced."""
+        if any(isinstance(p, OpponentPool) for p in self._opponents.values()):
+            info = {**info, "opponents": [getattr(p, "name", None) for p in self._opponents.values()]}
+        return info
 
     def step(self, action):
         state = self.race.state()
@@ -105,7 +159,7 @@ class RaceEnv(gymnasium.Env):
             rewards[self.learner],
             terms[self.learner],
             truncs[self.learner],
-            infos[self.learner],
+            self._with_opponents(infos[self.learner]),
         )
 
     def render(self):

@@ -111,3 +111,56 @@ def test_agent_opponents_are_reset_as_their_cars_every_episode(trefoil):
     assert first.history == [] and first.seed == 5
     with pytest.raises(ValueError, match="one agent object per opponent"):
         RaceEnv(opponents=[first], num_agents=3, track=trefoil)
+
+
+def test_an_opponent_pool_draws_a_seeded_driver_every_episode(trefoil):
+    """Each reset drives the pooled car with one of the pool's drivers, drawn from the
+    env's seeded generator: the same seed gives the same drivers, both get drawn, only the
+    drawn one is called and reset, and the learner's info names it."""
+    from planners.agents import ConstantSpeedAgent, LaneKeepingAgent
+    from racing_env.single_agent import OpponentPool
+
+    def make_env():
+        fast, slow = LaneKeepingAgent(), ConstantSpeedAgent(target_speed=5.0)
+        return RaceEnv(opponents=[OpponentPool([fast, slow], names=["fast", "slow"])], track=trefoil), fast, slow
+
+    env, fast, slow = make_env()
+    drawn = []
+    for episode in range(12):
+        _, info = env.reset(seed=7 if episode == 0 else None)
+        (name,) = info["opponents"]
+        driver, other = (fast, slow) if name == "fast" else (slow, fast)
+        sat_out = len(other.history)
+        for _ in range(3):
+            *_, info = env.step(np.zeros(2, np.float32))
+        assert info["opponents"] == [name]
+        drawn.append(name)
+        assert len(driver.history) == 3 and driver.index == 1  # reset as car 1, then driving
+        assert len(other.history) == sat_out  # the other one was not called
+    assert set(drawn) == {"fast", "slow"}
+    again, *_ = make_env()
+    repeat = []
+    for episode in range(12):
+        _, info = again.reset(seed=7 if episode == 0 else None)
+        repeat.append(info["opponents"][0])
+    assert repeat == drawn
+    plain = RaceEnv(opponents=[LaneKeepingAgent()], track=trefoil)
+    assert "opponents" not in plain.reset(seed=0)[1]  # no pool, no extra info
+
+
+def test_bad_opponent_pools_are_refused(trefoil):
+    from planners.agents import LaneKeepingAgent
+    from racing_env.single_agent import OpponentPool
+
+    with pytest.raises(ValueError, match="at least one"):
+        OpponentPool([])
+    with pytest.raises(ValueError, match="callable"):
+        OpponentPool([3])
+    with pytest.raises(ValueError, match="2 names for 1 drivers"):
+        OpponentPool([LaneKeepingAgent()], names=["a", "b"])
+    pool = OpponentPool([LaneKeepingAgent()])
+    with pytest.raises(ValueError, match="one pool per opponent"):
+        RaceEnv(opponents=[pool], num_agents=3, track=trefoil)
+    shared = LaneKeepingAgent()
+    with pytest.raises(ValueError, match="one agent object per opponent"):
+        RaceEnv(opponents=[OpponentPool([shared]), OpponentPool([shared])], track=trefoil)

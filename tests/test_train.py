@@ -129,6 +129,7 @@ def test_interrupted_training_process_resumes(tmp_path, subprocesses):
     (dict(jerk_weight=0.0), "jerk_weight"),
     (dict(laps=0), "laps"),
     (dict(hyperparameters=(("nsteps", 64),)), "no hyperparameter 'nsteps'"),
+    (dict(pool=True, pool_cars=1), "pool_cars"),
 ])
 def test_bad_settings_are_refused(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -148,6 +149,24 @@ def test_bad_command_lines_fail_before_training(tmp_path, capsys):
         assert main([*TINY_ARGS, "--timesteps", "512", "--out", str(out), *extra]) == 2, extra
         assert message in capsys.readouterr().err, extra
         assert not (out / "checkpoints").exists()
+
+
+def test_training_against_a_pool_draws_both_drivers_and_evaluates_each(tmp_path):
+    """With --pool every episode's opponent is drawn from the specs; the episodes log who
+    it was, and each evaluation races every driver of the pool and reports them apart."""
+    pool = ("lane-keeping", "constant-speed:target_speed=10")
+    code = main([*TINY_ARGS, "--timesteps", "1024", "--opponents", *pool, "--pool", "--out", str(tmp_path)])
+    assert code == 0
+    episodes = read_jsonl(tmp_path / "episodes.jsonl")
+    assert {e["opponents"][0] for e in episodes} == set(pool)
+    assert all(len(e["opponents"]) == 1 for e in episodes)  # two cars: one opponent
+    final = read_jsonl(tmp_path / "evaluations.jsonl")[-1]
+    assert final["races"] == 4 and set(final["by_opponent"]) == set(pool)
+    for part in final["by_opponent"].values():
+        assert part["races"] == 2  # one grid, both slots
+    assert final["wins"] == sum(part["wins"] for part in final["by_opponent"].values())
+    config = json.loads((tmp_path / "train.json").read_text())["config"]
+    assert config["pool"] is True and config["pool_cars"] == 2
 
 
 def test_parse_hyperparameter():
