@@ -68,11 +68,17 @@ def _run_pool(task, jobs, workers: int) -> Iterator[Any]:
     import multiprocessing
 
     pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_ignore_interrupts)
+    finished = False
     try:
         yield from pool.imap_unordered(task, jobs)
-        pool.close()
+        finished = True
     finally:
-        pool.terminate()
+        # After the last job the workers are let go; terminating them then could kill one
+        # mid-exit and leave a semaphore for the resource tracker to warn about.
+        if finished:
+            pool.close()
+        else:  # closed early (Ctrl-C, an error): stop them now
+            pool.terminate()
         pool.join()
 
 
