@@ -212,7 +212,9 @@ def run_job(config: SweepConfig, job: dict[str, Any]) -> dict[str, Any]:
 def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per point and agent: races, wins (and of those started in front, how many were
     won), mean place, mean finish-time margin over the other cars (races all finished),
-    overtakes per race, contact steps, time off track, errors."""
+    overtakes per race, contact steps, time off track, errors, and for planners the mean
+    share of re-plans that converged (results where it is low are the solver's, not the
+    weights': see the README's sweep of the gap weight)."""
     position = {job["id"]: k for k, job in enumerate(schedule(config))}
     by_point: dict[int, list[dict[str, Any]]] = {}
     for record in sorted(records, key=lambda r: position[r["id"]]):  # sums in one order, however they came
@@ -239,8 +241,14 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
                 "contact_steps": sum(car["collision_steps"] for car in mine),
                 "time_off_track_s": float(sum(car["time_off_track"] for car in mine)),
                 "errors": sum(car["error"] is not None for car in mine),
+                "converged_fraction": _mean_or_none(car.get("solver_converged_fraction") for car in mine),
             })
     return rows
+
+
+def _mean_or_none(values: Iterable[float | None]) -> float | None:
+    present = [v for v in values if v is not None]
+    return float(np.mean(present)) if present else None
 
 
 def read_results(out: Path) -> list[dict[str, Any]]:
@@ -302,16 +310,17 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
     names = [name for name, _ in config.parameters]
     table = Table(title=f"sweep: {' vs '.join(config.lineup)}")
     for column in (*names, "agent", "races", "wins", "from the front", "mean place", "margin [s]", "overtakes/race",
-                   "contact steps", "off track [s]", "errors"):
+                   "contact steps", "off track [s]", "errors", "converged"):
         table.add_column(column)
     for row in rows:
         margin = "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}"
         place = "-" if row["mean_place"] is None else f"{row['mean_place']:.2f}"
         overtakes = "-" if row["overtakes_per_race"] is None else f"{row['overtakes_per_race']:.2f}"
+        converged = "-" if row["converged_fraction"] is None else f"{row['converged_fraction']:.0%}"
         table.add_row(*(str(row[n]) for n in names), f"{row['agent']}: {row['spec']}", str(row["races"]),
                       str(row["wins"]), f"{row['wins_from_front']}/{row['races_from_front']}", place, margin,
                       overtakes, str(row["contact_steps"]),
-                      f"{row['time_off_track_s']:.1f}", str(row["errors"]))
+                      f"{row['time_off_track_s']:.1f}", str(row["errors"]), converged)
     console.print(table)
     plot_sweep(config, rows, out / "sweep.png")
     console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'summary.json'}, {out / 'sweep.png'}")

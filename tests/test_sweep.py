@@ -149,6 +149,29 @@ def test_agent_options_are_swept_through_the_agent_specs(tmp_path):
     assert slow < 8.5 < 15.0 < fast  # a point's option really drives the car
 
 
+def test_summary_of_hand_made_records():
+    """The summary's arithmetic on two races of one point, by hand."""
+    config = SweepConfig(lineup=("ilqgame-fb", "lane-keeping"), parameters=(("laps", (1,)),), grids=1)
+    jobs = sweep.schedule(config)
+
+    def car(start, place, finish, contact=0, off=0.0, converged=None):
+        return {"start_place": start, "place": place, "finish_time": finish, "collision_steps": contact,
+                "time_off_track": off, "error": None, "solver_converged_fraction": converged}
+
+    records = [  # the second race first: the summary must not depend on the order records came in
+        {**jobs[1], "overtakes": 0, "agents": [car(2, 2, 61.0, converged=0.5), car(1, 1, 60.0, off=0.4)]},
+        {**jobs[0], "overtakes": 1, "agents": [car(1, 1, 59.0, contact=3, converged=0.9), car(2, 2, None, 3)]},
+    ]
+    planner, keeper = sweep.summarize(config, records)
+    assert planner == {"point": 0, "laps": 1, "agent": 0, "spec": "ilqgame-fb", "races": 2, "wins": 1,
+                       "races_from_front": 1, "wins_from_front": 1, "mean_place": 1.5,
+                       "mean_margin_s": -1.0,  # only the race both finished counts
+                       "overtakes_per_race": 0.5, "contact_steps": 3, "time_off_track_s": 0.0, "errors": 0,
+                       "converged_fraction": 0.7}
+    assert keeper["wins"] == 1 and keeper["mean_margin_s"] == 1.0 and keeper["time_off_track_s"] == 0.4
+    assert keeper["converged_fraction"] is None  # not a planner
+
+
 @pytest.mark.parametrize("text, message", [
     ('lineup = ["lane-keeping", "constant-speed"]\ncolour = "red"\n[parameters]\nlaps = [1]', "unknown keys"),
     ('[parameters]\nlaps = [1]', "needs a lineup"),
