@@ -210,8 +210,8 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
     model = PlackettLuce()
     ratings = {n: model.rating(name=n) for n in names}
     h2h = np.zeros((len(names), len(names)), dtype=int)
-    stats = {n: {"races": 0, "wins": 0, "errors": 0, "collision_steps": 0, "act_times": [], "margins": []}
-             for n in names}
+    stats = {n: {"races": 0, "wins": 0, "errors": 0, "collision_steps": 0, "act_times": [], "margins": [],
+                 "converged": []} for n in names}
     for record in records:
         order = record["order"]
         teams = [[ratings[n]] for n in order]
@@ -227,6 +227,8 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
             st["collision_steps"] += car["collision_steps"]
             if np.isfinite(car["act_time_mean_s"]):  # NaN: the car faulted before a timed action
                 st["act_times"].append(car["act_time_mean_s"])
+            if car.get("solver_converged_fraction") is not None:  # planners only
+                st["converged"].append(car["solver_converged_fraction"])
             others = [c["finish_time"] for c in record["cars"] if c is not car]
             if car["finish_time"] is not None and all(t is not None for t in others):
                 st["margins"].append(float(np.mean(others)) - car["finish_time"])
@@ -241,7 +243,9 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
                      "rating": r.mu - 3 * r.sigma, "errors": st["errors"], "collision_steps": st["collision_steps"],
                      # finish-time lead over the mean of the other cars, in races where all finished
                      "mean_margin_s": float(np.mean(st["margins"])) if st["margins"] else None,
-                     "mean_act_time_s": float(np.mean(st["act_times"])) if st["act_times"] else float("nan")})
+                     "mean_act_time_s": float(np.mean(st["act_times"])) if st["act_times"] else float("nan"),
+                     # a planner's share of re-plans that converged, averaged over its races
+                     "converged_fraction": float(np.mean(st["converged"])) if st["converged"] else None})
     rows.sort(key=lambda row: -row["rating"])
     return {"rows": rows, "head_to_head": {"agents": names, "wins": h2h.tolist()}}
 
@@ -335,14 +339,15 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     (out / "leaderboard.json").write_text(json.dumps(board, indent=2))
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "margin [s]", "errors",
-                "contact steps", "act [ms]"):
+                "contact steps", "act [ms]", "converged"):
         table.add_column(col)
     for k, row in enumerate(board["rows"], 1):
         lo, hi = row["win_rate_ci95"]
         table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
                       f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}", str(row["errors"]),
                       str(row["collision_steps"]),
-                      f"{1e3 * row['mean_act_time_s']:.1f}")
+                      f"{1e3 * row['mean_act_time_s']:.1f}",
+                      "-" if row["converged_fraction"] is None else f"{row['converged_fraction']:.0%}")
     console.print(table)
     console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'head_to_head.png'}"
                   + (f", {out / 'race.gif'}" if (out / 'race.gif').exists() else ""))

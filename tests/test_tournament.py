@@ -240,3 +240,7 @@ def test_game_agents_beat_the_lane_keeper(tmp_path):
         assert rows[spec]["mean_margin_s"] > 0, rows
         assert rows[spec]["wins"] > rows[spec]["races"] / 2, rows
         assert rows[spec]["errors"] == 0
+        fractions = [car["solver_converged_fraction"] for r in tour.load_results(tmp_path) for car in r["cars"]
+                     if car["agent"] == spec]
+        assert rows[spec]["converged_fraction"] == pytest.approx(np.mean(fractions), abs=1e-12)
+    assert rows["lane-keeping"]["converged_fraction"] is None  # no solver
