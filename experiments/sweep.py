@@ -15,9 +15,11 @@ of the starting slots::
 
 Parameter names: the race's ``track``, ``laps``, ``race_distance``, ``max_steps``,
 ``jerk_weight``; ``weights.<field>`` (a :class:`racing_env.costs.CostWeights` field, for
+every car), ``vehicles.<field>`` (a :class:`racing_env.vehicle.VehicleParams` field, for
 every car) and ``agent<i>.<field>`` (that field for agent ``i`` of the lineup: a cost
-weight of its car, known to every planner in the race, or an option of its agent spec such
-as ``max_iterations`` or ``trailing.c_collision``, see :mod:`planners.agent_specs`).
+weight or a car parameter of its car, known to every planner in the race, or an option of
+its agent spec such as ``max_iterations`` or ``trailing.c_collision``, see
+:mod:`planners.agent_specs`).
 
 Each race is one job (:func:`run_job`, a pure function of the sweep and the job, so any
 process can run it). Backends: ``local`` (this process for one worker, else a pool of
@@ -45,6 +47,7 @@ from experiments.jsonl import append_jsonl, open_run_log, read_jsonl
 from planners.agent_specs import with_options
 from racing_env.config import RaceConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
+from racing_env.vehicle import VehicleParams
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -55,6 +58,8 @@ RESULTS = "results.jsonl"
 CONFIG = "sweep.json"
 RACE_PARAMETERS = ("track", "laps", "race_distance", "max_steps", "jerk_weight")
 WEIGHT_FIELDS = tuple(f.name for f in dataclasses.fields(CostWeights))
+VEHICLE_FIELDS = tuple(f.name for f in dataclasses.fields(VehicleParams))
+CAR_FIELDS = WEIGHT_FIELDS + VEHICLE_FIELDS  # what ``weights.``/``vehicles.`` and ``agent<i>.`` set on a car
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,7 +112,7 @@ class SweepConfig:
         specs = []
         for agent, spec in enumerate(self.lineup):
             options = {key.split(".", 1)[1]: value for key, value in point.items()
-                       if key.startswith(f"agent{agent}.") and key.split(".", 1)[1] not in WEIGHT_FIELDS}
+                       if key.startswith(f"agent{agent}.") and key.split(".", 1)[1] not in CAR_FIELDS}
             specs.append(with_options(spec, options))
         return specs
 
@@ -118,18 +123,26 @@ class SweepConfig:
 
     def race_config(self, point: dict[str, Any], rotation: int) -> RaceConfig:
         """The race of a point with the lineup rotated by ``rotation`` (slot k holds agent
-        ``(k + rotation) % N``); per-agent weights follow their agent into its slot."""
+        ``(k + rotation) % N``); per-agent weights and car parameters follow their agent
+        into its slot."""
         race = {name: point.get(name, getattr(self, name)) for name in RACE_PARAMETERS}
         cars = len(self.lineup)
-        everyone = {k.split(".", 1)[1]: v for k, v in point.items() if k.startswith("weights.")}
-        weights = []
+
+        def fields(prefix: str, names: tuple[str, ...]) -> dict[str, Any]:
+            return {k.split(".", 1)[1]: v for k, v in point.items()
+                    if k.startswith(prefix) and k.split(".", 1)[1] in names}
+
+        weights, vehicles = [], []
         for slot in range(cars):
             agent = (slot + rotation) % cars
-            own = {k.split(".", 1)[1]: v for k, v in point.items()
-                   if k.startswith(f"agent{agent}.") and k.split(".", 1)[1] in WEIGHT_FIELDS}
-            weights.append(CostWeights(r_jx=race["jerk_weight"], r_jy=race["jerk_weight"], **{**everyone, **own}))
+            weights.append(CostWeights(r_jx=race["jerk_weight"], r_jy=race["jerk_weight"],
+                                       **{**fields("weights.", WEIGHT_FIELDS), **fields(f"agent{agent}.", WEIGHT_FIELDS)}))
+            vehicles.append(VehicleParams(**{**fields("vehicles.", VEHICLE_FIELDS),
+                                             **fields(f"agent{agent}.", VEHICLE_FIELDS)}))
+        any_car = any(k.split(".", 1)[-1] in VEHICLE_FIELDS for k in point if "." in k)
         return RaceConfig(track=race["track"], num_agents=cars, scenario="grid", laps=race["laps"],
-                          race_distance=race["race_distance"], max_steps=race["max_steps"], weights=weights)
+                          race_distance=race["race_distance"], max_steps=race["max_steps"], weights=weights,
+                          vehicles=vehicles if any_car else None)  # None: the scenario's cars, as before
 
 
 def _spec_option_types(spec: str) -> dict[str, type]:
@@ -141,7 +154,7 @@ def _spec_option_types(spec: str) -> dict[str, type]:
         return {}
     agent = AGENT_SPECS.get(split_spec(spec)[0])
     options = agent.spec_options() if agent is not None else {}
-    return {key: kind for key, kind in options.items() if key not in WEIGHT_FIELDS}
+    return {key: kind for key, kind in options.items() if key not in CAR_FIELDS}
 
 
 def check_parameter_name(name: str, lineup: tuple[str, ...]) -> None:
@@ -151,11 +164,14 @@ def check_parameter_name(name: str, lineup: tuple[str, ...]) -> None:
     known_agent = head.startswith("agent") and head[5:].isdigit() and int(head[5:]) < cars
     if name in RACE_PARAMETERS or ((head == "weights" or known_agent) and field in WEIGHT_FIELDS):
         return
+    if (head == "vehicles" or known_agent) and field in VEHICLE_FIELDS:
+        return
     if known_agent and field in _spec_option_types(lineup[int(head[5:])]):
         return
     raise ValueError(f"unknown sweep parameter {name!r}; use one of {list(RACE_PARAMETERS)}, "
-                     f"weights.<field> or agent<i>.<field> (i < {cars}) with <field> one of {list(WEIGHT_FIELDS)} "
-                     f"or an option of agent i's spec (`racing agents` lists them)")
+                     f"weights.<weight>, vehicles.<car> or agent<i>.<weight|car|option> (i < {cars}) with <weight> "
+                     f"one of {list(WEIGHT_FIELDS)}, <car> one of {list(VEHICLE_FIELDS)} and <option> an option of "
+                     f"agent i's spec (`racing agents` lists them)")
 
 
 def load_sweep(path: Path) -> SweepConfig:

@@ -116,17 +116,22 @@ def test_ctrl_c_stops_the_worker_processes_and_the_sweep_resumes(tmp_path):
     assert len(sweep.read_results(out)) == total
 
 
-def test_swept_weights_follow_their_agent_into_every_slot():
+def test_swept_weights_and_cars_follow_their_agent_into_every_slot():
     config = SweepConfig(lineup=("ilqgame-fb", "ilqr", "lane-keeping"),
                          parameters=(("agent1.c_collision", (50.0,)), ("weights.c_gap", (2.0,)),
-                                     ("jerk_weight", (0.03,))))
+                                     ("jerk_weight", (0.03,)), ("agent2.v_max", (27.0,)),
+                                     ("vehicles.ax_max_0", (9.0,))))
     (point,) = config.points()
     for rotation in range(3):
         race = config.race_config(point, rotation)
-        for slot, weights in enumerate(race.weights):
+        for slot, (weights, car) in enumerate(zip(race.weights, race.vehicles)):
             agent = (slot + rotation) % 3
             assert weights.c_collision == (50.0 if agent == 1 else 10.0)
             assert (weights.c_gap, weights.r_jx, weights.r_jy) == (2.0, 0.03, 0.03)
+            assert (car.v_max, car.ax_max_0, car.rho_0) == (27.0 if agent == 2 else 25.0, 9.0, 12.0)
+    assert config.lineup_specs(point) == list(config.lineup)  # car fields are not agent options
+    plain = SweepConfig(lineup=("ilqr", "lane-keeping"), parameters=(("agent0.c_gap", (1.0,)),))
+    assert plain.race_config(plain.points()[0], 0).vehicles is None  # no car field: the scenario's cars
     jobs = sweep.schedule(config)
     assert [(j["rotation"], j["grid"]) for j in jobs] == [(r, g) for g in range(2) for r in range(3)]
 
@@ -181,6 +186,8 @@ def test_summary_of_hand_made_records():
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent2.c_gap" = [1]', "agent2.c_gap"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"weights.c_grip" = [1]', "weights.c_grip"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent1.target_n" = [1]', "agent1.target_n"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"vehicles.colour" = [1]', "vehicles.colour"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent0.v_max" = [-1.0]', "v_max must be > 0"),
     ('lineup = ["ilqr", "constant-speed"]\n[parameters]\n"agent0.max_iterations" = [0]', "max_iterations must be"),
     ('lineup = ["rl:x.zip", "ilqr"]\n[parameters]\n"agent0.max_iterations" = [5]', "agent0.max_iterations"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nlaps = []', "non-empty list"),
