@@ -327,7 +327,7 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
     table = Table(title=f"sweep: {' vs '.join(config.lineup)}")
     for column in (*names, "agent", "races", "wins", "from the front", "mean place", "margin [s]", "overtakes/race",
                    "contact steps", "off track [s]", "errors", "converged"):
-        table.add_column(column)
+        table.add_column(column, overflow="fold")  # long specs and parameter names wrap instead of being cut
     for row in rows:
         margin = "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}"
         place = "-" if row["mean_place"] is None else f"{row['mean_place']:.2f}"

@@ -340,7 +340,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "margin [s]", "errors",
                 "contact steps", "act [ms]", "converged"):
-        table.add_column(col)
+        table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
         lo, hi = row["win_rate_ci95"]
         table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
