@@ -63,13 +63,15 @@ def _cmd_agents(args: argparse.Namespace) -> int:
         for column in ("option", "type", "default", "meaning"):
             table.add_column(column)
         for row in rows:
-            if not args.name and row[0].startswith(("leading.", "trailing.")):
+            if not args.name and row[0].startswith(("leading.", "trailing.", "belief.")):
                 continue  # one line per prefix below, unless the agent was asked for by name
             table.add_row(*row)
         console.print(table)
         if any(row[0].startswith("leading.") for row in rows):
             console.print("  leading.<weight>, trailing.<weight>: that cost weight in re-plans made while the car "
-                          "leads, or trails (e.g. trailing.c_collision=1)")
+                          "leads, or trails (e.g. trailing.c_collision=1)\n"
+                          "  belief.<weight>: the weight this agent believes every other car has (e.g. "
+                          "belief.c_collision=100: it expects them to avoid contact at almost any cost)")
     console.print("rl:PATH.zip, rl:ALGO:PATH.zip: a saved stable-baselines3 policy (no options)")
     return 0
 
@@ -205,9 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Agents are named by specs wherever the commands take them (tournament --agents, train "
         "--opponents, a sweep's lineup). A spec is a name with optional options after a colon, comma-separated: "
         "ilqgame-fb:max_iterations=100,replan_every=2. Planners also take their own cost weights (c_collision=1: "
-        "private to the agent's plans; the other cars plan with the race's weights for it) and weights by race "
-        "position (leading.c_collision=10,trailing.c_collision=1). This command lists every option with its type "
-        "and default.",
+        "private to the agent's plans; the other cars plan with the race's weights for it), weights by race "
+        "position (leading.c_collision=10,trailing.c_collision=1) and beliefs about the other cars' weights "
+        "(belief.c_collision=100). This command lists every option with its type and default.",
     )
     agents.add_argument("name", nargs="?", help="one agent (default: all)")
     agents.set_defaults(func=_cmd_agents)

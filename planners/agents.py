@@ -315,8 +315,8 @@ def _checked_weight_changes(label: str, changes: Any) -> dict[str, float]:
     return values
 
 
-def _with_player_weights(weights, index: int, changes: dict[str, float]):
-    """Stacked weights ``(N,)`` with player ``index``'s fields in ``changes`` replaced."""
+def _with_player_weights(weights, players: int | Sequence[int], changes: dict[str, float]):
+    """Stacked weights ``(N,)`` with the fields in ``changes`` replaced for ``players``."""
     if not changes:
         return weights
     n = np.shape(weights.r_jx)[0]
@@ -324,12 +324,13 @@ def _with_player_weights(weights, index: int, changes: dict[str, float]):
     for name in _weight_names():
         column = np.array(np.broadcast_to(np.asarray(getattr(weights, name), dtype=np.float64), (n,)))
         if name in changes:
-            column[index] = changes[name]
+            column[players] = changes[name]
         fields[name] = column
     return type(weights)(**fields)
 
 
 _PLACE_PREFIXES = ("leading", "trailing")
+_WEIGHT_PREFIXES = {"leading": "leading_weights", "trailing": "trailing_weights", "belief": "opponent_weights"}
 
 
 class RecedingHorizonAgent(BaseAgent):
@@ -352,6 +353,10 @@ class RecedingHorizonAgent(BaseAgent):
         leading_weights, trailing_weights: own weights used (on top of ``own_weights``) for
             re-plans made while the car is ahead of every other car in race distance, or
             behind at least one (the paper's outlook: aggression that depends on place).
+        opponent_weights: ``{name: value}`` changes to the race's weights of every other
+            car in this agent's plans: what it believes the others' costs are (e.g.
+            ``{"c_collision": 100.0}``: they will do much to avoid contact). Applied on top
+            of ``belief_weights``.
         solver_options: further :class:`planners.ilq.SolverOptions` fields; the
             ``tolerance`` defaults to :data:`REPLAN_TOLERANCE`. Checked here, so a bad
             option fails when the agent is made.
@@ -371,6 +376,7 @@ class RecedingHorizonAgent(BaseAgent):
         own_weights: dict[str, float] | None = None,
         leading_weights: dict[str, float] | None = None,
         trailing_weights: dict[str, float] | None = None,
+        opponent_weights: dict[str, float] | None = None,
         **solver_options: Any,
     ) -> None:
         super().__init__()
@@ -389,6 +395,7 @@ class RecedingHorizonAgent(BaseAgent):
         self.own_weights = _checked_weight_changes("own_weights", own_weights)
         self.leading_weights = _checked_weight_changes("leading_weights", leading_weights)
         self.trailing_weights = _checked_weight_changes("trailing_weights", trailing_weights)
+        self.opponent_weights = _checked_weight_changes("opponent_weights", opponent_weights)
         self.solver_options = {"tolerance": REPLAN_TOLERANCE, **solver_options}
         unknown = sorted(set(self.solver_options) - set(self._solver_option_types()) - {"mode"})
         if unknown:
@@ -406,7 +413,7 @@ class RecedingHorizonAgent(BaseAgent):
                    "require_converged": bool, **cls._solver_option_types()}
         for name in _weight_names():
             options[name] = float
-            options.update({f"{place}.{name}": float for place in _PLACE_PREFIXES})
+            options.update({f"{prefix}.{name}": float for prefix in _WEIGHT_PREFIXES})
         return options
 
     @classmethod
@@ -417,6 +424,7 @@ class RecedingHorizonAgent(BaseAgent):
         for name in _weight_names():
             defaults[name] = "the race's"
             defaults.update({f"{place}.{name}": name for place in _PLACE_PREFIXES})
+            defaults[f"belief.{name}"] = "the race's"
         return defaults
 
     @classmethod
@@ -448,15 +456,17 @@ class RecedingHorizonAgent(BaseAgent):
         for place in _PLACE_PREFIXES:
             lines.update({f"{place}.{name}": f"{name} in re-plans made while the car is {place}"
                           for name in _weight_names()})
+        lines.update({f"belief.{name}": f"the {name} this agent believes every other car has"
+                      for name in _weight_names()})
         return lines
 
     @classmethod
     def from_spec_options(cls, options: dict[str, Any], **kwargs: Any) -> "RecedingHorizonAgent":
-        grouped: dict[str, Any] = {"own_weights": {}, "leading_weights": {}, "trailing_weights": {}}
+        grouped: dict[str, Any] = {"own_weights": {}, **{name: {} for name in _WEIGHT_PREFIXES.values()}}
         for key, value in options.items():
-            place, dot, field = key.partition(".")
+            prefix, dot, field = key.partition(".")
             if dot:
-                grouped[f"{place}_weights"][field] = value
+                grouped[_WEIGHT_PREFIXES[prefix]][field] = value
             elif key in _weight_names():
                 grouped["own_weights"][key] = value
             else:
@@ -466,6 +476,8 @@ class RecedingHorizonAgent(BaseAgent):
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
         weights = _weights_for(self.game, self.index, self.belief_weights)
+        others = [j for j in range(self.game.num_players) if j != self.index]
+        weights = _with_player_weights(weights, others, self.opponent_weights)
         weights = _with_player_weights(weights, self.index, self.own_weights)
         self.planning_game = self.game.replace(weights=weights)
         self._games_by_place = None  # {leading?: game} when the weights depend on the place

@@ -72,7 +72,7 @@ def test_spec_options_reach_the_agent():
     ("ilqgame-fb:c_collision=-1", "c_collision must be >= 0"),
     ("ilqgame-fb:r_jx=0", "must be > 0"),
     ("ilqgame-fb:trailing.c_gap=x", "expected a number"),
-    ("ilqgame-fb:middle.c_gap=1", "leading.<weight>"),
+    ("ilqgame-fb:middle.c_gap=1", "belief.<weight>, leading.<weight>, trailing.<weight>"),
     ("ilqgame-fb:step_control=magic", "step_control must be one of"),
     ("ilqgame-fb:trust_radius=0", "trust_radius"),
     ("ilqr:pad=ones", "pad must be"),
@@ -96,6 +96,26 @@ def test_own_weights_are_private_to_the_agent():
     np.testing.assert_array_equal(np.asarray(race.c_collision), [10.0] * 3)  # the race is unchanged
     for name in ("r_jx", "c_track", "c_ax", "c_acc"):
         np.testing.assert_array_equal(np.asarray(getattr(planned, name)), np.asarray(getattr(race, name)))
+
+
+def test_beliefs_change_the_other_cars_weights_in_the_agents_plans_only():
+    env = racing_env.parallel_env(track="trefoil", num_agents=3)
+    agent = make_agent("ilqgame-fb:belief.c_collision=100,belief.c_gap=0,c_collision=1")
+    assert agent.opponent_weights == {"c_collision": 100.0, "c_gap": 0.0}
+    agent.reset(0, 2, env)
+    planned = agent.planning_game.weights
+    np.testing.assert_array_equal(np.asarray(planned.c_collision), [100.0, 100.0, 1.0])
+    np.testing.assert_array_equal(np.asarray(planned.c_gap), [0.0, 0.0, 0.5])
+    np.testing.assert_array_equal(np.asarray(planned.r_jx), np.asarray(env.game.weights.r_jx))  # the rest: the race's
+    np.testing.assert_array_equal(np.asarray(env.game.weights.c_collision), [10.0] * 3)
+    # on top of belief_weights (a full CostWeights for every opponent)
+    agent = FeedbackGameAgent(belief_weights=CostWeights(c_gap=2.0), opponent_weights={"c_collision": 3.0})
+    agent.reset(0, 0, env)
+    planned = agent.planning_game.weights
+    np.testing.assert_array_equal(np.asarray(planned.c_gap), [0.5, 2.0, 2.0])
+    np.testing.assert_array_equal(np.asarray(planned.c_collision), [10.0, 3.0, 3.0])
+    with pytest.raises(ValueError, match="opponent_weights: CostWeights.c_track must be >= 0"):
+        make_agent("ilqr:belief.c_track=-1")
 
 
 def _race_against_lane_keeper(spec: str, weights, steps: int = 40):
