@@ -24,6 +24,7 @@ widths and gaps), so the agents pass the joint state through unchanged.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import time
 import traceback
 from pathlib import Path
@@ -419,8 +420,10 @@ class RecedingHorizonAgent(BaseAgent):
     @classmethod
     def spec_defaults(cls) -> dict[str, Any]:
         defaults = {f.name: f.default for f in dataclasses.fields(ilq.SolverOptions)}
-        defaults.update(max_iterations=30, replan_every=1, pad="repeat", warm_start=True,
-                        require_converged=False, tolerance=REPLAN_TOLERANCE)
+        loop = inspect.signature(RecedingHorizonAgent.__init__).parameters  # the loop's own defaults
+        defaults.update({name: loop[name].default for name in
+                         ("max_iterations", "replan_every", "pad", "warm_start", "require_converged")})
+        defaults["tolerance"] = REPLAN_TOLERANCE
         for name in _weight_names():
             defaults[name] = "the race's"
             defaults.update({f"{place}.{name}": name for place in _PLACE_PREFIXES})

@@ -112,7 +112,8 @@ class RaceEnv(gymnasium.Env):
             raise ValueError("every opponent must be a callable policy(observation, joint_state) -> action")
         drivers = [d for p in opponents for d in (p.policies if isinstance(p, OpponentPool) else [p])]
         agents = [p for p in drivers if _is_agent(p)]
-        if len({id(p) for p in opponents}) != len(opponents) and any(isinstance(p, OpponentPool) for p in opponents):
+        pools = [p for p in opponents if isinstance(p, OpponentPool)]
+        if len({id(p) for p in pools}) != len(pools):
             raise ValueError("an opponent pool drives one car: give one pool per opponent")
         if len({id(p) for p in agents}) != len(agents):
             raise ValueError("an agent (with reset(seed, index, env_info)) drives one car: give one agent object "

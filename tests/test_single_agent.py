@@ -164,3 +164,14 @@ def test_bad_opponent_pools_are_refused(trefoil):
     shared = LaneKeepingAgent()
     with pytest.raises(ValueError, match="one agent object per opponent"):
         RaceEnv(opponents=[OpponentPool([shared]), OpponentPool([shared])], track=trefoil)
+
+
+def test_one_callable_may_drive_several_cars_beside_a_pool(trefoil):
+    from planners.agents import LaneKeepingAgent
+    from racing_env.single_agent import OpponentPool
+
+    def cruise(observation, joint_state):
+        return np.zeros(2, np.float32)
+
+    env = RaceEnv(opponents=[cruise, cruise, OpponentPool([LaneKeepingAgent()])], track=trefoil)
+    assert env.reset(seed=0)[1]["opponents"] == [None, None, "lane-keeping"]
