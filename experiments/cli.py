@@ -63,8 +63,8 @@ def _cmd_agents(args: argparse.Namespace) -> int:
         for column in ("option", "type", "default", "meaning"):
             table.add_column(column)
         for row in rows:
-            if not args.name and row[0].startswith(("leading.", "trailing.", "belief.")):
-                continue  # one line per prefix below, unless the agent was asked for by name
+            if not args.name and "." in row[0]:
+                continue  # prefixed weights (leading., trailing., belief.): explained below, unless asked by name
             table.add_row(*row)
         console.print(table)
         if any(row[0].startswith("leading.") for row in rows):

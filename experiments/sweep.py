@@ -99,13 +99,12 @@ class SweepConfig:
             check_parameter_name(name, self.lineup)
             if not isinstance(values, tuple) or not values:
                 raise ValueError(f"parameter {name} needs a non-empty list of values, got {values!r}")
-        from planners.agents import make_agent
+        from planners.agents import check_specs
 
         for point in self.points():  # every value is checked where it is used, before any race
             self.race_config(point, rotation=0)
-            for spec, base in zip(self.lineup_specs(point), self.lineup):
-                if spec != base:
-                    make_agent(spec)
+            # the specs a point's options change (the lineup's own, which may load models, run_sweep checks)
+            check_specs(spec for spec, base in zip(self.lineup_specs(point), self.lineup) if spec != base)
 
     def lineup_specs(self, point: dict[str, Any]) -> list[str]:
         """The lineup's specs (by agent index) with the point's agent options added."""
@@ -279,12 +278,11 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
     from rich.console import Console
     from tqdm import tqdm
 
-    from planners.agents import make_agent
+    from planners.agents import check_specs
     from racing_env.track import get_track
 
     check_backend(backend, workers)
-    for spec in dict.fromkeys(config.lineup):  # an unknown spec or a missing model fails before any race
-        make_agent(spec)
+    check_specs(config.lineup)
     for track in dict.fromkeys(point.get("track", config.track) for point in config.points()):
         get_track(track)  # so does a track that is not built in and not a readable file
     console = Console(stderr=True, width=160)

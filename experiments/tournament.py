@@ -298,13 +298,12 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     from rich.table import Table
     from tqdm import tqdm
 
-    from planners.agents import make_agent
+    from planners.agents import check_specs
     from racing_env.render import save_gif
 
     console = Console(width=140)
     check_backend(backend, workers)
-    for spec in config.agents:  # an unknown spec, a bad option or a missing model fails before any race
-        make_agent(spec)
+    check_specs(config.agents)
     done = open_run_log(out, RESULTS, CONFIG, json.dumps(dataclasses.asdict(config), sort_keys=True), fresh,
                         "tournament configuration")
     races = schedule(config)

@@ -44,7 +44,7 @@ import numpy as np
 
 from experiments.bench import replace_atomically, write_json_atomically
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
-from planners.agents import SB3_ALGOS, make_agent, vecnormalize_path
+from planners.agents import SB3_ALGOS, check_specs, make_agent, vecnormalize_path
 from racing_env.config import INCIDENT_MODES, RaceConfig, RewardConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
 
@@ -502,8 +502,7 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     from rich.console import Console
 
     console = Console(stderr=True)
-    for spec in config.opponents:  # an unknown spec or a missing model fails before any training
-        make_agent(spec)
+    check_specs(config.opponents)
     config_path = out / CONFIG
     if fresh and out.exists():
         for name in (CONFIG, EPISODES, EVALUATIONS, MODEL, "learning_curve.png"):

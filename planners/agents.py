@@ -28,13 +28,13 @@ import inspect
 import time
 import traceback
 from pathlib import Path
-from typing import Any, Protocol, Sequence, runtime_checkable
+from typing import Any, Iterable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
 from planners import ilq, ilqr
 from planners.agent_specs import convert_options, describe_options, split_spec
-from planners.scripted import ConstantSpeed, LaneKeeping
+from planners.scripted import ConstantSpeed, LaneKeeping, check_target_speed
 
 __all__ = [
     "Agent",
@@ -49,6 +49,7 @@ __all__ = [
     "RecedingHorizonAgent",
     "SB3Agent",
     "agent_options",
+    "check_specs",
     "game_of",
     "make_agent",
     "reset_agents",
@@ -381,8 +382,6 @@ class RecedingHorizonAgent(BaseAgent):
         **solver_options: Any,
     ) -> None:
         super().__init__()
-        if int(max_iterations) < 1:
-            raise ValueError(f"max_iterations must be >= 1, got {max_iterations!r}")
         if int(replan_every) < 1:
             raise ValueError(f"replan_every must be >= 1, got {replan_every!r}")
         if pad not in ("repeat", "zeros"):
@@ -401,7 +400,8 @@ class RecedingHorizonAgent(BaseAgent):
         unknown = sorted(set(self.solver_options) - set(self._solver_option_types()) - {"mode"})
         if unknown:
             raise ValueError(f"unknown solver options {unknown}; allowed: {sorted(self._solver_option_types())}")
-        ilq.SolverOptions(**self.solver_options)  # refuses bad values now, not at the first solve
+        # refuses bad values (max_iterations too) now, not at the first solve
+        ilq.SolverOptions(max_iterations=self.max_iterations, **self.solver_options)
 
     @staticmethod
     def _solver_option_types() -> dict[str, type]:
@@ -637,9 +637,7 @@ class _ScriptedAgent(BaseAgent):
         unknown = sorted(set(kwargs) - set(self.spec_options()))
         if unknown:
             raise ValueError(f"{self.name} has no option {unknown}; its options: {sorted(self.spec_options())}")
-        speed = kwargs.get("target_speed")
-        if speed is not None and not float(speed) > 0:
-            raise ValueError(f"target_speed must be > 0 m/s, got {speed!r}")
+        check_target_speed(kwargs.get("target_speed"))  # before the race, not at the controller's reset
         self.kwargs = kwargs
         self.controller = None
 
@@ -837,6 +835,13 @@ def make_agent(spec: str, **kwargs: Any) -> Agent:
         raise ValueError(f"unknown agent spec {spec!r}; valid specs: {', '.join(valid)}")
     cls = AGENT_SPECS[name]
     return cls.from_spec_options(convert_options(name, raw, cls.spec_options()), **kwargs)
+
+
+def check_specs(specs: Iterable[str]) -> None:
+    """Make each distinct spec once, so an unknown spec, a bad option or a missing model
+    raises before any race or training step."""
+    for spec in dict.fromkeys(specs):
+        make_agent(spec)
 
 
 def agent_options(name: str) -> list[tuple[str, str, str, str]]:

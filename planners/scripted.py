@@ -46,6 +46,12 @@ def _curvature_grid(track: Track) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate((s[-1:] - period, s, s[:1] + period)), np.concatenate((kappa[-1:], kappa, kappa[:1]))
 
 
+def check_target_speed(target_speed: float | None) -> None:
+    """Refuse a cruise speed that is not positive (``None``: the car's v_max)."""
+    if target_speed is not None and not float(target_speed) > 0:
+        raise ValueError(f"target_speed must be > 0 m/s, got {target_speed!r}")
+
+
 class LaneKeeping:
     """Follows a lateral offset ``target_n`` [m] at ``target_speed`` [m/s] (default: v_max).
 
@@ -67,8 +73,7 @@ class LaneKeeping:
         target_speed: float | None = None,
         target_n: float = 0.0,
     ) -> None:
-        if target_speed is not None and not target_speed > 0:
-            raise ValueError(f"target_speed must be > 0 m/s, got {target_speed!r}")
+        check_target_speed(target_speed)
         self.track, self.index, self.vehicle = track, int(index), vehicle
         self.target_speed = float(vehicle.v_max if target_speed is None else target_speed)
         self.target_n = float(target_n)

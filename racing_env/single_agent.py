@@ -126,6 +126,7 @@ class RaceEnv(gymnasium.Env):
         self._opponents = {
             a: p for a, p in zip([x for x in self.race.possible_agents if x != self.learner], opponents)
         }
+        self._has_pool = bool(pools)  # the learner's info then names the drawn drivers
         self.observation_space = self.race.observation_space(self.learner)
         self.action_space = self.race.action_space(self.learner)
         self._observations: dict[str, np.ndarray] = {}
@@ -143,7 +144,7 @@ class RaceEnv(gymnasium.Env):
 
     def _with_opponents(self, info: dict) -> dict:
         """The learner's info, with this episode's drawn drivers when a pool is raced."""
-        if any(isinstance(p, OpponentPool) for p in self._opponents.values()):
+        if self._has_pool:
             info = {**info, "opponents": [getattr(p, "name", None) for p in self._opponents.values()]}
         return info
 
