@@ -271,7 +271,7 @@ def _race_stage_gauss_newton(game, t, i, x, u_i):
       ``H_y = c e (16 y y' - 4 I)``, ``e = exp(2 (1 - a))``: indefinite. Its PSD part is
       ``c e max(16 - 4 / a, 0) y y'``, i.e. the weight ``h = c e max(4 - 1 / a, 0)`` on
       ``grad a grad a'`` (``grad a = 2 J' y``). Zero for ``a < 1/4`` (deep overlap).
-    * track boundaries, ax limit, gg limit: ``r = z``, ``rho(z) = c max(z, 0)^2``;
+    * track boundaries, ax limit, gg limit, turn limit, reversing: ``r = z``, ``rho(z) = c max(z, 0)^2``;
       ``h = 2 c 1{z > 0}``, the exact outer curvature (Gauss-Newton: the inner curvature of
       ``z`` is dropped, e.g. of ``ax_max(V)`` and of the norm ``|(ax, ay)|``).
     * jerk: ``r = u_i``, ``rho = r_j u^2``, exact.
@@ -303,10 +303,14 @@ def _race_stage_gauss_newton(game, t, i, x, u_i):
             -n[i] - (track.width_right_at(s[i]) - half_width),
             ax_i - vehicles.ax_max(v)[i],
             jnp.sqrt(ax_i**2 + ay_i**2 + _NORM_EPS) - vehicles.rho(v)[i],
+            jnp.sqrt(ay_i**2 + _NORM_EPS) - vehicles.ay_turn_max(v)[i],
+            -v[i],
         ]
     )
-    c_track, c_ax, c_acc = (jnp.asarray(w)[i] for w in (weights.c_track, weights.c_ax, weights.c_acc))
-    c = jnp.stack([c_track, c_track, c_ax, c_acc])
+    c_track, c_ax, c_acc, c_reverse = (
+        jnp.asarray(w)[i] for w in (weights.c_track, weights.c_ax, weights.c_acc, weights.c_reverse)
+    )
+    c = jnp.stack([c_track, c_track, c_ax, c_acc, c_acc, c_reverse])
     rj = jnp.asarray(weights.jerk_weights)[i]
     r = jnp.concatenate([a, z, u_i])
     g = jnp.concatenate([g_col, 2.0 * c * jnp.maximum(z, 0.0), 2.0 * rj * u_i])

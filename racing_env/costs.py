@@ -7,11 +7,17 @@ Stage cost of player i at joint state ``x (N, 6)`` with its own input ``u_i (2,)
         + c_w^i * max(n_i - wl_i(s_i), 0)^2 + c_w^i * max(-n_i - wr_i(s_i), 0)^2  (track)
         + c_ax^i * max(ax_i - ax_max^i(V_i), 0)^2                              (ax limit)
         + c_a^i * max(|(ax_i, ay_i)| - rho^i(V_i), 0)^2                        (gg limit)
+        + c_a^i * max(|ay_i| - V_i^2 / R_min^i, 0)^2                           (turn limit)
+        + c_r^i * max(-V_i, 0)^2                                                (reversing)
 
 ``ds_ij`` is the wrapped gap in arc length, ``l_ij``/``w_ij`` the mean length/width of the two
 cars (``l_veh``/``w_veh`` of the paper when the cars are alike), and ``wl/wr`` the usable
 half-widths: the track width minus half the car's width, so the penalty starts when the
 car's footprint touches the boundary. ``max(z, 0)^2`` is the paper's ``1{z >= 0} z^2``.
+The turn limit (steering lock, ``VehicleParams.min_turn_radius``) and the reversing term
+are not in the paper. Both are zero at racing speeds; they are what the environment
+enforces at low speed (no spinning on the spot, no reverse gear), so that a planner does not
+plan a way out of a standstill that the car cannot drive.
 
 Terminal cost: ``g_K^i = -s_K^i + c_g^i * sum_{j != i} s_K^j``.
 """
@@ -41,8 +47,10 @@ class CostWeights:
         c_collision: collision weight c_c (per step, dimensionless proximity term).
         c_track: track-boundary weight c_w [1/m^2].
         c_ax: weight on exceeding ax_max(V), c_ax [s^4/m^2].
-        c_acc: weight on exceeding the gg radius rho(V), c_a [s^4/m^2].
+        c_acc: weight on exceeding the gg radius rho(V) and the turn limit V^2 / R_min,
+            c_a [s^4/m^2].
         c_gap: terminal weight c_g on the opponents' progress (> 0 rewards being ahead).
+        c_reverse: weight on negative speed (the cars have no reverse gear), c_r [s^2/m^2].
     """
 
     # 1.0 keeps the iLQ games well scaled: with jerk almost free (0.01) the solvers'
@@ -54,6 +62,7 @@ class CostWeights:
     c_ax: ArrayLike = 100.0
     c_acc: ArrayLike = 100.0
     c_gap: ArrayLike = 0.5
+    c_reverse: ArrayLike = 100.0
 
     def __post_init__(self) -> None:
         for name, (value, arr) in (concrete_fields(self) or {}).items():
@@ -123,11 +132,14 @@ def state_cost_terms(
     beyond_right = jnp.maximum(-n - (track.width_right_at(s) - half_width), 0.0)
     over_ax = jnp.maximum(ax - vehicles.ax_max(v), 0.0)
     over_gg = jnp.maximum(jnp.sqrt(ax**2 + ay**2 + _NORM_EPS) - vehicles.rho(v), 0.0)
+    over_turn = jnp.maximum(jnp.sqrt(ay**2 + _NORM_EPS) - vehicles.ay_turn_max(v), 0.0)
     return {
         "collision": weights.c_collision * collision_proximity(x, vehicles, track).sum(axis=1),
         "track": weights.c_track * (beyond_left**2 + beyond_right**2),
         "ax_limit": weights.c_ax * over_ax**2,
         "gg_limit": weights.c_acc * over_gg**2,
+        "turn_limit": weights.c_acc * over_turn**2,
+        "reverse": weights.c_reverse * jnp.maximum(-v, 0.0) ** 2,
     }
 
 

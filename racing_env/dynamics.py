@@ -13,8 +13,10 @@ left), heading relative to the centreline [rad], longitudinal and lateral accele
     day/dt  = jy
 
 Two guards keep the model finite where the equations are singular: ``ay / V`` uses
-``max(V, V_EPS)`` (a car at rest cannot turn), and ``1 - n kappa`` is kept above
-``MIN_FRENET_SCALE`` (only reached when a car is beyond the centre of curvature).
+``max(V, V_EPS)``, and ``1 - n kappa`` is kept above ``MIN_FRENET_SCALE`` (only reached when
+a car is beyond the centre of curvature). What stops a slow car from spinning is not here
+but the turn limit ``|ay| <= V**2 / min_turn_radius`` (``VehicleParams.ay_turn_max``), which
+the environment enforces and the game's costs penalise.
 """
 
 from __future__ import annotations

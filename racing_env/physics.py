@@ -21,9 +21,10 @@ def enforce_limits(x: jax.Array, vehicles: VehicleParams) -> jax.Array:
 
     The acceleration vector is scaled radially onto the gg circle ``|a| <= rho(V)`` (the
     paper's combined-acceleration limit), then ``ax`` is capped at ``ax_max(V)``, and
-    finally ``ay`` is clipped so the cap cannot push ``|a|`` past ``rho`` (only possible
-    above v_max, where ``ax_max < 0``). A car cannot reverse: ``V`` stops at zero and a
-    stopped car keeps no braking and no lateral acceleration (``ay = V * yaw rate``).
+    ``ay`` is clipped so the cap cannot push ``|a|`` past ``rho`` (only possible above v_max,
+    where ``ax_max < 0``), and finally to the turn limit ``V**2 / min_turn_radius``. A car
+    cannot reverse: ``V`` stops at zero, and a stopped car keeps no braking and (by the turn
+    limit) no lateral acceleration.
     """
     v = jnp.maximum(x[:, V], 0.0)
     ax, ay = x[:, AX], x[:, AY]
@@ -33,29 +34,30 @@ def enforce_limits(x: jax.Array, vehicles: VehicleParams) -> jax.Array:
     ax, ay = ax * scale, ay * scale
     ax = jnp.clip(ax, -rho, vehicles.ax_max(v))
     ay_room = jnp.sqrt(jnp.maximum(rho**2 - ax**2, 0.0))
+    ay_room = jnp.minimum(ay_room, vehicles.ay_turn_max(v))
     ay = jnp.clip(ay, -ay_room, ay_room)
     ax = jnp.where(v <= 0.0, jnp.maximum(ax, 0.0), ax)
-    ay = jnp.where(v <= 0.0, 0.0, ay)
     return x.at[:, V].set(v).at[:, AX].set(ax).at[:, AY].set(ay)
 
 
 def saturate_jerk(x: jax.Array, u: jax.Array, vehicles: VehicleParams, dt: float) -> jax.Array:
-    """Limit the longitudinal jerk so ``ax`` ends the step no higher than ``ax_max(V)``.
+    """Limit the jerks so the accelerations end the step inside their speed-dependent caps.
 
     Projecting ``ax`` only at the end of a step would let it ramp past ``ax_max`` inside
     the step, and a car driven flat out would settle above its v_max. With the jerk capped
     at ``(ax_max(V) - ax) / dt`` the speed approaches v_max from below (for
-    ``2 ax_max_0 dt < v_max``, true for any sensible car).
+    ``2 ax_max_0 dt < v_max``, true for any sensible car). Likewise the lateral jerk keeps
+    ``|ay|`` within the turn limit ``V**2 / min_turn_radius`` at the step's start speed, so
+    a slow car cannot spin inside the step before ``enforce_limits`` clips ``ay``.
 
-    A stopped car (``V <= 0``) gets no negative longitudinal and no lateral jerk: inside the
-    step they would make ``V < 0`` (the car creeping backwards) and ``ay / V_EPS`` turn it on
-    the spot.
+    A stopped car (``V <= 0``) gets no negative longitudinal jerk (inside the step it would
+    make ``V < 0``: the car creeping backwards) and, by the turn limit, no lateral jerk.
     """
-    cap = (vehicles.ax_max(x[:, V]) - x[:, AX]) / dt
-    stopped = x[:, V] <= 0.0
-    jx = jnp.minimum(u[:, 0], cap)
-    jx = jnp.where(stopped, jnp.maximum(jx, 0.0), jx)
-    jy = jnp.where(stopped, 0.0, u[:, 1])
+    v, ax, ay = x[:, V], x[:, AX], x[:, AY]
+    jx = jnp.minimum(u[:, 0], (vehicles.ax_max(v) - ax) / dt)
+    jx = jnp.where(v <= 0.0, jnp.maximum(jx, 0.0), jx)
+    ay_cap = vehicles.ay_turn_max(jnp.maximum(v, 0.0))
+    jy = jnp.clip(u[:, 1], (-ay_cap - ay) / dt, (ay_cap - ay) / dt)
     return jnp.stack([jx, jy], axis=-1)
 
 

@@ -14,13 +14,18 @@ from racing_env.vehicle import VehicleParams
 
 VEHICLES = [
     VehicleParams(length=4.7, width=2.0, v_max=20.0),
-    VehicleParams(length=5.2, width=1.8, v_max=25.0, ax_max_0=7.0, rho_0=11.0, rho_aero=0.005),
-    VehicleParams(length=4.2, width=2.1, v_max=30.0, ax_max_0=9.0, rho_0=13.0, rho_aero=0.003),
+    VehicleParams(length=5.2, width=1.8, v_max=25.0, ax_max_0=7.0, rho_0=11.0, rho_aero=0.005,
+                  min_turn_radius=3.0),
+    VehicleParams(length=4.2, width=2.1, v_max=30.0, ax_max_0=9.0, rho_0=13.0, rho_aero=0.003,
+                  min_turn_radius=8.0),
 ]
 WEIGHTS = [
-    CostWeights(r_jx=0.01, r_jy=0.02, c_collision=10.0, c_track=100.0, c_ax=50.0, c_acc=80.0, c_gap=0.5),
-    CostWeights(r_jx=0.03, r_jy=0.01, c_collision=20.0, c_track=60.0, c_ax=90.0, c_acc=40.0, c_gap=0.0),
-    CostWeights(r_jx=0.02, r_jy=0.05, c_collision=5.0, c_track=30.0, c_ax=20.0, c_acc=70.0, c_gap=-0.3),
+    CostWeights(r_jx=0.01, r_jy=0.02, c_collision=10.0, c_track=100.0, c_ax=50.0, c_acc=80.0, c_gap=0.5,
+                c_reverse=100.0),
+    CostWeights(r_jx=0.03, r_jy=0.01, c_collision=20.0, c_track=60.0, c_ax=90.0, c_acc=40.0, c_gap=0.0,
+                c_reverse=30.0),
+    CostWeights(r_jx=0.02, r_jy=0.05, c_collision=5.0, c_track=30.0, c_ax=20.0, c_acc=70.0, c_gap=-0.3,
+                c_reverse=200.0),
 ]
 
 
@@ -37,7 +42,8 @@ def np_stage_terms(x, u, track, vehicles, weights):
     collision term with l, w the mean length/width of the pair and the wrapped gap in s.
     """
     n_cars = x.shape[0]
-    terms = {k: np.zeros(n_cars) for k in ("jerk", "collision", "track", "ax_limit", "gg_limit")}
+    terms = {k: np.zeros(n_cars) for k in ("jerk", "collision", "track", "ax_limit", "gg_limit", "turn_limit",
+                                           "reverse")}
     for i in range(n_cars):
         veh, w = vehicles[i], weights[i]
         s, v, n, _, ax, ay = x[i]
@@ -63,6 +69,12 @@ def np_stage_terms(x, u, track, vehicles, weights):
         a_norm = np.sqrt(ax**2 + ay**2)
         if a_norm >= rho:
             terms["gg_limit"][i] = w.c_acc * (a_norm - rho) ** 2
+        # The turn limit (steering lock) and reversing are the project's additions to the paper.
+        ay_turn = v**2 / veh.min_turn_radius
+        if abs(ay) >= ay_turn:
+            terms["turn_limit"][i] = w.c_acc * (abs(ay) - ay_turn) ** 2
+        if v < 0:
+            terms["reverse"][i] = w.c_reverse * v**2
     return terms
 
 
@@ -95,7 +107,7 @@ def random_joint_states(rng, count, track, n_cars=3):
     for k in range(count):
         s0 = rng.uniform(-20.0, 20.0) if k % 3 == 0 else rng.uniform(0.0, track.length)
         xs[k, :, 0] = s0 + rng.uniform(-8.0, 8.0, n_cars) + track.length * rng.integers(0, 2, n_cars)
-        xs[k, :, 1] = rng.uniform(0.0, 32.0, n_cars)
+        xs[k, :, 1] = rng.uniform(-3.0, 32.0, n_cars)  # some reversing (planned, never driven)
         xs[k, :, 2] = rng.uniform(-6.5, 6.5, n_cars)
         xs[k, :, 3] = rng.uniform(-0.5, 0.5, n_cars)
         xs[k, :, 4] = rng.uniform(-12.0, 9.0, n_cars)
@@ -110,7 +122,7 @@ def test_stage_cost_terms_match_paper(game3, varying_track):
     xs, us = random_joint_states(rng, 60, varying_track)
     terms_fn = jax.jit(lambda x: state_cost_terms(x, game3.vehicles, game3.weights, game3.track))
     stage_fn = jax.jit(jax.vmap(game3.stage_cost, in_axes=(0, None, 0)))
-    active = {k: 0 for k in ("collision", "track", "ax_limit", "gg_limit")}
+    active = {k: 0 for k in ("collision", "track", "ax_limit", "gg_limit", "turn_limit", "reverse")}
     for x, u in zip(xs, us):
         expected = np_stage_terms(x, u, varying_track, VEHICLES, WEIGHTS)
         got = {k: np.asarray(v) for k, v in terms_fn(jnp.asarray(x)).items()}
@@ -173,24 +185,28 @@ def _designed_states(game):
         # car_0: beyond the left boundary, above ax_max, outside the gg circle; car_1 close by
         "all_active": np.array([[100.0, 19.0, 5.4, 0.1, 3.0, 17.0],
                                 [103.0, 20.0, 3.0, -0.05, 1.0, -2.0]]),
-        # car_0 beyond the right boundary, limits inactive; car_1 above v_max braking, far away
-        "right_boundary": np.array([[300.0, 10.0, -5.3, -0.2, -2.0, 3.0],
+        # car_0 beyond the right boundary and slow, turning harder than its steering allows;
+        # car_1 above v_max braking, far away
+        "right_boundary": np.array([[300.0, 3.0, -5.3, -0.2, -2.0, 3.0],
                                     [340.0, 27.0, 0.5, 0.0, -5.0, 16.0]]),
         # no boundary/limit penalties; cars 6 m apart across the lap line
         "inactive": np.array([[2.0, 15.0, 1.0, 0.05, 1.0, -2.0],
                               [L - 4.0, 15.0, -1.0, 0.0, 0.5, 4.0]]),
+        # car_0 planned in reverse (-1.5 m/s), other limits inactive; car_1 far away
+        "reversing": np.array([[500.0, -1.5, 0.5, 0.1, 1.0, 0.1],
+                               [560.0, 12.0, 0.0, 0.0, 0.0, 1.0]]),
     }
 
 
 def _penalty_arguments(x, track):
-    """The arguments z of the max(z, 0)^2 penalties of each car, shape (N, 4)."""
+    """The arguments z of the max(z, 0)^2 penalties of each car, shape (N, 6)."""
     z = []
     for i, veh in enumerate(VEHICLES[: x.shape[0]]):
         s, v, n, _, ax, ay = x[i]
         wl = np_interp_closed(track, track.width_left, s) - 0.5 * veh.width
         wr = np_interp_closed(track, track.width_right, s) - 0.5 * veh.width
         z.append([n - wl, -n - wr, ax - veh.ax_max_0 * (1 - (v / veh.v_max) ** 2),
-                  np.hypot(ax, ay) - veh.rho_0 - veh.rho_aero * v**2])
+                  np.hypot(ax, ay) - veh.rho_0 - veh.rho_aero * v**2, abs(ay) - v**2 / veh.min_turn_radius, -v])
     return np.array(z)
 
 
@@ -198,10 +214,10 @@ def test_designed_states_cover_every_penalty(game2):
     """The derivative-test states are away from the kinks and activate every penalty term."""
     z = np.stack([_penalty_arguments(x, game2.track) for x in _designed_states(game2).values()])
     assert np.abs(z).min() > 0.05
-    assert np.all((z > 0).any(axis=(0, 1)))  # left, right, ax and gg penalties each active somewhere
+    assert np.all((z > 0).any(axis=(0, 1)))  # left, right, ax, gg, turn and reverse penalties each active somewhere
 
 
-@pytest.mark.parametrize("name", ["all_active", "right_boundary", "inactive"])
+@pytest.mark.parametrize("name", ["all_active", "right_boundary", "inactive", "reversing"])
 def test_stage_cost_gradient_and_hessian_match_finite_differences(game2, name):
     """jax.grad and jax.hessian of game.stage_cost(i, x, u_i) w.r.t. x and u_i equal central FDs."""
     x0 = _designed_states(game2)[name]

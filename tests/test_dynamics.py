@@ -205,6 +205,27 @@ def test_curvature_enters_through_the_track(linear_curvature_track):
 
 def test_vehicle_params_are_validated():
     """VehicleParams refuses non-positive or non-finite limits with a message naming the field."""
-    for bad in (dict(v_max=0.0), dict(v_max=-1.0), dict(length=float("nan")), dict(rho_aero=-0.1)):
+    for bad in (dict(v_max=0.0), dict(v_max=-1.0), dict(length=float("nan")), dict(rho_aero=-0.1),
+                dict(min_turn_radius=0.0)):
         with pytest.raises(ValueError, match=f"VehicleParams.{next(iter(bad))}"):
             VehicleParams(**bad)
+
+
+def test_a_car_at_the_turn_limit_drives_a_circle_of_min_turn_radius():
+    """With ay = ay_turn_max(V) at constant V on a straight, the car drives a circle of
+    radius min_turn_radius (heading rate ay / V = V / R): after t it is at
+    (s, n) = (R sin(V t / R), R (1 - cos(V t / R))). RK4 at dt = 0.01 s: the error of
+    about a quarter turn is ~ steps (V dt / R)^5 R ~ 2e-8 m, far below the 1e-6 tolerance."""
+    radius, v = 4.0, 3.0
+    veh = VehicleParams(min_turn_radius=radius)
+    x = jnp.array([[0.0, v, 0.0, 0.0, 0.0, float(veh.ay_turn_max(v))]])
+    flat = lambda s: jnp.zeros_like(s)
+    dt = 0.01
+    steps = int(round(0.5 * np.pi * radius / v / dt))
+    step = jax.jit(lambda x: dyn.joint_step(x, jnp.zeros((1, 2)), dt, flat))
+    for _ in range(steps):
+        x = step(x)
+    t_end = steps * dt  # about a quarter turn
+    angle = v * t_end / radius
+    np.testing.assert_allclose(np.asarray(x[0, :4]), [radius * np.sin(angle), v, radius * (1 - np.cos(angle)), angle],
+                               atol=1e-6)

@@ -167,6 +167,25 @@ def test_stopped_car_does_not_turn_on_the_spot(straight_env):
     assert np.all(states[:, 0, 1] == 0.0)
 
 
+def test_slow_car_turns_no_tighter_than_its_steering_allows(straight_env):
+    """At 3 m/s with full lateral jerk, |ay| stays within V^2 / min_turn_radius and the
+    heading turns at most V dt / min_turn_radius per step (on a straight, V constant:
+    |dchi/dt| = |ay| / V <= V / R). The point mass alone would spin at up to rho / V."""
+    env = straight_env
+    veh = env.game.vehicles
+    radius, dt, v0 = float(veh.min_turn_radius[0]), env.game.dt, 3.0
+    env.reset(seed=0, options={"x0": _x0((100.0, v0, 0.0), (50.0, 10.0, -3.0))})
+    states = _drive(env, lambda k: {"car_0": np.array([0.0, 1.0]), "car_1": COAST}, 30)
+    v, chi, ay = states[:, 0, 1], states[:, 0, 3], states[:, 0, 5]
+    np.testing.assert_array_equal(v, v0)
+    cap = v0**2 / radius
+    assert np.max(np.abs(ay)) <= cap * (1 + 1e-12)
+    assert np.max(np.abs(ay)) == pytest.approx(cap, rel=1e-12)  # the limit was reached
+    # Rounding only: the in-step ay is linear in time and below the cap throughout.
+    assert np.max(np.abs(np.diff(chi))) <= v0 * dt / radius * (1 + 1e-9)
+    assert np.max(np.abs(np.diff(chi))) == pytest.approx(v0 * dt / radius, rel=1e-9)
+
+
 # --- incidents ---------------------------------------------------------------------------------
 def test_overlapping_cars_collide(env2):
     """Overlapping footprints are reported to both cars, with contact_with and the penalty."""

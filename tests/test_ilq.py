@@ -393,9 +393,14 @@ def test_auto_batching_maps_on_cpu_and_vmaps_elsewhere():
 
 def _random_states(game, rng, count):
     """Joint states around X0 with constraints active: cars close, off the track, over
-    the ax and gg limits."""
+    the ax and gg limits; every other state has slow cars (-2 to 6 m/s) over the turn
+    limit or planned in reverse."""
     scale = np.array([3.0, 4.0, 5.0, 0.2, 8.0, 12.0])
-    return [X0 + rng.normal(size=X0.shape) * scale for _ in range(count)]
+    states = [X0 + rng.normal(size=X0.shape) * scale for _ in range(count)]
+    for k, X in enumerate(states[::2]):
+        X[:, 1] = rng.uniform(0.5, 6.0, X.shape[0])
+        X[k % X.shape[0], 1] *= -0.4  # one car planned in reverse (-2.4 to -0.2 m/s)
+    return states
 
 
 def test_gauss_newton_hooks_give_exact_gradients_and_psd_hessians(game):
@@ -413,7 +418,12 @@ def test_gauss_newton_hooks_give_exact_gradients_and_psd_hessians(game):
         exact_T = jax.grad(lambda x: problem.terminal_cost(game, i, x))(x)
         return H, g, exact, HT, gT, exact_T
 
-    for X in _random_states(game, rng, 10):
+    states = _random_states(game, rng, 10)
+    ay_turn = game.vehicles.ay_turn_max(jnp.asarray(np.stack(states))[..., 1])
+    over_turn_limit = np.abs(np.stack(states)[..., 5]) > np.asarray(ay_turn)
+    assert over_turn_limit.sum() >= 3  # the turn-limit residual is exercised, not just defined
+    assert (np.stack(states)[..., 1] < 0).sum() >= 3  # and so is the reversing one
+    for X in states:
         x = jnp.asarray(X).reshape(-1)
         for i in range(2):
             u_i = jnp.asarray(rng.normal(size=2))
