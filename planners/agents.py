@@ -35,6 +35,7 @@ import numpy as np
 from planners import ilq, ilqr
 from planners.agent_specs import convert_options, describe_options, split_spec
 from planners.scripted import ConstantSpeed, LaneKeeping, check_target_speed
+from racing_env.dynamics import V
 
 __all__ = [
     "Agent",
@@ -100,6 +101,11 @@ def game_of(env_info: Any):
     raise TypeError(
         f"env_info must be a RacingParallelEnv, a RaceEnv or a RaceGame, got {type(env_info).__name__}"
     )
+
+
+def _finite(solution: tuple) -> bool:
+    """Whether a solver's ``(us, xs, K or None, result)`` plan arrays are all finite."""
+    return all(np.all(np.isfinite(part)) for part in solution[:3] if part is not None)
 
 
 def _empty_record() -> dict:
@@ -244,6 +250,9 @@ class BaseAgent:
             # share of re-plans that met the solver's tolerance (the rest use the last iterate)
             "converged_fraction": float(np.mean(converged)) if converged else None,
         }
+        recovering = [bool(r["recovering"]) for r in self.history if r.get("recovering") is not None]
+        if any(recovering):  # re-plans made in recovery from a standstill (recovery_track_scale)
+            out["recovery_replans"] = int(sum(recovering))
         leading = [bool(r["leading"]) for r in self.history if r.get("leading") is not None]
         if leading:  # place-dependent weights: share of re-plans made in the lead
             out["leading_fraction"] = float(np.mean(leading))
@@ -262,6 +271,8 @@ class BaseAgent:
 # --------------------------------------------------------------------------------------
 
 
+STOPPED_SPEED = 0.5  # [m/s] a car this slow at a re-plan is stuck: it plans in recovery (below)
+RECOVERED_SPEED = 5.0  # [m/s] and it plans normally again once this fast
 REPLAN_TOLERANCE = 1e-3
 """Convergence tolerance of a re-plan [state units: m, m/s, ...]: a millimetre is plenty for
 a plan that is re-solved 0.1 s later. Measured (feedback iLQGame vs the lane keeper, a lap of
@@ -349,6 +360,12 @@ class RecedingHorizonAgent(BaseAgent):
         warm_start: warm start from the previous solution (else zeros every re-plan).
         require_converged: treat a non-converged solve as a failure (fallback); by default
             the last iterate is used (it is a dynamically feasible, finite plan).
+        recovery_track_scale: factor on the car's own track weight ``c_track`` in the
+            re-plans of a recovery: from a re-plan at which the car is slower than
+            :data:`STOPPED_SPEED` until one at which it is at least :data:`RECOVERED_SPEED`.
+            A car that has stopped at the edge facing out (it cannot reverse or turn on the
+            spot) can only rejoin across the boundary; over a 5 s horizon standing still is
+            cheaper at full weight, so without this it stands for good. ``1`` turns it off.
         own_weights: :class:`racing_env.CostWeights` fields ``{name: value}`` that replace
             the agent's own weights in its plans. They are private: the other cars plan
             with the race's weights for this car, as they would against an unknown driver.
@@ -375,6 +392,7 @@ class RecedingHorizonAgent(BaseAgent):
         pad: str = "repeat",
         warm_start: bool = True,
         require_converged: bool = False,
+        recovery_track_scale: float = 1e-3,
         own_weights: dict[str, float] | None = None,
         leading_weights: dict[str, float] | None = None,
         trailing_weights: dict[str, float] | None = None,
@@ -392,6 +410,9 @@ class RecedingHorizonAgent(BaseAgent):
         self.pad = pad
         self.warm_start = bool(warm_start)
         self.require_converged = bool(require_converged)
+        if not 0.0 <= float(recovery_track_scale) <= 1.0:
+            raise ValueError(f"recovery_track_scale must be in [0, 1], got {recovery_track_scale!r}")
+        self.recovery_track_scale = float(recovery_track_scale)
         self.own_weights = _checked_weight_changes("own_weights", own_weights)
         self.leading_weights = _checked_weight_changes("leading_weights", leading_weights)
         self.trailing_weights = _checked_weight_changes("trailing_weights", trailing_weights)
@@ -411,7 +432,8 @@ class RecedingHorizonAgent(BaseAgent):
     @classmethod
     def spec_options(cls) -> dict[str, type]:
         options = {"max_iterations": int, "replan_every": int, "pad": str, "warm_start": bool,
-                   "require_converged": bool, **cls._solver_option_types()}
+                   "require_converged": bool, "recovery_track_scale": float,
+                   **cls._solver_option_types()}
         for name in _weight_names():
             options[name] = float
             options.update({f"{prefix}.{name}": float for prefix in _WEIGHT_PREFIXES})
@@ -422,7 +444,8 @@ class RecedingHorizonAgent(BaseAgent):
         defaults = {f.name: f.default for f in dataclasses.fields(ilq.SolverOptions)}
         loop = inspect.signature(RecedingHorizonAgent.__init__).parameters  # the loop's own defaults
         defaults.update({name: loop[name].default for name in
-                         ("max_iterations", "replan_every", "pad", "warm_start", "require_converged")})
+                         ("max_iterations", "replan_every", "pad", "warm_start", "require_converged",
+                          "recovery_track_scale")})
         defaults["tolerance"] = REPLAN_TOLERANCE
         for name in _weight_names():
             defaults[name] = "the race's"
@@ -438,6 +461,8 @@ class RecedingHorizonAgent(BaseAgent):
             "pad": "end of the shifted warm start: repeat (the last input) or zeros",
             "warm_start": "start each re-plan from the previous plan (false: from zero inputs)",
             "require_converged": "treat a re-plan that did not converge as a failure (previous plan, else brake)",
+            "recovery_track_scale": f"factor on own c_track from a standstill (< {STOPPED_SPEED} m/s) until "
+                                    f"{RECOVERED_SPEED} m/s, to rejoin across the edge (1: off)",
             "tolerance": "convergence: largest state change of a full step [m, m/s, ...]",
             "step_control": "trust_region (shrink the step to stay inside trust_radius) or none (fixed step)",
             "trust_radius": "largest accepted change of the state trajectory per iteration",
@@ -452,7 +477,8 @@ class RecedingHorizonAgent(BaseAgent):
         }
         weights = {"r_jx": "longitudinal jerk weight", "r_jy": "lateral jerk weight",
                    "c_collision": "collision weight c_c", "c_track": "track-boundary weight c_w",
-                   "c_ax": "weight on exceeding ax_max(V)", "c_acc": "weight on exceeding the gg radius",
+                   "c_ax": "weight on exceeding ax_max(V)",
+                   "c_acc": "weight on exceeding the gg radius and the turn limit",
                    "c_gap": "weight c_g of the others' progress at the horizon"}
         lines.update({name: f"{weights.get(name, name)} of this car in its own plans only"
                       for name in _weight_names()})
@@ -491,6 +517,7 @@ class RecedingHorizonAgent(BaseAgent):
             }
         self._plan: dict | None = None  # {"us": (T,N,2), "xs": (T+1,N,6), "K": (T,N,2,6N) | None}
         self._age = 0  # steps since the stored plan was made
+        self._recovering = False  # from a standstill until RECOVERED_SPEED (recovery_track_scale)
 
     def _is_leading(self, x: np.ndarray) -> bool:
         """Ahead of every other car in race distance (``s`` is cumulative, laps included)."""
@@ -498,8 +525,14 @@ class RecedingHorizonAgent(BaseAgent):
         return bool(np.all(x[self.index, 0] > others))
 
     # the solve itself (subclasses) -> (us, xs, K or None, result)
-    def _solve(self, x0: np.ndarray, init: np.ndarray | None):
+    def _solve(self, game, x0: np.ndarray, init: np.ndarray | None):
         raise NotImplementedError
+
+    def _recovery_game(self, game):
+        """``game`` with this car's own track weight scaled by ``recovery_track_scale``."""
+        c_track = float(np.broadcast_to(np.asarray(game.weights.c_track), (game.num_players,))[self.index])
+        changes = {"c_track": c_track * self.recovery_track_scale}
+        return game.replace(weights=_with_player_weights(game.weights, self.index, changes))
 
     def _shifted(self, us: np.ndarray, by: int) -> np.ndarray:
         T = us.shape[0]
@@ -532,6 +565,13 @@ class RecedingHorizonAgent(BaseAgent):
             if self._games_by_place is not None:
                 record["leading"] = self._is_leading(x)
                 self.planning_game = self._games_by_place[record["leading"]]
+            game = self.planning_game
+            if self.recovery_track_scale < 1.0 and x.shape == (self.game.num_players, 6):
+                speed = x[self.index, V]
+                self._recovering = speed < STOPPED_SPEED or (self._recovering and speed < RECOVERED_SPEED)
+                record["recovering"] = self._recovering
+                if self._recovering:
+                    game = self._recovery_game(game)
             init = None
             if self.warm_start and self._plan is not None:
                 init = self._shifted(self._plan["us"], self._age + 1)
@@ -540,12 +580,12 @@ class RecedingHorizonAgent(BaseAgent):
             try:
                 if x.shape != (self.game.num_players, 6):
                     raise ValueError(f"joint state must have shape ({self.game.num_players}, 6), got {x.shape}")
-                us, xs, K, res = self._solve(x, init)
+                solution = self._solve(game, x, init)
+                us, xs, K, res = solution
                 record["iterations"] = int(res.iterations)
                 record["converged"] = bool(res.converged)
                 record["status"] = ilq.status_message(res.status)
-                parts = [us, xs] + ([K] if K is not None else [])
-                if not all(np.all(np.isfinite(p)) for p in parts):
+                if not _finite(solution):
                     error = "solver returned non-finite values"
                 elif self.require_converged and not record["converged"]:
                     error = f"solver did not converge ({record['status']})"
@@ -577,9 +617,9 @@ class RecedingHorizonAgent(BaseAgent):
 class _GameAgent(RecedingHorizonAgent):
     mode = "feedback"
 
-    def _solve(self, x0, init):
+    def _solve(self, game, x0, init):
         res = ilq.solve(
-            self.planning_game,
+            game,
             x0,
             init=init,
             mode=self.mode,
@@ -612,9 +652,9 @@ class ILQRAgent(RecedingHorizonAgent):
     name = "ilqr"
     feedback = False
 
-    def _solve(self, x0, init):
+    def _solve(self, game, x0, init):
         res = ilqr.solve_ilqr(
-            self.planning_game,
+            game,
             x0,
             ego=self.index,
             U0=init,

@@ -152,6 +152,36 @@ def test_replan_every_follows_the_plan_in_between():
 
 
 @pytest.mark.parametrize("spec", GAME_SPECS)
+def test_a_car_stopped_at_the_edge_facing_out_rejoins_in_recovery(spec):
+    """A car at rest on the right edge of the straight, heading 0.6 rad into it, can only
+    leave across the boundary (no reverse gear, no turning on the spot). At full track
+    weight standing still is its best 5 s plan and it stands for good; in recovery (its
+    own c_track scaled by recovery_track_scale until 5 m/s) it drives off. Racing jerk
+    weights (r = 0.01) as in races."""
+    speeds = {}
+    for scale in (1e-3, 1.0):
+        env = racing_env.parallel_env(track="straight", num_agents=2, max_steps=30)
+        agent = make_agent(f"{spec}:r_jx=0.01,r_jy=0.01,recovery_track_scale={scale}")
+        rival = make_agent("constant-speed", target_speed=10.0)
+        reset_agents([agent, rival], env, 0)
+        x0 = np.zeros((2, 6))
+        x0[0, :4] = [100.0, 0.0, -5.0, -0.6]  # usable half-width: 6 m - 1 m (half the car)
+        x0[1, :3] = [200.0, 10.0, 3.0]
+        obs, _ = env.reset(seed=0, options={"x0": x0})
+        for _ in range(20):
+            state = env.state()
+            obs, *_ = env.step({"car_0": agent(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
+        speeds[scale] = env.state()[0, 1]
+        recovering = [h.get("recovering") for h in agent.history]
+        if scale < 1.0:
+            assert recovering[0] and agent.summary()["recovery_replans"] == sum(recovering)
+        else:
+            assert "recovering" not in agent.history[0] and "recovery_replans" not in agent.summary()
+    assert speeds[1.0] == 0.0  # at full track weight it never moves
+    assert speeds[1e-3] > 5.0  # measured 10.4 m/s after 2 s (12 re-plans in recovery) for all three
+
+
+@pytest.mark.parametrize("spec", GAME_SPECS)
 def test_fallback_on_nan_state(spec):
     """A real solver failure: a NaN in the joint state gives non-finite solver output."""
     env = racing_env.parallel_env(track="trefoil", num_agents=2)
