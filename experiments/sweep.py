@@ -226,7 +226,7 @@ def run_job(config: SweepConfig, job: dict[str, Any]) -> dict[str, Any]:
 
 def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per point and agent: races, wins (and of those started in front, how many were
-    won), mean place, mean finish-time margin over the other cars (races all finished),
+    won), races finished, mean place, mean finish-time margin over the other cars (races all finished),
     overtakes per race, contact steps, time off track, errors, and for planners the mean
     share of re-plans that converged (results where it is low are the solver's, not the
     weights': see the README's sweep of the gap weight)."""
@@ -250,6 +250,7 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
                 "wins": sum(car["place"] == 1 for car in mine),
                 "races_from_front": sum(car["start_place"] == 1 for car in mine),
                 "wins_from_front": sum(car["start_place"] == 1 and car["place"] == 1 for car in mine),
+                "finished": sum(car["finish_time"] is not None for car in mine),
                 "mean_place": float(np.mean([car["place"] for car in mine])) if mine else None,
                 "mean_margin_s": float(np.mean(margins)) if margins else None,
                 "overtakes_per_race": float(np.mean([r["overtakes"] for r in races])) if races else None,
@@ -323,8 +324,8 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         writer.writerows(rows)
     names = [name for name, _ in config.parameters]
     table = Table(title=f"sweep: {' vs '.join(config.lineup)}")
-    for column in (*names, "agent", "races", "wins", "from the front", "mean place", "margin [s]", "overtakes/race",
-                   "contact steps", "off track [s]", "errors", "converged"):
+    for column in (*names, "agent", "races", "wins", "from the front", "finished", "mean place", "margin [s]",
+                   "overtakes/race", "contact steps", "off track [s]", "errors", "converged"):
         table.add_column(column, overflow="fold")  # long specs and parameter names wrap instead of being cut
     for row in rows:
         margin = "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}"
@@ -332,7 +333,8 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         overtakes = "-" if row["overtakes_per_race"] is None else f"{row['overtakes_per_race']:.2f}"
         converged = "-" if row["converged_fraction"] is None else f"{row['converged_fraction']:.0%}"
         table.add_row(*(str(row[n]) for n in names), f"{row['agent']}: {row['spec']}", str(row["races"]),
-                      str(row["wins"]), f"{row['wins_from_front']}/{row['races_from_front']}", place, margin,
+                      str(row["wins"]), f"{row['wins_from_front']}/{row['races_from_front']}",
+                      f"{row['finished']}/{row['races']}", place, margin,
                       overtakes, str(row["contact_steps"]),
                       f"{row['time_off_track_s']:.1f}", str(row["errors"]), converged)
     console.print(table)

@@ -210,8 +210,8 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
     model = PlackettLuce()
     ratings = {n: model.rating(name=n) for n in names}
     h2h = np.zeros((len(names), len(names)), dtype=int)
-    stats = {n: {"races": 0, "wins": 0, "errors": 0, "collision_steps": 0, "act_times": [], "margins": [],
-                 "converged": []} for n in names}
+    stats = {n: {"races": 0, "wins": 0, "finished": 0, "errors": 0, "collision_steps": 0, "act_times": [],
+                 "margins": [], "converged": []} for n in names}
     for record in records:
         order = record["order"]
         teams = [[ratings[n]] for n in order]
@@ -223,6 +223,7 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
             st = stats[car["agent"]]
             st["races"] += 1
             st["wins"] += car["place"] == 1
+            st["finished"] += car["finish_time"] is not None
             st["errors"] += car["error"] is not None
             st["collision_steps"] += car["collision_steps"]
             if np.isfinite(car["act_time_mean_s"]):  # NaN: the car faulted before a timed action
@@ -240,7 +241,7 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
         rows.append({"agent": n, "races": st["races"], "wins": st["wins"],
                      "win_rate": st["wins"] / st["races"] if st["races"] else float("nan"),
                      "win_rate_ci95": [lo, hi], "rating_mu": r.mu, "rating_sigma": r.sigma,
-                     "rating": r.mu - 3 * r.sigma, "errors": st["errors"], "collision_steps": st["collision_steps"],
+                     "rating": r.mu - 3 * r.sigma, "finished": st["finished"], "errors": st["errors"], "collision_steps": st["collision_steps"],
                      # finish-time lead over the mean of the other cars, in races where all finished
                      "mean_margin_s": float(np.mean(st["margins"])) if st["margins"] else None,
                      "mean_act_time_s": float(np.mean(st["act_times"])) if st["act_times"] else float("nan"),
@@ -337,13 +338,14 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     plot_head_to_head(board["head_to_head"], out / "head_to_head.png")
     (out / "leaderboard.json").write_text(json.dumps(board, indent=2))
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
-    for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "margin [s]", "errors",
-                "contact steps", "act [ms]", "converged"):
+    for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "finished", "margin [s]",
+                "errors", "contact steps", "act [ms]", "converged"):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
         lo, hi = row["win_rate_ci95"]
         table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
-                      f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}", str(row["errors"]),
+                      f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", f"{row['finished']}/{row['races']}",
+                      "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}", str(row["errors"]),
                       str(row["collision_steps"]),
                       f"{1e3 * row['mean_act_time_s']:.1f}",
                       "-" if row["converged_fraction"] is None else f"{row['converged_fraction']:.0%}")

@@ -169,11 +169,12 @@ def test_summary_of_hand_made_records():
     ]
     planner, keeper = sweep.summarize(config, records)
     assert planner == {"point": 0, "laps": 1, "agent": 0, "spec": "ilqgame-fb", "races": 2, "wins": 1,
-                       "races_from_front": 1, "wins_from_front": 1, "mean_place": 1.5,
+                       "races_from_front": 1, "wins_from_front": 1, "finished": 2, "mean_place": 1.5,
                        "mean_margin_s": -1.0,  # only the race both finished counts
                        "overtakes_per_race": 0.5, "contact_steps": 3, "time_off_track_s": 0.0, "errors": 0,
                        "converged_fraction": 0.7}
     assert keeper["wins"] == 1 and keeper["mean_margin_s"] == 1.0 and keeper["time_off_track_s"] == 0.4
+    assert keeper["finished"] == 1  # it did not finish the second race
     assert keeper["converged_fraction"] is None  # not a planner
 
 

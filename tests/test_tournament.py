@@ -180,6 +180,29 @@ def test_races_on_workers_give_the_same_records_and_leaderboard(tmp_path, backen
     assert (tmp_path / "there" / "race.gif").stat().st_size > 0
 
 
+def test_leaderboard_of_hand_made_records_counts_wins_finishes_and_margins():
+    """The leaderboard's arithmetic on two races, by hand: a car that never finished still
+    has a place (by distance) but no finish, and races it did not finish give no margin."""
+    config = tour.TournamentConfig(agents=("ilqr", "lane-keeping"), grids=1)
+    first, second = tour.schedule(config)
+
+    def car(agent, place, finish, converged=None):
+        return {"agent": agent, "place": place, "finish_time": finish, "error": None, "collision_steps": 0,
+                "act_time_mean_s": 0.01, "solver_converged_fraction": converged}
+
+    records = [
+        {"id": first["id"], "order": ["ilqr", "lane-keeping"],
+         "cars": [car("ilqr", 1, 60.0, 0.9), car("lane-keeping", 2, 61.5)]},
+        {"id": second["id"], "order": ["lane-keeping", "ilqr"],  # iLQR stopped for good
+         "cars": [car("lane-keeping", 1, 62.0), car("ilqr", 2, None, 0.1)]},
+    ]
+    rows = {row["agent"]: row for row in tour.leaderboard(config, records)["rows"]}
+    assert (rows["ilqr"]["wins"], rows["ilqr"]["finished"], rows["ilqr"]["races"]) == (1, 1, 2)
+    assert (rows["lane-keeping"]["wins"], rows["lane-keeping"]["finished"]) == (1, 2)
+    assert rows["ilqr"]["mean_margin_s"] == 1.5 and rows["lane-keeping"]["mean_margin_s"] == -1.5
+    assert rows["ilqr"]["converged_fraction"] == pytest.approx(0.5, abs=1e-15)
+
+
 def test_overtakes_count_sign_changes():
     """Two cars swapping the lead twice make two overtakes."""
     s = np.array([[0.0, 1.0], [2.0, 1.5], [3.0, 3.5]])
