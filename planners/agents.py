@@ -479,7 +479,8 @@ class RecedingHorizonAgent(BaseAgent):
                    "c_collision": "collision weight c_c", "c_track": "track-boundary weight c_w",
                    "c_ax": "weight on exceeding ax_max(V)",
                    "c_acc": "weight on exceeding the gg radius and the turn limit",
-                   "c_gap": "weight c_g of the others' progress at the horizon"}
+                   "c_gap": "weight c_g of the others' progress at the horizon",
+                   "c_reverse": "weight on negative speed (the cars have no reverse gear)"}
         lines.update({name: f"{weights.get(name, name)} of this car in its own plans only"
                       for name in _weight_names()})
         for place in _PLACE_PREFIXES:
