@@ -529,8 +529,18 @@ class RecedingHorizonAgent(BaseAgent):
     def _solve(self, game, x0: np.ndarray, init: np.ndarray | None):
         raise NotImplementedError
 
-    def _recovery_game(self, game):
-        """``game`` with this car's own track weight scaled by ``recovery_track_scale``."""
+    def _game_at_speed(self, x: np.ndarray, record: dict) -> Any:
+        """The planning game, with this car's own track weight scaled by
+        ``recovery_track_scale`` while it recovers from a standstill (recorded as
+        ``record["recovering"]`` when recovery is on)."""
+        game = self.planning_game
+        if self.recovery_track_scale >= 1.0:
+            return game
+        speed = x[self.index, V]
+        self._recovering = speed < STOPPED_SPEED or (self._recovering and speed < RECOVERED_SPEED)
+        record["recovering"] = self._recovering
+        if not self._recovering:
+            return game
         c_track = float(np.broadcast_to(np.asarray(game.weights.c_track), (game.num_players,))[self.index])
         changes = {"c_track": c_track * self.recovery_track_scale}
         return game.replace(weights=_with_player_weights(game.weights, self.index, changes))
@@ -566,13 +576,6 @@ class RecedingHorizonAgent(BaseAgent):
             if self._games_by_place is not None:
                 record["leading"] = self._is_leading(x)
                 self.planning_game = self._games_by_place[record["leading"]]
-            game = self.planning_game
-            if self.recovery_track_scale < 1.0 and x.shape == (self.game.num_players, 6):
-                speed = x[self.index, V]
-                self._recovering = speed < STOPPED_SPEED or (self._recovering and speed < RECOVERED_SPEED)
-                record["recovering"] = self._recovering
-                if self._recovering:
-                    game = self._recovery_game(game)
             init = None
             if self.warm_start and self._plan is not None:
                 init = self._shifted(self._plan["us"], self._age + 1)
@@ -581,7 +584,7 @@ class RecedingHorizonAgent(BaseAgent):
             try:
                 if x.shape != (self.game.num_players, 6):
                     raise ValueError(f"joint state must have shape ({self.game.num_players}, 6), got {x.shape}")
-                solution = self._solve(game, x, init)
+                solution = self._solve(self._game_at_speed(x, record), x, init)
                 us, xs, K, res = solution
                 record["iterations"] = int(res.iterations)
                 record["converged"] = bool(res.converged)
