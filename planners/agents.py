@@ -32,7 +32,7 @@ from typing import Any, Iterable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from planners import ilq, ilqr
+from planners import ilq, ilqr, prediction as prediction_models
 from planners.agent_specs import convert_options, describe_options, split_spec
 from planners.scripted import ConstantSpeed, LaneKeeping, check_target_speed
 from racing_env.dynamics import V
@@ -651,10 +651,42 @@ class OpenLoopGameAgent(_GameAgent):
 
 
 class ILQRAgent(RecedingHorizonAgent):
-    """iLQR against constant-velocity predictions of the opponents (``planners.ilqr``)."""
+    """iLQR against predictions of the opponents (``planners.ilqr``).
+
+    Args:
+        prediction: how the opponents are predicted (:data:`planners.prediction.PREDICTIONS`):
+            ``"constant-velocity"`` (the paper's: constant speed and lateral offset) or
+            ``"lane-keeping"`` (each opponent driven by the scripted lane keeper's law
+            through the environment's physics: exact against the lane keeper).
+        kwargs: as :class:`RecedingHorizonAgent`.
+    """
 
     name = "ilqr"
     feedback = False
+
+    def __init__(self, prediction: str = prediction_models.CONSTANT_VELOCITY, **kwargs: Any) -> None:
+        if prediction not in prediction_models.PREDICTIONS:
+            raise ValueError(f"unknown prediction {prediction!r}; choose one of {list(prediction_models.PREDICTIONS)}")
+        super().__init__(**kwargs)
+        self.prediction = prediction
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        return {**super().spec_options(), "prediction": str}
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        return {**super().spec_defaults(), "prediction": prediction_models.CONSTANT_VELOCITY}
+
+    @classmethod
+    def spec_help(cls) -> dict[str, str]:
+        return {**super().spec_help(),
+                "prediction": "how the opponents are predicted: constant-velocity (the paper's) or "
+                              "lane-keeping (driven by the scripted lane keeper's law)"}
+
+    def reset(self, seed: int | None, index: int, env_info: Any) -> None:
+        super().reset(seed, index, env_info)
+        self._predict = prediction_models.make_predictor(self.prediction, self.game, self.index)
 
     def _solve(self, game, x0, init):
         res = ilqr.solve_ilqr(
@@ -662,6 +694,7 @@ class ILQRAgent(RecedingHorizonAgent):
             x0,
             ego=self.index,
             U0=init,
+            predicted=None if self._predict is None else self._predict(x0),
             max_iterations=self.max_iterations,
             **self.solver_options,
         )

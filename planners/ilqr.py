@@ -1,4 +1,4 @@
-"""Sequential baseline of the paper: iLQR against constant-velocity opponent predictions.
+"""Sequential baseline of the paper: iLQR against predictions of the opponents.
 
 The ego car (player ``ego`` of a :class:`racing_env.RaceGame`) predicts every opponent
 ``j`` from its current state at constant speed and constant lateral offset::
@@ -8,8 +8,10 @@ The ego car (player ``ego`` of a :class:`racing_env.RaceGame`) predicts every op
 and then solves the single-player problem whose stage cost is the game's stage cost of the
 ego evaluated at the joint state ``[ego state; predicted opponents at stage t]`` (collision,
 track, acceleration limits, jerk) and whose terminal cost is the ego's terminal cost (the
-opponents' progress enters as a constant). It is :func:`planners.ilq.solve` with ``N = 1``
-and a time-varying problem (the prediction is part of the problem's ``params``, so new
+opponents' progress enters as a constant). That prediction is the paper's; others can be
+passed in (``predicted``, e.g. from :mod:`planners.prediction`, which rolls a model of the
+opponents' driving forward). It is :func:`planners.ilq.solve` with ``N = 1`` and a
+time-varying problem (the prediction is part of the problem's ``params``, so new
 start states or weights re-use the compiled solver).
 """
 
@@ -112,8 +114,24 @@ def _ego_terminal_gauss_newton(params: _EgoParams, i, x):
     return ilq._race_terminal_gauss_newton(params.game, params.ego, joint)
 
 
-def ego_problem(game, x0, ego: int = 0) -> ilq.GameProblem:
-    """The ego's single-player :class:`planners.ilq.GameProblem` against the prediction."""
+def _checked_prediction(game, predicted) -> Array:
+    """``predicted`` as an array of shape ``(T+1, N, 6)``, refused if misshapen or non-finite."""
+    predicted = jnp.asarray(predicted)
+    shape = (game.horizon + 1, game.num_players, STATE_DIM)
+    if predicted.shape != shape:
+        raise ValueError(f"predicted must have shape (T+1, N, 6) = {shape}, got {predicted.shape}")
+    if not isinstance(predicted, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(predicted))):
+        raise ValueError("predicted contains non-finite values")
+    return predicted
+
+
+def ego_problem(game, x0, ego: int = 0, predicted=None) -> ilq.GameProblem:
+    """The ego's single-player :class:`planners.ilq.GameProblem` against a prediction.
+
+    ``predicted (T+1, N, 6)``: the opponents' predicted trajectories (the ego's row is
+    ignored); ``None`` is the paper's :func:`predict_constant_velocity`. Other predictions:
+    :mod:`planners.prediction`.
+    """
     x0 = jnp.asarray(x0)
     if x0.shape != (game.num_players, STATE_DIM):
         raise ValueError(
@@ -121,9 +139,13 @@ def ego_problem(game, x0, ego: int = 0) -> ilq.GameProblem:
         )
     if not isinstance(ego, jax.core.Tracer) and not 0 <= int(ego) < game.num_players:
         raise ValueError(f"ego must be a car index in [0, {game.num_players}), got {ego!r}")
+    if predicted is None:
+        predicted = predict_constant_velocity(game, x0)
+    else:
+        predicted = _checked_prediction(game, predicted).astype(x0.dtype)
     params = _EgoParams(
         game=game,
-        predicted=predict_constant_velocity(game, x0),
+        predicted=predicted,
         ego=jnp.asarray(ego, dtype=jnp.int32),
     )
     return ilq.GameProblem(
@@ -141,8 +163,8 @@ def ego_problem(game, x0, ego: int = 0) -> ilq.GameProblem:
     )
 
 
-def solve_ilqr(game, x0, ego: int = 0, U0=None, *, options=None, **overrides) -> ILQRResult:
-    """Plan the ego's inputs by iLQR against constant-velocity opponent predictions.
+def solve_ilqr(game, x0, ego: int = 0, U0=None, *, predicted=None, options=None, **overrides) -> ILQRResult:
+    """Plan the ego's inputs by iLQR against predictions of the opponents.
 
     Args:
         game: a :class:`racing_env.RaceGame`.
@@ -150,6 +172,9 @@ def solve_ilqr(game, x0, ego: int = 0, U0=None, *, options=None, **overrides) ->
         ego: index of the planning car.
         U0: initial ego inputs: ``None`` (zeros), ``(T, 2)``, ``(T, 1, 2)``, joint
             ``(T, N, 2)`` (the ego's row is used), or a previous result.
+        predicted: the opponents' trajectories ``(T+1, N, 6)`` to plan against (the ego's
+            row is ignored); ``None``: the paper's constant-velocity prediction
+            (:func:`predict_constant_velocity`). See :mod:`planners.prediction`.
         options, overrides: :class:`planners.ilq.SolverOptions` and field overrides. The
             ``mode`` is irrelevant for one player (feedback and open loop coincide); the
             feedback recursion is used.
@@ -160,7 +185,7 @@ def solve_ilqr(game, x0, ego: int = 0, U0=None, *, options=None, **overrides) ->
     x0 = jnp.asarray(x0)
     if not jnp.issubdtype(x0.dtype, jnp.floating):
         x0 = x0.astype(jnp.result_type(float))
-    problem = ego_problem(game, x0, ego)
+    problem = ego_problem(game, x0, ego, predicted)
     T = game.horizon
     if U0 is not None:
         U0 = ilq._as_array(getattr(U0, "us", U0))  # NumPy stays NumPy: no eager device ops

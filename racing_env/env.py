@@ -30,7 +30,7 @@ from racing_env.dynamics import STATE_DIM, S
 from racing_env.game import RaceGame
 from racing_env.observation import observation_size, observe
 from racing_env.packing import Layout, pack, unpack
-from racing_env.physics import enforce_limits, footprint_overlap, off_track, saturate_jerk
+from racing_env.physics import drive, footprint_overlap, off_track
 from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
 from racing_env.scenarios import make_scenario
 from racing_env.track import get_track
@@ -72,10 +72,7 @@ def _race_step(constants: jax.Array, layout: Layout, x, status: RaceStatus, acti
     """
     game, finish_s, preview, rules = unpack(constants, layout)
     active = status.active
-    u = jnp.clip(actions, -1.0, 1.0) * game.vehicles.jerk_max
-    u = saturate_jerk(x, u, game.vehicles, game.dt)
-    x_next = enforce_limits(game.step(x, u), game.vehicles)
-    x_next = jnp.where(active[:, None], x_next, x)
+    x_next = jnp.where(active[:, None], drive(game, x, actions), x)
     contact = footprint_overlap(x_next, game.vehicles, game.track)
     contact = contact & active[:, None] & active[None, :]
     outside = off_track(x_next, game.track) & active

@@ -61,6 +61,20 @@ def saturate_jerk(x: jax.Array, u: jax.Array, vehicles: VehicleParams, dt: float
     return jnp.stack([jx, jy], axis=-1)
 
 
+def drive(game, x: jax.Array, actions: jax.Array) -> jax.Array:
+    """One step of the environment's car physics: ``x (N, 6)`` -> the next joint state.
+
+    ``actions (N, 2)`` are normalised jerks, clipped to ``[-1, 1]`` and scaled by each
+    car's jerk limits; the jerks are saturated (:func:`saturate_jerk`), the game's RK4 step
+    is taken and the limits are enforced (:func:`enforce_limits`). ``game`` is a
+    :class:`racing_env.RaceGame` (dynamics, vehicles, ``dt``). The environment's step is
+    this plus the race's bookkeeping (rules, incidents, observations).
+    """
+    u = jnp.clip(actions, -1.0, 1.0) * game.vehicles.jerk_max
+    u = saturate_jerk(x, u, game.vehicles, game.dt)
+    return enforce_limits(game.step(x, u), game.vehicles)
+
+
 def footprint_overlap(x: jax.Array, vehicles: VehicleParams, track: Track) -> jax.Array:
     """Which pairs of car footprints overlap, ``(N, N)`` bool, symmetric, false diagonal.
 
