@@ -686,7 +686,12 @@ class ILQRAgent(RecedingHorizonAgent):
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
-        self._predict = prediction_models.make_predictor(self.prediction, self.game, self.index)
+        # A rollout predictor compiles its physics step at its first call (about 0.5 s):
+        # it is kept over resets in the same game as the same car (its drivers are stateless).
+        made_for = getattr(self, "_predictor_for", None)
+        if made_for is None or made_for[0] is not self.game or made_for[1] != self.index:
+            self._predict = prediction_models.make_predictor(self.prediction, self.game, self.index)
+            self._predictor_for = (self.game, self.index)
 
     def _solve(self, game, x0, init):
         res = ilqr.solve_ilqr(

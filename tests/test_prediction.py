@@ -106,6 +106,11 @@ def test_the_agent_plans_against_the_lane_keeping_rollout():
     agent(obs["car_0"], state)
     expected = make_predictor("lane-keeping", env.game, 0)(state)
     np.testing.assert_array_equal(agent._plan["xs"][:, 1], expected[:, 1])
+    predictor = agent._predict
+    reset_agents([agent, keeper], env, 1)
+    assert agent._predict is predictor  # same game, same car: kept, compiled once
+    agent.reset(0, 1, env)
+    assert agent._predict is not predictor
     assert agent.spec_defaults()["prediction"] == "constant-velocity"
     with pytest.raises(ValueError, match="unknown prediction"):
         make_agent("ilqr:prediction=oracle")
