@@ -578,7 +578,8 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
 
 def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
     """Re-plan time of each game agent racing a copy of itself (warm start) on the trefoil,
-    with the tournaments' jerk weight (``RACING_JERK_WEIGHT``).
+    with the tournaments' jerk weight (``RACING_JERK_WEIGHT``); iLQR also with the
+    lane-keeping prediction (its re-plan includes the rollout of that prediction).
 
     Car 0's solve times over ``steps`` steps, the first (compiling) solve excluded.
     """
@@ -586,7 +587,9 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
     from racing_env import CostWeights, parallel_env
     from racing_env.costs import RACING_JERK_WEIGHT
 
-    for spec in ("ilqr", "ilqgame-ol", "ilqgame-fb"):
+    specs = {"ilqr": "ilqr", "ilqr_lane_keeping_prediction": "ilqr:prediction=lane-keeping",
+             "ilqgame-ol": "ilqgame-ol", "ilqgame-fb": "ilqgame-fb"}
+    for name, spec in specs.items():
         env = parallel_env(track="trefoil", num_agents=2, max_steps=steps,
                            weights=CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT))
         drivers = [make_agent(spec), make_agent(spec)]
@@ -603,7 +606,7 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
             fallbacks += bool(record["fallback"])
             observations, *_ = env.step(actions)
         compile_s, runs = times[0], np.array(times[1:])
-        yield {"name": f"{spec}_replan", "ms_median": 1e3 * float(np.median(runs)),
+        yield {"name": f"{name}_replan", "ms_median": 1e3 * float(np.median(runs)),
                "ms_p95": 1e3 * float(np.percentile(runs, 95)), "compile_s": compile_s,
                "iterations_median": float(np.median(iterations[1:])), "fallbacks": fallbacks,
                "target_ms_p95": 50.0 if spec == "ilqgame-fb" else None}

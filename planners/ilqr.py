@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from planners import ilq
 from racing_env.dynamics import STATE_DIM, rk4_step
@@ -61,19 +62,21 @@ class ILQRResult(NamedTuple):
 def predict_constant_velocity(game, x0) -> Array:
     """Constant-speed, constant-offset prediction of all cars: ``(T+1, N, 6)``.
 
-    ``s(t) = s_0 + V_0 t dt``, ``V = V_0``, ``n = n_0``, ``chi = ax = ay = 0``.
+    ``s(t) = s_0 + V_0 t dt``, ``V = V_0``, ``n = n_0``, ``chi = ax = ay = 0``. A concrete
+    ``x0`` is predicted in NumPy (the same IEEE operations as JAX op by op, so the same
+    numbers; op by op JAX took 1.3 ms, a third of an iLQR agent's re-plan), a traced one
+    in ``jax.numpy``.
     """
-    x0 = jnp.asarray(x0)
-    if not jnp.issubdtype(x0.dtype, jnp.floating):
+    xp = jnp if isinstance(x0, jax.core.Tracer) else np
+    x0 = xp.asarray(x0)
+    if not xp.issubdtype(x0.dtype, xp.floating):
         x0 = x0.astype(jnp.result_type(float))
     steps = game.horizon + 1
-    t = jnp.arange(steps, dtype=x0.dtype)[:, None] * game.dt  # (T+1, 1)
-    shape = (steps, x0.shape[0])
-    pred = jnp.zeros((steps,) + x0.shape, x0.dtype)
-    pred = pred.at[:, :, 0].set(x0[:, 0] + x0[:, 1] * t)
-    pred = pred.at[:, :, 1].set(jnp.broadcast_to(x0[:, 1], shape))
-    pred = pred.at[:, :, 2].set(jnp.broadcast_to(x0[:, 2], shape))
-    return pred
+    t = xp.arange(steps, dtype=x0.dtype)[:, None] * game.dt  # (T+1, 1)
+    s = x0[:, 0] + x0[:, 1] * t  # (T+1, N)
+    held = [xp.broadcast_to(x0[:, k], s.shape) for k in (1, 2)]  # V and n
+    zeros = xp.zeros_like(s)
+    return jnp.asarray(xp.stack([s, *held, zeros, zeros, zeros], axis=-1))
 
 
 class _EgoParams(NamedTuple):
@@ -116,13 +119,12 @@ def _ego_terminal_gauss_newton(params: _EgoParams, i, x):
 
 def _checked_prediction(game, predicted) -> Array:
     """``predicted`` as an array of shape ``(T+1, N, 6)``, refused if misshapen or non-finite."""
-    predicted = jnp.asarray(predicted)
     shape = (game.horizon + 1, game.num_players, STATE_DIM)
-    if predicted.shape != shape:
-        raise ValueError(f"predicted must have shape (T+1, N, 6) = {shape}, got {predicted.shape}")
-    if not isinstance(predicted, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(predicted))):
+    if np.shape(predicted) != shape:
+        raise ValueError(f"predicted must have shape (T+1, N, 6) = {shape}, got {np.shape(predicted)}")
+    if not isinstance(predicted, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(predicted))):
         raise ValueError("predicted contains non-finite values")
-    return predicted
+    return jnp.asarray(predicted)
 
 
 def ego_problem(game, x0, ego: int = 0, predicted=None) -> ilq.GameProblem:

@@ -86,6 +86,18 @@ def test_ilqr_plans_a_best_response_to_the_prediction_it_is_given():
     assert float(np.max(np.abs(res.xs[:, 0, 2]))) < 1.0  # measured 0.42 m
 
 
+def test_constant_velocity_prediction_in_numpy_equals_its_traced_form():
+    """A concrete start state is predicted in NumPy, a traced one in jax.numpy: the same
+    formula, equal to rounding, with the same shape and dtype."""
+    game = _paper_game()
+    concrete = predict_constant_velocity(game, X0)
+    traced = jax.jit(predict_constant_velocity)(game, X0)
+    assert isinstance(concrete, jax.Array) and concrete.shape == traced.shape == (51, 2, 6)
+    assert concrete.dtype == traced.dtype == np.float64
+    np.testing.assert_allclose(concrete, traced, rtol=1e-14, atol=1e-12)
+    assert predict_constant_velocity(game, X0.astype(int)).dtype == np.float64
+
+
 def test_ilqr_refuses_a_misshapen_or_non_finite_prediction():
     game = _paper_game()
     with pytest.raises(ValueError, match=r"shape \(T\+1, N, 6\)"):
