@@ -665,8 +665,7 @@ class ILQRAgent(RecedingHorizonAgent):
     feedback = False
 
     def __init__(self, prediction: str = prediction_models.CONSTANT_VELOCITY, **kwargs: Any) -> None:
-        if prediction not in prediction_models.PREDICTIONS:
-            raise ValueError(f"unknown prediction {prediction!r}; choose one of {list(prediction_models.PREDICTIONS)}")
+        prediction_models.check_prediction(prediction)  # when the agent is made, not at its reset
         super().__init__(**kwargs)
         self.prediction = prediction
 

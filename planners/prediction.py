@@ -31,7 +31,14 @@ LANE_KEEPING = "lane-keeping"
 PREDICTIONS = (CONSTANT_VELOCITY, LANE_KEEPING)
 """The predictions an iLQR agent can plan against (its ``prediction`` option)."""
 
-__all__ = ["CONSTANT_VELOCITY", "Driver", "LANE_KEEPING", "PREDICTIONS", "PolicyRollout", "make_predictor"]
+__all__ = ["CONSTANT_VELOCITY", "Driver", "LANE_KEEPING", "PREDICTIONS", "PolicyRollout", "check_prediction",
+           "make_predictor"]
+
+
+def check_prediction(name: str) -> None:
+    """Refuse a prediction name that is not one of :data:`PREDICTIONS`."""
+    if name not in PREDICTIONS:
+        raise ValueError(f"unknown prediction {name!r}; choose one of {list(PREDICTIONS)}")
 
 
 class PolicyRollout:
@@ -44,7 +51,7 @@ class PolicyRollout:
 
     Calling it with a joint state ``x0 (N, 6)`` returns ``(horizon + 1, N, 6)``, row 0 being
     ``x0``. Every driver sees the predicted joint state of its step. The rollout knows
-    nothing of the race's end (a finished car keeps driving) and takes about 30 us per
+    nothing of the race's end (a finished car keeps driving) and takes about 20 us per
     step plus the drivers' own time (Intel Xeon: 1.4-1.8 ms for 50 steps of one lane
     keeper). The physics step is compiled at the first call.
     """
@@ -90,8 +97,7 @@ def make_predictor(name: str, game, ego: int) -> Callable[[np.ndarray], np.ndarr
     lane keeper's law (:class:`planners.scripted.LaneKeeping` with its defaults: the centre
     line at the car's ``v_max``, slowing for the curves ahead).
     """
-    if name not in PREDICTIONS:
-        raise ValueError(f"unknown prediction {name!r}; choose one of {list(PREDICTIONS)}")
+    check_prediction(name)
     if name == CONSTANT_VELOCITY:
         return None
     others = [j for j in range(game.num_players) if j != ego]
