@@ -579,7 +579,8 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
 def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
     """Re-plan time of each game agent racing a copy of itself (warm start) on the trefoil,
     with the tournaments' jerk weight (``RACING_JERK_WEIGHT``); iLQR also with the
-    lane-keeping prediction (its re-plan includes the rollout of that prediction).
+    lane-keeping, iLQR and feedback-game predictions (its re-plan includes making the
+    prediction: a rollout, an iLQR solve of the opponent, a feedback game solve).
 
     Car 0's solve times over ``steps`` steps, the first (compiling) solve excluded.
     """
@@ -588,6 +589,8 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
     from racing_env.costs import RACING_JERK_WEIGHT
 
     specs = {"ilqr": "ilqr", "ilqr_lane_keeping_prediction": "ilqr:prediction=lane-keeping",
+             "ilqr_ilqr_prediction": "ilqr:prediction=ilqr",
+             "ilqr_feedback_game_prediction": "ilqr:prediction=ilqgame-fb",
              "ilqgame-ol": "ilqgame-ol", "ilqgame-fb": "ilqgame-fb"}
     for name, spec in specs.items():
         env = parallel_env(track="trefoil", num_agents=2, max_steps=steps,

@@ -655,9 +655,15 @@ class ILQRAgent(RecedingHorizonAgent):
 
     Args:
         prediction: how the opponents are predicted (:data:`planners.prediction.PREDICTIONS`):
-            ``"constant-velocity"`` (the paper's: constant speed and lateral offset) or
+            ``"constant-velocity"`` (the paper's: constant speed and lateral offset),
             ``"lane-keeping"`` (each opponent driven by the scripted lane keeper's law
-            through the environment's physics: exact against the lane keeper).
+            through the environment's physics: exact against the lane keeper), ``"ilqr"``
+            (each opponent's own iLQR plan against constant-velocity predictions: exact
+            against an ``ilqr`` agent with the same weights and solver options), or
+            ``"ilqgame-fb"`` / ``"ilqgame-ol"`` (the opponents' trajectories of the feedback
+            / open-loop Nash equilibrium). The planned predictions use this agent's solver
+            options and beliefs of the opponents' weights, are warm-started from the last
+            prediction, and count in its ``solve_time``.
         kwargs: as :class:`RecedingHorizonAgent`.
     """
 
@@ -680,29 +686,41 @@ class ILQRAgent(RecedingHorizonAgent):
     @classmethod
     def spec_help(cls) -> dict[str, str]:
         return {**super().spec_help(),
-                "prediction": "how the opponents are predicted: constant-velocity (the paper's) or "
-                              "lane-keeping (driven by the scripted lane keeper's law)"}
+                "prediction": "how the opponents are predicted: constant-velocity (the paper's), "
+                              "lane-keeping (driven by the scripted lane keeper's law), ilqr (each one's own "
+                              "iLQR plan), ilqgame-fb or ilqgame-ol (the game's feedback / open-loop Nash "
+                              "equilibrium)"}
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
         # A rollout predictor compiles its physics step at its first call (about 0.5 s):
-        # it is kept over resets in the same game as the same car (its drivers are stateless).
+        # it is kept over resets in the same game as the same car (predictors are stateless).
         made_for = getattr(self, "_predictor_for", None)
         if made_for is None or made_for[0] is not self.game or made_for[1] != self.index:
-            self._predict = prediction_models.make_predictor(self.prediction, self.game, self.index)
+            self._predict = prediction_models.make_predictor(
+                self.prediction, self.game, self.index, max_iterations=self.max_iterations, **self.solver_options)
             self._predictor_for = (self.game, self.index)
 
     def _solve(self, game, x0, init):
+        predicted = others_us = None
+        if self._predict is not None:
+            predicted, others_us = self._predict(game, x0, init)
         res = ilqr.solve_ilqr(
             game,
             x0,
             ego=self.index,
             U0=init,
-            predicted=None if self._predict is None else self._predict(x0),
+            predicted=predicted,
             max_iterations=self.max_iterations,
             **self.solver_options,
         )
-        return np.asarray(res.us), np.asarray(res.xs), None, res
+        us = np.asarray(res.us)
+        if others_us is not None:
+            # the opponents' rows of the stored plan carry their predicted jerks: shifted,
+            # they warm-start the next prediction (the ego follows only its own row)
+            us = np.array(others_us)
+            us[:, self.index] = np.asarray(res.us[:, self.index])
+        return us, np.asarray(res.xs), None, res
 
 
 # --------------------------------------------------------------------------------------
@@ -875,7 +893,7 @@ AGENT_SPECS = {
 }
 
 AGENT_SUMMARIES = {
-    "ilqr": "iLQR against constant-velocity, constant-offset predictions of the opponents",
+    "ilqr": "iLQR against predictions of the opponents (the paper's: constant velocity and offset)",
     "ilqgame-ol": "open-loop Nash iLQGame, re-planned every step",
     "ilqgame-fb": "feedback Nash iLQGame, re-planned every step, its feedback law applied in between",
     "lane-keeping": "scripted: holds a lateral offset at a cruise speed, slowing for curves within grip",

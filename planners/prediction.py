@@ -1,24 +1,36 @@
-"""Behaviour-model predictions of the other cars, for the sequential planner (iLQR).
+"""Predictions of the other cars for the sequential planner (iLQR).
 
 The paper's iLQR predicts every opponent at constant speed and constant lateral offset
 (:func:`planners.ilqr.predict_constant_velocity`). A car that brakes for a chicane, or
 accelerates out of one, is then predicted tens of metres from where it will be within the
-5 s horizon. Here a *model* of how the opponents drive is rolled forward instead: each
-modelled car is driven by a policy through the environment's own physics
-(:func:`racing_env.physics.drive`), one step of ``game.dt`` at a time.
+5 s horizon. Two other kinds of prediction live here:
 
-Against a car that does drive by that policy and ignores the others (the scripted lane
-keeper), the prediction is exact; against any other driver it is a model error like the
-constant-velocity one, only a different one.
+* a *behaviour model* rolled forward (:class:`PolicyRollout`): each modelled car is driven
+  by a policy through the environment's own physics (:func:`racing_env.physics.drive`),
+  one step of ``game.dt`` at a time. ``"lane-keeping"`` drives the others by the scripted
+  lane keeper's law;
+* a *planner in the other cars' place* (:class:`PlannerPrediction`): the others' plans as
+  a planner with the game's costs would make them. ``"ilqr"``: each other car's own iLQR
+  plan against the constant-velocity prediction of the rest (one level of reasoning above
+  the paper's prediction); ``"ilqgame-fb"`` / ``"ilqgame-ol"``: the others' trajectories
+  of the feedback / open-loop Nash equilibrium of the whole game. The ego then plans its
+  best response to those trajectories, which separates the equilibrium as a *prediction*
+  from the equilibrium as a *policy* (the iLQGame agents).
+
+A prediction named after an agent is exact against that agent when it drives as
+predicted: the lane keeper (which ignores the others), or an ``ilqr`` agent with the same
+weights and solver options (same start state, same warm start, same solve). Against any
+other driver it is a model error like the constant-velocity one, only a different one.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Mapping
+from typing import Any, Callable, Mapping
 
 import jax
 import numpy as np
 
+from planners import ilq, ilqr
 from planners.scripted import LaneKeeping
 from racing_env.dynamics import STATE_DIM
 from racing_env.physics import drive
@@ -26,13 +38,21 @@ from racing_env.physics import drive
 Driver = Callable[[np.ndarray], np.ndarray]
 """A driving policy: joint state ``(N, 6)`` -> the car's normalised jerk action ``(2,)``."""
 
+Predictor = Callable[[Any, np.ndarray, "np.ndarray | None"], "tuple[np.ndarray, np.ndarray | None]"]
+"""``(game, x0 (N, 6), U0 (T, N, 2) or None) -> (xs (T+1, N, 6), us (T, N, 2) or None)``: the
+predicted joint trajectory from ``x0`` and, for a planner's prediction, the others' planned
+jerks [m/s^3] (``U0``: those of the previous prediction shifted to now, its warm start)."""
+
 CONSTANT_VELOCITY = "constant-velocity"
 LANE_KEEPING = "lane-keeping"
-PREDICTIONS = (CONSTANT_VELOCITY, LANE_KEEPING)
+ILQR = "ilqr"
+FEEDBACK_GAME = "ilqgame-fb"
+OPEN_LOOP_GAME = "ilqgame-ol"
+PREDICTIONS = (CONSTANT_VELOCITY, LANE_KEEPING, ILQR, FEEDBACK_GAME, OPEN_LOOP_GAME)
 """The predictions an iLQR agent can plan against (its ``prediction`` option)."""
 
-__all__ = ["CONSTANT_VELOCITY", "Driver", "LANE_KEEPING", "PREDICTIONS", "PolicyRollout", "check_prediction",
-           "make_predictor"]
+__all__ = ["CONSTANT_VELOCITY", "Driver", "FEEDBACK_GAME", "ILQR", "LANE_KEEPING", "OPEN_LOOP_GAME", "PREDICTIONS",
+           "PlannerPrediction", "PolicyRollout", "Predictor", "check_prediction", "make_predictor"]
 
 
 def check_prediction(name: str) -> None:
@@ -84,21 +104,72 @@ class PolicyRollout:
         return out
 
 
+class PlannerPrediction:
+    """Predicts the other cars by the plans a planner in their place would make.
+
+    Args:
+        planner: ``"ilqr"`` (each other car ``j`` planned by :func:`planners.ilqr.solve_ilqr`
+            as the ego, against the constant-velocity prediction of every other car, the
+            predicting car included), ``"ilqgame-fb"`` or ``"ilqgame-ol"`` (the whole game
+            solved by :func:`planners.ilq.solve` in feedback / open-loop mode).
+        ego: the predicting car (its row of the prediction is not a prediction: for
+            ``"ilqr"`` its constant-velocity motion, for the games its equilibrium plan).
+        solver_options: :class:`planners.ilq.SolverOptions` fields of these solves
+            (``max_iterations``, ``tolerance``, ...), e.g. those of the predicting agent.
+
+    Calling it with ``(game, x0 (N, 6), U0)`` returns ``(xs (T+1, N, 6), us (T, N, 2))``;
+    ``U0`` (or ``None``: zeros) is the warm start, row ``j`` for car ``j``'s own solve. A
+    solve that does not converge contributes its last iterate, as an agent would drive it.
+    The cost is that of the solves: ``N - 1`` iLQR solves, or one game solve.
+    """
+
+    def __init__(self, planner: str, ego: int, **solver_options: Any) -> None:
+        if planner not in (ILQR, FEEDBACK_GAME, OPEN_LOOP_GAME):
+            raise ValueError(f"planner must be one of {[ILQR, FEEDBACK_GAME, OPEN_LOOP_GAME]}, got {planner!r}")
+        ilq.SolverOptions(**{k: v for k, v in solver_options.items() if k != "mode"})  # refuse bad options now
+        self.planner = planner
+        self.ego = int(ego)
+        self.solver_options = dict(solver_options)
+
+    def __call__(self, game, x0, U0=None) -> tuple[np.ndarray, np.ndarray]:
+        x0 = np.asarray(x0, dtype=np.float64)
+        if self.planner != ILQR:
+            mode = "feedback" if self.planner == FEEDBACK_GAME else "open_loop"
+            res = ilq.solve(game, x0, init=U0, **{**self.solver_options, "mode": mode})
+            return np.asarray(res.xs), np.asarray(res.us)
+        xs = np.array(ilqr.predict_constant_velocity(game, x0))
+        us = np.zeros((game.horizon, game.num_players, game.input_dim))
+        for j in range(game.num_players):
+            if j == self.ego:
+                continue
+            res = ilqr.solve_ilqr(game, x0, ego=j, U0=None if U0 is None else np.asarray(U0)[:, j],
+                                  **self.solver_options)
+            xs[:, j] = np.asarray(res.xs[:, j])
+            us[:, j] = np.asarray(res.us[:, j])
+        return xs, us
+
+
 def _lane_keeper(game, car: int) -> Driver:
     controller = LaneKeeping(game.track, car, game.vehicles.car(car))
     return lambda x: controller(None, x)
 
 
-def make_predictor(name: str, game, ego: int) -> Callable[[np.ndarray], np.ndarray] | None:
+def make_predictor(name: str, game, ego: int, **solver_options: Any) -> Predictor | None:
     """The prediction ``name`` (one of :data:`PREDICTIONS`) for car ``ego`` in ``game``.
 
     ``"constant-velocity"``: ``None`` (the planner's own default, the paper's prediction).
     ``"lane-keeping"``: a :class:`PolicyRollout` driving every other car by the scripted
     lane keeper's law (:class:`planners.scripted.LaneKeeping` with its defaults: the centre
-    line at the car's ``v_max``, slowing for the curves ahead).
+    line at the car's ``v_max``, slowing for the curves ahead); it drives in ``game``
+    whatever game it is called with, and predicts no jerks. ``"ilqr"``, ``"ilqgame-fb"``,
+    ``"ilqgame-ol"``: a :class:`PlannerPrediction` with ``solver_options``; it plans in the
+    game it is called with (the predicting agent's beliefs of the others' weights).
     """
     check_prediction(name)
     if name == CONSTANT_VELOCITY:
         return None
+    if name != LANE_KEEPING:
+        return PlannerPrediction(name, ego, **solver_options)
     others = [j for j in range(game.num_players) if j != ego]
-    return PolicyRollout(game, {j: _lane_keeper(game, j) for j in others})
+    rollout = PolicyRollout(game, {j: _lane_keeper(game, j) for j in others})
+    return lambda game, x0, U0=None: (rollout(x0), None)

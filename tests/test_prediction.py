@@ -1,6 +1,8 @@
 """Predictions of the opponents for iLQR (planners.prediction, solve_ilqr(predicted=...)):
 the rollout is the environment's own physics, iLQR plans a best response to the
-prediction it is given, and the agent option, checked against the lane keeper on Monza."""
+prediction it is given, the agent option, checked against the lane keeper on Monza, and
+the planners' predictions: exact against an iLQR agent, and the open-loop equilibrium a
+fixed point of predicting and best-responding where the feedback one is not."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from experiments.paper import paper_game
 from planners import ilq
 from planners.agents import make_agent, reset_agents
 from planners.ilqr import ego_problem, predict_constant_velocity, solve_ilqr
-from planners.prediction import PREDICTIONS, PolicyRollout, make_predictor
+from planners.prediction import PREDICTIONS, PlannerPrediction, PolicyRollout, make_predictor
 from planners.scripted import LaneKeeping
 
 GAME, X0 = paper_game()  # the paper's scene: the opponent 10 m behind, 2 m to the left, faster
@@ -50,7 +52,11 @@ def test_rollout_and_predictor_refuse_bad_input():
     with pytest.raises(ValueError, match="unknown prediction 'oracle'"):
         make_predictor("oracle", game, 0)
     assert make_predictor("constant-velocity", game, 0) is None
-    assert set(PREDICTIONS) == {"constant-velocity", "lane-keeping"}
+    assert set(PREDICTIONS) == {"constant-velocity", "lane-keeping", "ilqr", "ilqgame-fb", "ilqgame-ol"}
+    with pytest.raises(ValueError, match="planner must be one of"):
+        PlannerPrediction("lane-keeping", 0)
+    with pytest.raises(ValueError, match="tolerance"):
+        make_predictor("ilqr", game, 0, tolerance=-1.0)
 
 
 def test_ilqr_plans_a_best_response_to_the_prediction_it_is_given():
@@ -109,7 +115,8 @@ def test_the_agent_plans_against_the_lane_keeping_rollout():
     obs, _ = env.reset(seed=0)
     state = env.state()
     agent(obs["car_0"], state)
-    expected = make_predictor("lane-keeping", env.game, 0)(state)
+    expected, jerks = make_predictor("lane-keeping", env.game, 0)(env.game, state, None)
+    assert jerks is None
     np.testing.assert_array_equal(agent._plan["xs"][:, 1], expected[:, 1])
     predictor = agent._predict
     reset_agents([agent, keeper], env, 1)
@@ -146,3 +153,69 @@ def test_ilqr_with_the_lane_keeping_prediction_gets_through_monzas_chicane(share
         assert contact == 0
         ahead[prediction] = env.state()[0, 0] - env.state()[1, 0]
     assert ahead["constant-velocity"] < 0.0 < ahead["lane-keeping"]
+
+
+def test_the_ilqr_prediction_is_the_plan_of_an_ilqr_opponent():
+    """Predicting the other car as an iLQR planner in its place, against an ``ilqr`` agent
+    with the same weights and options: the same solve from the same state and the same
+    (shifted) warm start, so the prediction is that agent's plan, bit for bit, at every
+    re-plan. It is not the constant-velocity prediction: the opponent's plan changes speed."""
+    env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=30)
+    agent = make_agent("ilqr:prediction=ilqr")
+    opponent = make_agent("ilqr")
+    reset_agents([agent, opponent], env, 0)
+    obs, _ = env.reset(seed=0)
+    speed_change = 0.0
+    for _ in range(20):
+        state = env.state()
+        actions = {"car_0": agent(obs["car_0"], state), "car_1": opponent(obs["car_1"], state)}
+        np.testing.assert_array_equal(agent._plan["xs"][:, 1], opponent._plan["xs"][:, 1])
+        # the stored plan carries the opponent's predicted jerks (the next warm start)
+        np.testing.assert_array_equal(agent._plan["us"][:, 1], opponent._plan["us"][:, 1])
+        speed_change = max(speed_change, float(np.ptp(agent._plan["xs"][:, 1, 1])))
+        obs, *_ = env.step(actions)
+    assert speed_change > 1.0  # m/s over the horizon; constant velocity would give 0
+
+
+@pytest.mark.parametrize("planner", ["ilqgame-ol", "ilqgame-fb"])
+def test_open_loop_equilibrium_is_a_best_response_to_itself_and_feedback_is_not(planner):
+    """Predict the opponent by an equilibrium of the paper's scene, then plan the ego's best
+    response by iLQR from zero inputs. An open-loop Nash equilibrium is a pair of mutual
+    best responses to fixed trajectories, so iLQR finds the ego's equilibrium trajectory
+    again (to the solves' tolerance 1e-8; measured 2e-12 m). A feedback equilibrium is a
+    best response to the opponent's feedback *law*, which reacts to the ego; against its
+    trajectory alone the ego plans otherwise (measured 0.27 m apart)."""
+    options = {"tolerance": 1e-8, "max_iterations": 200}
+    predicted, jerks = PlannerPrediction(planner, 0, **options)(GAME, X0)
+    mode = "open_loop" if planner == "ilqgame-ol" else "feedback"
+    equilibrium = ilq.solve(GAME, X0, mode=mode, **options)
+    assert bool(equilibrium.converged)
+    np.testing.assert_array_equal(predicted, equilibrium.xs)
+    np.testing.assert_array_equal(jerks, equilibrium.us)
+    response = solve_ilqr(GAME, X0, ego=0, predicted=predicted, **options)
+    assert bool(response.converged), ilq.status_message(response.status)
+    gap = float(np.max(np.abs(response.xs[:, 0] - equilibrium.xs[:, 0])))
+    if planner == "ilqgame-ol":
+        assert gap < 10 * options["tolerance"]
+    else:
+        assert gap > 0.1
+
+
+def test_the_agent_plans_against_a_game_prediction():
+    """``ilqr:prediction=ilqgame-fb``: the stored plan holds the ego's own jerks and the
+    opponent's equilibrium jerks, which warm-start the next game solve."""
+    env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=20)
+    agent = make_agent("ilqr:prediction=ilqgame-fb")
+    keeper = make_agent("lane-keeping")
+    reset_agents([agent, keeper], env, 0)
+    obs, _ = env.reset(seed=0)
+    state = env.state()
+    agent(obs["car_0"], state)
+    assert agent.diagnostics()["converged"]
+    equilibrium = ilq.solve(agent.planning_game, state, mode="feedback", max_iterations=30, tolerance=1e-3)
+    np.testing.assert_array_equal(agent._plan["xs"][:, 1], equilibrium.xs[:, 1])
+    np.testing.assert_array_equal(agent._plan["us"][:, 1], equilibrium.us[:, 1])
+    response = solve_ilqr(agent.planning_game, state, ego=0, predicted=equilibrium.xs, max_iterations=30,
+                          tolerance=1e-3)
+    np.testing.assert_array_equal(agent._plan["us"][:, 0], response.us[:, 0])  # its own plan: the best response
+    assert not np.array_equal(response.us[:, 0], equilibrium.us[:, 0])
