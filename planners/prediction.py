@@ -172,4 +172,4 @@ def make_predictor(name: str, game, ego: int, **solver_options: Any) -> Predicto
         return PlannerPrediction(name, ego, **solver_options)
     others = [j for j in range(game.num_players) if j != ego]
     rollout = PolicyRollout(game, {j: _lane_keeper(game, j) for j in others})
-    return lambda game, x0, U0=None: (rollout(x0), None)
+    return lambda _game, x0, U0=None: (rollout(x0), None)
