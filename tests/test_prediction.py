@@ -107,14 +107,21 @@ def test_ilqr_refuses_a_misshapen_or_non_finite_prediction():
         solve_ilqr(game, X0, predicted=bad)
 
 
-def test_the_agent_plans_against_the_lane_keeping_rollout():
+def _first_replan_against_the_lane_keeper(spec: str):
+    """An agent made from ``spec`` as car 0 against the lane keeper on the trefoil, after
+    its first action: ``(agent, keeper, env, start state)``."""
     env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=20)
-    agent = make_agent("ilqr:prediction=lane-keeping")
+    agent = make_agent(spec)
     keeper = make_agent("lane-keeping")
     reset_agents([agent, keeper], env, 0)
     obs, _ = env.reset(seed=0)
     state = env.state()
     agent(obs["car_0"], state)
+    return agent, keeper, env, state
+
+
+def test_the_agent_plans_against_the_lane_keeping_rollout():
+    agent, keeper, env, state = _first_replan_against_the_lane_keeper("ilqr:prediction=lane-keeping")
     expected, jerks = make_predictor("lane-keeping", env.game, 0)(env.game, state, None)
     assert jerks is None
     np.testing.assert_array_equal(agent._plan["xs"][:, 1], expected[:, 1])
@@ -204,13 +211,7 @@ def test_open_loop_equilibrium_is_a_best_response_to_itself_and_feedback_is_not(
 def test_the_agent_plans_against_a_game_prediction():
     """``ilqr:prediction=ilqgame-fb``: the stored plan holds the ego's own jerks and the
     opponent's equilibrium jerks, which warm-start the next game solve."""
-    env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=20)
-    agent = make_agent("ilqr:prediction=ilqgame-fb")
-    keeper = make_agent("lane-keeping")
-    reset_agents([agent, keeper], env, 0)
-    obs, _ = env.reset(seed=0)
-    state = env.state()
-    agent(obs["car_0"], state)
+    agent, _, _, state = _first_replan_against_the_lane_keeper("ilqr:prediction=ilqgame-fb")
     assert agent.diagnostics()["converged"]
     equilibrium = ilq.solve(agent.planning_game, state, mode="feedback", max_iterations=30, tolerance=1e-3)
     np.testing.assert_array_equal(agent._plan["xs"][:, 1], equilibrium.xs[:, 1])
