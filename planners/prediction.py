@@ -51,6 +51,9 @@ OPEN_LOOP_GAME = "ilqgame-ol"
 PREDICTIONS = (CONSTANT_VELOCITY, LANE_KEEPING, ILQR, FEEDBACK_GAME, OPEN_LOOP_GAME)
 """The predictions an iLQR agent can plan against (its ``prediction`` option)."""
 
+_GAME_MODES = {FEEDBACK_GAME: "feedback", OPEN_LOOP_GAME: "open_loop"}  # game prediction -> solver mode
+_PLANNERS = (ILQR, *_GAME_MODES)  # the predictions a PlannerPrediction makes
+
 __all__ = ["CONSTANT_VELOCITY", "Driver", "FEEDBACK_GAME", "ILQR", "LANE_KEEPING", "OPEN_LOOP_GAME", "PREDICTIONS",
            "PlannerPrediction", "PolicyRollout", "Predictor", "check_prediction", "make_predictor"]
 
@@ -124,8 +127,8 @@ class PlannerPrediction:
     """
 
     def __init__(self, planner: str, ego: int, **solver_options: Any) -> None:
-        if planner not in (ILQR, FEEDBACK_GAME, OPEN_LOOP_GAME):
-            raise ValueError(f"planner must be one of {[ILQR, FEEDBACK_GAME, OPEN_LOOP_GAME]}, got {planner!r}")
+        if planner not in _PLANNERS:
+            raise ValueError(f"planner must be one of {list(_PLANNERS)}, got {planner!r}")
         ilq.SolverOptions(**{k: v for k, v in solver_options.items() if k != "mode"})  # refuse bad options now
         self.planner = planner
         self.ego = int(ego)
@@ -133,9 +136,8 @@ class PlannerPrediction:
 
     def __call__(self, game, x0, U0=None) -> tuple[np.ndarray, np.ndarray]:
         x0 = np.asarray(x0, dtype=np.float64)
-        if self.planner != ILQR:
-            mode = "feedback" if self.planner == FEEDBACK_GAME else "open_loop"
-            res = ilq.solve(game, x0, init=U0, **{**self.solver_options, "mode": mode})
+        if self.planner in _GAME_MODES:
+            res = ilq.solve(game, x0, init=U0, **{**self.solver_options, "mode": _GAME_MODES[self.planner]})
             return np.asarray(res.xs), np.asarray(res.us)
         xs = np.array(ilqr.predict_constant_velocity(game, x0))
         us = np.zeros((game.horizon, game.num_players, game.input_dim))
@@ -168,7 +170,7 @@ def make_predictor(name: str, game, ego: int, **solver_options: Any) -> Predicto
     check_prediction(name)
     if name == CONSTANT_VELOCITY:
         return None
-    if name != LANE_KEEPING:
+    if name in _PLANNERS:
         return PlannerPrediction(name, ego, **solver_options)
     others = [j for j in range(game.num_players) if j != ego]
     rollout = PolicyRollout(game, {j: _lane_keeper(game, j) for j in others})

@@ -213,10 +213,10 @@ def test_the_agent_plans_against_a_game_prediction():
     opponent's equilibrium jerks, which warm-start the next game solve."""
     agent, _, _, state = _first_replan_against_the_lane_keeper("ilqr:prediction=ilqgame-fb")
     assert agent.diagnostics()["converged"]
-    equilibrium = ilq.solve(agent.planning_game, state, mode="feedback", max_iterations=30, tolerance=1e-3)
+    options = {"max_iterations": agent.max_iterations, **agent.solver_options}  # the agent's: 30, 1e-3
+    equilibrium = ilq.solve(agent.planning_game, state, mode="feedback", **options)
     np.testing.assert_array_equal(agent._plan["xs"][:, 1], equilibrium.xs[:, 1])
     np.testing.assert_array_equal(agent._plan["us"][:, 1], equilibrium.us[:, 1])
-    response = solve_ilqr(agent.planning_game, state, ego=0, predicted=equilibrium.xs, max_iterations=30,
-                          tolerance=1e-3)
+    response = solve_ilqr(agent.planning_game, state, ego=0, predicted=equilibrium.xs, **options)
     np.testing.assert_array_equal(agent._plan["us"][:, 0], response.us[:, 0])  # its own plan: the best response
     assert not np.array_equal(response.us[:, 0], equilibrium.us[:, 0])
