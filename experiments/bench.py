@@ -579,8 +579,9 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
 def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
     """Re-plan time of each game agent racing a copy of itself (warm start) on the trefoil,
     with the tournaments' jerk weight (``RACING_JERK_WEIGHT``); iLQR also with the
-    lane-keeping, iLQR and feedback-game predictions (its re-plan includes making the
-    prediction: a rollout, an iLQR solve of the opponent, a feedback game solve).
+    lane-keeping, iLQR (one and two levels) and feedback-game predictions (its re-plan
+    includes making the prediction: a rollout, one or three iLQR solves, a feedback game
+    solve).
 
     Car 0's solve times over ``steps`` steps, the first (compiling) solve excluded.
     """
@@ -590,6 +591,7 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
 
     specs = {"ilqr": "ilqr", "ilqr_lane_keeping_prediction": "ilqr:prediction=lane-keeping",
              "ilqr_ilqr_prediction": "ilqr:prediction=ilqr",
+             "ilqr_ilqr_level2_prediction": "ilqr:prediction=ilqr,levels=2",
              "ilqr_feedback_game_prediction": "ilqr:prediction=ilqgame-fb",
              "ilqgame-ol": "ilqgame-ol", "ilqgame-fb": "ilqgame-fb"}
     for name, spec in specs.items():

@@ -664,24 +664,31 @@ class ILQRAgent(RecedingHorizonAgent):
             / open-loop Nash equilibrium). The planned predictions use this agent's solver
             options and beliefs of the opponents' weights, are warm-started from the last
             prediction, and count in its ``solve_time``.
+        levels: levels of reasoning of the ``"ilqr"`` prediction (see
+            :class:`planners.prediction.PlannerPrediction`): ``1`` predicts each opponent's
+            plan against constant velocity, ``k`` its plan against everyone's level-``k - 1``
+            plans, this agent's included. The agent itself then plans at level ``k + 1``.
         kwargs: as :class:`RecedingHorizonAgent`.
     """
 
     name = "ilqr"
     feedback = False
 
-    def __init__(self, prediction: str = prediction_models.CONSTANT_VELOCITY, **kwargs: Any) -> None:
+    def __init__(self, prediction: str = prediction_models.CONSTANT_VELOCITY, levels: int = 1,
+                 **kwargs: Any) -> None:
         prediction_models.check_prediction(prediction)  # when the agent is made, not at its reset
+        prediction_models.check_levels(prediction, levels)
         super().__init__(**kwargs)
         self.prediction = prediction
+        self.levels = int(levels)
 
     @classmethod
     def spec_options(cls) -> dict[str, type]:
-        return {**super().spec_options(), "prediction": str}
+        return {**super().spec_options(), "prediction": str, "levels": int}
 
     @classmethod
     def spec_defaults(cls) -> dict[str, Any]:
-        return {**super().spec_defaults(), "prediction": prediction_models.CONSTANT_VELOCITY}
+        return {**super().spec_defaults(), "prediction": prediction_models.CONSTANT_VELOCITY, "levels": 1}
 
     @classmethod
     def spec_help(cls) -> dict[str, str]:
@@ -689,7 +696,9 @@ class ILQRAgent(RecedingHorizonAgent):
                 "prediction": "how the opponents are predicted: constant-velocity (the paper's), "
                               "lane-keeping (driven by the scripted lane keeper's law), ilqr (each one's own "
                               "iLQR plan), ilqgame-fb or ilqgame-ol (the game's feedback / open-loop Nash "
-                              "equilibrium)"}
+                              "equilibrium)",
+                "levels": "levels of reasoning of prediction=ilqr: each opponent's plan against everyone's plans "
+                          "one level down, level 0 being constant velocity"}
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
@@ -698,7 +707,8 @@ class ILQRAgent(RecedingHorizonAgent):
         made_for = getattr(self, "_predictor_for", None)
         if made_for is None or made_for[0] is not self.game or made_for[1] != self.index:
             self._predict = prediction_models.make_predictor(
-                self.prediction, self.game, self.index, max_iterations=self.max_iterations, **self.solver_options)
+                self.prediction, self.game, self.index, levels=self.levels, max_iterations=self.max_iterations,
+                **self.solver_options)
             self._predictor_for = (self.game, self.index)
 
     def _solve(self, game, x0, init):

@@ -55,13 +55,23 @@ _GAME_MODES = {FEEDBACK_GAME: "feedback", OPEN_LOOP_GAME: "open_loop"}  # game p
 _PLANNERS = (ILQR, *_GAME_MODES)  # the predictions a PlannerPrediction makes
 
 __all__ = ["CONSTANT_VELOCITY", "Driver", "FEEDBACK_GAME", "ILQR", "LANE_KEEPING", "OPEN_LOOP_GAME", "PREDICTIONS",
-           "PlannerPrediction", "PolicyRollout", "Predictor", "check_prediction", "make_predictor"]
+           "PlannerPrediction", "PolicyRollout", "Predictor", "check_levels", "check_prediction",
+           "make_predictor"]
 
 
 def check_prediction(name: str) -> None:
     """Refuse a prediction name that is not one of :data:`PREDICTIONS`."""
     if name not in PREDICTIONS:
         raise ValueError(f"unknown prediction {name!r}; choose one of {list(PREDICTIONS)}")
+
+
+def check_levels(name: str, levels: int) -> None:
+    """Refuse ``levels`` of reasoning other than a positive integer, or other than 1 for a
+    prediction that has no levels (all but ``"ilqr"``)."""
+    if isinstance(levels, bool) or int(levels) != levels or levels < 1:
+        raise ValueError(f"levels must be a positive integer, got {levels!r}")
+    if levels != 1 and name != ILQR:
+        raise ValueError(f"levels apply to the {ILQR!r} prediction only, not to {name!r}")
 
 
 class PolicyRollout:
@@ -112,26 +122,38 @@ class PlannerPrediction:
 
     Args:
         planner: ``"ilqr"`` (each other car ``j`` planned by :func:`planners.ilqr.solve_ilqr`
-            as the ego, against the constant-velocity prediction of every other car, the
-            predicting car included), ``"ilqgame-fb"`` or ``"ilqgame-ol"`` (the whole game
+            as the ego, against a prediction of every other car, the predicting car
+            included; see ``levels``), ``"ilqgame-fb"`` or ``"ilqgame-ol"`` (the whole game
             solved by :func:`planners.ilq.solve` in feedback / open-loop mode).
         ego: the predicting car (its row of the prediction is not a prediction: for
-            ``"ilqr"`` its constant-velocity motion, for the games its equilibrium plan).
+            ``"ilqr"`` its constant-velocity motion or its own plan of the level below, for
+            the games its equilibrium plan).
+        levels: for ``"ilqr"``, the levels of reasoning (level-k thinking). Level 0 is the
+            constant-velocity prediction of every car; a car's level-``k`` plan is its iLQR
+            best response to the level-``k - 1`` plans of all the others. The prediction is
+            the others' level-``levels`` plans (``1``: each against constant velocity).
+            Every level above the first also plans the predicting car. Where the levels
+            settle, they settle on an open-loop Nash equilibrium: a profile of trajectories
+            that are best responses to each other (in the paper's scene the distance to
+            it shrinks by a factor of about 0.58 per level).
         solver_options: :class:`planners.ilq.SolverOptions` fields of these solves
             (``max_iterations``, ``tolerance``, ...), e.g. those of the predicting agent.
 
     Calling it with ``(game, x0 (N, 6), U0)`` returns ``(xs (T+1, N, 6), us (T, N, 2))``;
-    ``U0`` (or ``None``: zeros) is the warm start, row ``j`` for car ``j``'s own solve. A
+    ``U0`` (or ``None``: zeros) is the warm start, row ``j`` for car ``j``'s own solve at
+    the first level (each level above starts from the car's plan of the level below). A
     solve that does not converge contributes its last iterate, as an agent would drive it.
-    The cost is that of the solves: ``N - 1`` iLQR solves, or one game solve.
+    The cost is that of the solves: ``levels * N - 1`` iLQR solves, or one game solve.
     """
 
-    def __init__(self, planner: str, ego: int, **solver_options: Any) -> None:
+    def __init__(self, planner: str, ego: int, levels: int = 1, **solver_options: Any) -> None:
         if planner not in _PLANNERS:
             raise ValueError(f"planner must be one of {list(_PLANNERS)}, got {planner!r}")
+        check_levels(planner, levels)
         ilq.SolverOptions(**{k: v for k, v in solver_options.items() if k != "mode"})  # refuse bad options now
         self.planner = planner
         self.ego = int(ego)
+        self.levels = int(levels)
         self.solver_options = dict(solver_options)
 
     def __call__(self, game, x0, U0=None) -> tuple[np.ndarray, np.ndarray]:
@@ -139,15 +161,17 @@ class PlannerPrediction:
         if self.planner in _GAME_MODES:
             res = ilq.solve(game, x0, init=U0, **{**self.solver_options, "mode": _GAME_MODES[self.planner]})
             return np.asarray(res.xs), np.asarray(res.us)
-        xs = np.array(ilqr.predict_constant_velocity(game, x0))
-        us = np.zeros((game.horizon, game.num_players, game.input_dim))
-        for j in range(game.num_players):
-            if j == self.ego:
-                continue
-            res = ilqr.solve_ilqr(game, x0, ego=j, U0=None if U0 is None else np.asarray(U0)[:, j],
-                                  **self.solver_options)
-            xs[:, j] = np.asarray(res.xs[:, j])
-            us[:, j] = np.asarray(res.us[:, j])
+        xs = np.array(ilqr.predict_constant_velocity(game, x0))  # level 0
+        us = np.zeros((game.horizon, game.num_players, game.input_dim)) if U0 is None else np.array(U0)
+        for level in range(1, self.levels + 1):
+            # the predicting car's own top-level plan is the agent's to make, not a prediction
+            cars = [j for j in range(game.num_players) if level < self.levels or j != self.ego]
+            below = xs.copy()  # every car plans against the level below, not a half-updated one
+            for j in cars:
+                res = ilqr.solve_ilqr(game, x0, ego=j, U0=us[:, j], predicted=None if level == 1 else below,
+                                      **self.solver_options)
+                xs[:, j] = np.asarray(res.xs[:, j])
+                us[:, j] = np.asarray(res.us[:, j])
         return xs, us
 
 
@@ -156,7 +180,7 @@ def _lane_keeper(game, car: int) -> Driver:
     return lambda x: controller(None, x)
 
 
-def make_predictor(name: str, game, ego: int, **solver_options: Any) -> Predictor | None:
+def make_predictor(name: str, game, ego: int, levels: int = 1, **solver_options: Any) -> Predictor | None:
     """The prediction ``name`` (one of :data:`PREDICTIONS`) for car ``ego`` in ``game``.
 
     ``"constant-velocity"``: ``None`` (the planner's own default, the paper's prediction).
@@ -164,14 +188,16 @@ def make_predictor(name: str, game, ego: int, **solver_options: Any) -> Predicto
     lane keeper's law (:class:`planners.scripted.LaneKeeping` with its defaults: the centre
     line at the car's ``v_max``, slowing for the curves ahead); it drives in ``game``
     whatever game it is called with, and predicts no jerks. ``"ilqr"``, ``"ilqgame-fb"``,
-    ``"ilqgame-ol"``: a :class:`PlannerPrediction` with ``solver_options``; it plans in the
-    game it is called with (the predicting agent's beliefs of the others' weights).
+    ``"ilqgame-ol"``: a :class:`PlannerPrediction` with ``solver_options`` (and ``levels``
+    of reasoning for ``"ilqr"``); it plans in the game it is called with (the predicting
+    agent's beliefs of the others' weights).
     """
     check_prediction(name)
+    check_levels(name, levels)
     if name == CONSTANT_VELOCITY:
         return None
     if name in _PLANNERS:
-        return PlannerPrediction(name, ego, **solver_options)
+        return PlannerPrediction(name, ego, levels=levels, **solver_options)
     others = [j for j in range(game.num_players) if j != ego]
     rollout = PolicyRollout(game, {j: _lane_keeper(game, j) for j in others})
     return lambda _game, x0, U0=None: (rollout(x0), None)
