@@ -272,5 +272,15 @@ def test_levels_are_refused_where_they_do_not_apply():
         make_predictor("ilqgame-ol", GAME, 0, levels=2)
     with pytest.raises(ValueError, match="'ilqr' prediction only"):
         make_agent("ilqr:levels=2")  # the constant-velocity prediction has no levels
-    agent = make_agent("ilqr:prediction=ilqr,levels=3")
-    assert agent.levels == 3 and agent.spec_defaults()["levels"] == 1
+    assert make_agent("ilqr:prediction=ilqr").spec_defaults()["levels"] == 1
+
+
+def test_the_agent_plans_against_the_level_it_is_given():
+    """``ilqr:prediction=ilqr,levels=2``: the opponent's row of the first plan is the
+    level-2 prediction made with the agent's own game and solver options."""
+    agent, _, _, state = _first_replan_against_the_lane_keeper("ilqr:prediction=ilqr,levels=2")
+    options = {"max_iterations": agent.max_iterations, **agent.solver_options}
+    level2, _ = PlannerPrediction("ilqr", 0, levels=2, **options)(agent.planning_game, state)
+    level1, _ = PlannerPrediction("ilqr", 0, levels=1, **options)(agent.planning_game, state)
+    np.testing.assert_array_equal(agent._plan["xs"][:, 1], level2[:, 1])
+    assert not np.array_equal(level2[:, 1], level1[:, 1])
