@@ -12,7 +12,8 @@ accelerates out of one, is then predicted tens of metres from where it will be w
 * a *planner in the other cars' place* (:class:`PlannerPrediction`): the others' plans as
   a planner with the game's costs would make them. ``"ilqr"``: each other car's own iLQR
   plan against the constant-velocity prediction of the rest (one level of reasoning above
-  the paper's prediction); ``"ilqgame-fb"`` / ``"ilqgame-ol"``: the others' trajectories
+  the paper's prediction), or with ``levels=k`` against everyone's plans one level down
+  (level-k thinking); ``"ilqgame-fb"`` / ``"ilqgame-ol"``: the others' trajectories
   of the feedback / open-loop Nash equilibrium of the whole game. The ego then plans its
   best response to those trajectories, which separates the equilibrium as a *prediction*
   from the equilibrium as a *policy* (the iLQGame agents).

@@ -1,8 +1,9 @@
 """Predictions of the opponents for iLQR (planners.prediction, solve_ilqr(predicted=...)):
 the rollout is the environment's own physics, iLQR plans a best response to the
 prediction it is given, the agent option, checked against the lane keeper on Monza, and
-the planners' predictions: exact against an iLQR agent, and the open-loop equilibrium a
-fixed point of predicting and best-responding where the feedback one is not."""
+the planners' predictions: exact against an iLQR agent, the open-loop equilibrium a
+fixed point of predicting and best-responding where the feedback one is not, and the
+levels of reasoning, which approach that fixed point."""
 
 from __future__ import annotations
 
@@ -249,10 +250,11 @@ def test_the_levels_of_the_ilqr_prediction_settle_on_the_open_loop_equilibrium()
     """Level-k reasoning is best-response iteration on trajectories. A profile where it
     stops is a set of mutual best responses to fixed trajectories: an open-loop Nash
     equilibrium. In the paper's scene the iteration contracts (measured: the largest state
-    distance to the equilibrium falls by about 0.58 per level, from 2.4 m in n at level 1 to
-    1e-9 at level 40), so the predicted profile approaches the equilibrium that the
-    open-loop iLQGame, a separate solver, finds from zero inputs. Both at tolerance 1e-8,
-    so the bound is ten times that, as for the equilibrium's own best response above."""
+    distance to the equilibrium shrinks by a factor of about 0.58 per level, from 2.4 m in
+    n at level 1 to 1e-9 at level 40), so the predicted profile approaches the equilibrium
+    that the open-loop iLQGame, a separate solver, finds from zero inputs. Both at
+    tolerance 1e-8, so the bound is ten times that, as for the equilibrium's own best
+    response above."""
     options = {"tolerance": 1e-8, "max_iterations": 200}
     equilibrium = ilq.solve(GAME, X0, mode="open_loop", **options)
     assert bool(equilibrium.converged)
