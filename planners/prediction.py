@@ -169,8 +169,7 @@ class PlannerPrediction:
             cars = [j for j in range(game.num_players) if level < self.levels or j != self.ego]
             below = xs.copy()  # every car plans against the level below, not a half-updated one
             for j in cars:
-                res = ilqr.solve_ilqr(game, x0, ego=j, U0=us[:, j], predicted=None if level == 1 else below,
-                                      **self.solver_options)
+                res = ilqr.solve_ilqr(game, x0, ego=j, U0=us[:, j], predicted=below, **self.solver_options)
                 xs[:, j] = np.asarray(res.xs[:, j])
                 us[:, j] = np.asarray(res.us[:, j])
         return xs, us
