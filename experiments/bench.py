@@ -416,11 +416,14 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     yield from iteration_rows
     for num in (2, 3):
         game, x0 = _solver_game(num)
-        for mode in ("feedback", "open_loop"):
-            res, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode=mode), repeats)
-            yield {"name": f"{mode}_cold_solve_N{num}_T{game.horizon}", "ms_per_solve": 1e3 * run,
+        # the open-loop solve also with the residual line search (no target: an option)
+        for name, options in (("feedback", {"mode": "feedback"}), ("open_loop", {"mode": "open_loop"}),
+                              ("open_loop_residual", {"mode": "open_loop", "step_control": "residual"})):
+            res, first, run = time_jax_call(lambda: ilq.solve(game, x0, **options), repeats)
+            yield {"name": f"{name}_cold_solve_N{num}_T{game.horizon}", "ms_per_solve": 1e3 * run,
                    "converged": bool(res.converged), "iterations": int(res.iterations),
-                   "compile_s": first - run, "target_ms": 50.0 if num == 2 else None}
+                   "compile_s": first - run,
+                   "target_ms": 50.0 if num == 2 and name != "open_loop_residual" else None}
     game, x0 = _solver_game(2)
     parts = _component_times(game, x0)
     yield {"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}}
@@ -501,8 +504,13 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     v_max = _BENCH_V_MAX + (22.0,) * max(0, num_cars - 3)
     vehicles = [VehicleParams(v_max=v) for v in v_max[:num_cars]]
     weights = None if jerk_weight is None else CostWeights(r_jx=jerk_weight, r_jy=jerk_weight)
-    # checked before the work
-    options = ilq.SolverOptions(max_iterations=max_iterations, tolerance=tolerance, **solver_options)
+    # the solver modes the rows use (open_loop_from_feedback: a feedback, then an open-loop
+    # solve), each one's options checked before the work
+    solver_modes = {"feedback" if mode == "feedback" else "open_loop" for mode in modes}
+    if "open_loop_from_feedback" in modes:
+        solver_modes.add("feedback")
+    options = {mode: ilq.SolverOptions(mode=mode, max_iterations=max_iterations, tolerance=tolerance,
+                                       **solver_options) for mode in solver_modes}
     track = get_track(track)
     game = RaceGame.create(track, vehicles, weights)
     x0s = random_scenes(track, vehicles, count, seed=seed, spread=spread, speed=tuple(speed))
@@ -510,11 +518,11 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     for mode in modes:
         if mode == "open_loop_from_feedback":
             feedback = (results["feedback"] if "feedback" in results
-                        else ilq.solve_batch(game, x0s, options=options, mode="feedback"))
+                        else ilq.solve_batch(game, x0s, options=options["feedback"]))
             init = np.asarray(feedback.us)
-            solve = lambda: ilq.solve_batch(game, x0s, init, options=options, mode="open_loop")
+            solve = lambda: ilq.solve_batch(game, x0s, init, options=options["open_loop"])
         else:
-            solve = lambda mode=mode: ilq.solve_batch(game, x0s, options=options, mode=mode)
+            solve = lambda mode=mode: ilq.solve_batch(game, x0s, options=options[mode])
         res, first, run = time_jax_call(solve, repeats)
         results[mode] = res
         status = np.asarray(res.status)
@@ -593,7 +601,8 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
              "ilqr_ilqr_prediction": "ilqr:prediction=ilqr",
              "ilqr_ilqr_level2_prediction": "ilqr:prediction=ilqr,levels=2",
              "ilqr_feedback_game_prediction": "ilqr:prediction=ilqgame-fb",
-             "ilqgame-ol": "ilqgame-ol", "ilqgame-fb": "ilqgame-fb"}
+             "ilqgame-ol": "ilqgame-ol", "ilqgame-ol_residual": "ilqgame-ol:step_control=residual",
+             "ilqgame-fb": "ilqgame-fb"}
     for name, spec in specs.items():
         env = parallel_env(track="trefoil", num_agents=2, max_steps=steps,
                            weights=CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT))

@@ -281,11 +281,13 @@ def build_parser() -> argparse.ArgumentParser:
     conv.add_argument("--tolerance", type=float, default=1e-6,
                       help="convergence when a full step moves the trajectory by at most this much (state units; "
                       "default: the solver's 1e-6; the agents re-plan with 1e-3)")
-    conv.add_argument("--step-control", choices=["trust_region", "none"], default="trust_region",
-                      help="the solver's step-size control: trust_region (default) or none, a fixed step "
-                      "--initial-step (the paper's plain update)")
+    conv.add_argument("--step-control", choices=["trust_region", "residual", "none"], default="trust_region",
+                      help="the solver's step-size control: trust_region (default), residual (also "
+                      "backtrack until the open-loop Nash residual decreases; with --modes open_loop) or "
+                      "none, a fixed step --initial-step (the paper's plain update)")
     conv.add_argument("--initial-step", type=float, default=1.0, metavar="ETA",
-                      help="step size eta tried first (trust_region) or always (none), in (0, 1] (default: 1)")
+                      help="step size eta tried first (trust_region, residual) or always (none), in (0, 1] "
+                      "(default: 1)")
     conv.add_argument("--solver-option", action="append", metavar="NAME=VALUE",
                       help="any further planners.ilq.SolverOptions field, e.g. trust_radius=10 or "
                       "oscillation_damping=false (repeatable)")

@@ -41,7 +41,8 @@ class ConvergenceConfig:
         max_iterations: the solver's iteration cap (>= 1).
         tolerance: the solver's convergence tolerance (>= 0; the largest state change of a
             full step, state units). The agents re-plan with 1e-3.
-        step_control: ``"trust_region"`` (the solver's default) or ``"none"``, a fixed step
+        step_control: ``"trust_region"`` (the solver's default), ``"residual"`` (backtracking
+            on the open-loop Nash residual; open-loop modes only) or ``"none"``, a fixed step
             ``initial_step`` (the paper's plain update).
         initial_step: the step size ``eta`` tried first, in ``(0, 1]``.
         other_options: further :class:`planners.ilq.SolverOptions` fields as ``(name, value)``
@@ -81,7 +82,11 @@ class ConvergenceConfig:
             if name in own or name not in _SOLVER_FIELDS:
                 raise ValueError(f"{name!r} is not one of the further solver options "
                                  f"{sorted(set(_SOLVER_FIELDS) - own)}")
-        ilq.SolverOptions(**self.solver_options())  # its own checks, before any work
+        if self.step_control == "residual" and set(self.modes) != {"open_loop"}:
+            raise ValueError("step_control 'residual' is for open-loop solves: use it with the "
+                             f"modes ('open_loop',) only, not {self.modes}")
+        ilq.SolverOptions(**self.solver_options(), mode="open_loop" if self.step_control == "residual"
+                          else "feedback")  # its own checks, before any work
         if self.jerk_weight is not None and not (np.isfinite(self.jerk_weight) and self.jerk_weight > 0):
             raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight!r}")
 
@@ -146,8 +151,9 @@ def run_convergence(config: ConvergenceConfig, out: Path) -> dict[str, Any]:
     write_json_atomically(report, out / "convergence.json")
     if report["rows"]:
         r = f"{CostWeights().r_jx:g} (default)" if config.jerk_weight is None else f"{config.jerk_weight:g}"
-        step = (f"fixed step {config.initial_step:g}" if config.step_control == "none"
-                else f"trust region, first step {config.initial_step:g}")
+        step = {"none": f"fixed step {config.initial_step:g}",
+                "residual": f"residual line search, first step {config.initial_step:g}",
+                }.get(config.step_control, f"trust region, first step {config.initial_step:g}")
         title = (f"Solves of {config.scenes} random close-quarters starts (seed {config.seed}, "
                  f"jerk weight {r}, tolerance {config.tolerance:g}, {step}"
                  + "".join(f", {k}={v}" for k, v in config.other_options) + ")")

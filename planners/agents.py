@@ -383,6 +383,7 @@ class RecedingHorizonAgent(BaseAgent):
 
     name = "receding-horizon"
     feedback = False
+    mode = "feedback"  # the solver mode of its plans (iLQR's is a one-player feedback solve)
 
     def __init__(
         self,
@@ -422,7 +423,7 @@ class RecedingHorizonAgent(BaseAgent):
         if unknown:
             raise ValueError(f"unknown solver options {unknown}; allowed: {sorted(self._solver_option_types())}")
         # refuses bad values (max_iterations too) now, not at the first solve
-        ilq.SolverOptions(max_iterations=self.max_iterations, **self.solver_options)
+        ilq.SolverOptions(**{"mode": self.mode, "max_iterations": self.max_iterations, **self.solver_options})
 
     @staticmethod
     def _solver_option_types() -> dict[str, type]:
@@ -464,7 +465,8 @@ class RecedingHorizonAgent(BaseAgent):
             "recovery_track_scale": f"factor on own c_track from a standstill (< {STOPPED_SPEED} m/s) until "
                                     f"{RECOVERED_SPEED} m/s, to rejoin across the edge (1: off)",
             "tolerance": "convergence: largest state change of a full step [m, m/s, ...]",
-            "step_control": "trust_region (shrink the step to stay inside trust_radius) or none (fixed step)",
+            "step_control": ("trust_region (shrink the step to stay inside trust_radius), residual (ilqgame-ol "
+                             "only: also until the open-loop Nash residual decreases) or none (fixed step)"),
             "trust_radius": "largest accepted change of the state trajectory per iteration",
             "initial_step": "the first step size tried, in (0, 1]",
             "step_decay": "factor by which the step size shrinks per trial, in (0, 1)",
@@ -619,8 +621,6 @@ class RecedingHorizonAgent(BaseAgent):
 
 
 class _GameAgent(RecedingHorizonAgent):
-    mode = "feedback"
-
     def _solve(self, game, x0, init):
         res = ilq.solve(
             game,

@@ -97,10 +97,20 @@ Step-size control (``step_control="trust_region"``, the default)
    Near a stable fixed point this settles on a step that contracts (full steps where the
    iteration allows them).
 Why no Armijo backtracking on costs: a game has no single merit function that every
-player's Nash update decreases (a player's cost may rightly rise), and the open-loop merit
-``sum_i |dJ^i/du^i|^2`` has no feedback counterpart; both checks above are player-neutral,
-mode-neutral and cost one rollout per trial. ``step_control="none"`` applies a fixed
-``eta = initial_step`` (the paper's plain update), for comparisons.
+player's Nash update decreases (a player's cost may rightly rise); both checks above are
+player-neutral, mode-neutral and cost one rollout per trial.
+
+``step_control="residual"`` (open loop only) backtracks on the one merit an open-loop game
+does have: the squared first-order Nash residual ``sum_i |dJ^i/du^i|^2`` (zero exactly at
+the open-loop fixed points; it has no feedback counterpart). ``eta`` starts at
+``initial_step`` every iteration and is multiplied by ``step_decay`` until the step stays
+inside the trust region and decreases the residual by the sufficient-decrease factor
+``1 - 2e-4 eta``. The Gauss-Newton LQ game's step need not be a descent direction of the
+residual (its model drops the dynamics' curvature and the limits' curvature jumps); when
+no trial decreases it, the first trial inside the trust region is taken, the default
+rule's step. Each trial costs one rollout and N reverse passes for the gradients.
+``step_control="none"`` applies a fixed ``eta = initial_step`` (the paper's plain update),
+for comparisons.
 
 Convergence: the state change of a full step, ``max_t |x_new_t - x_hat_t|_inf`` scaled by
 ``initial_step / eta`` (exact for an accepted full step, first-order otherwise), is at most
@@ -392,7 +402,7 @@ def _as_problem(problem_or_game) -> tuple[GameProblem, bool]:
 # --------------------------------------------------------------------------------------
 
 _MODES = ("feedback", "open_loop")
-_STEP_CONTROLS = ("trust_region", "none")
+_STEP_CONTROLS = ("trust_region", "residual", "none")
 _CONVEXIFY = ("auto", "gauss_newton", "eig", "diag", "none")
 
 
@@ -406,8 +416,9 @@ class SolverOptions:
         tolerance: convergence when a full step changes the state trajectory by at most this
             much (max-norm over stages and state entries, state units).
         step_control: ``"trust_region"`` (shrink ``eta`` until the step stays inside
-            ``trust_radius``, plus overshoot damping) or ``"none"`` (fixed
-            ``eta = initial_step``).
+            ``trust_radius``, plus overshoot damping), ``"residual"`` (open loop only:
+            shrink it until the step also decreases the open-loop Nash residual) or
+            ``"none"`` (fixed ``eta = initial_step``).
         trust_radius: largest accepted max-norm change of the state trajectory per iteration.
         initial_step: the largest ``eta``, tried first, in ``(0, 1]``.
         step_decay: factor in ``(0, 1)`` by which ``eta`` shrinks per trial.
@@ -445,6 +456,11 @@ class SolverOptions:
         if self.step_control not in _STEP_CONTROLS:
             raise ValueError(
                 f"step_control must be one of {_STEP_CONTROLS}, got {self.step_control!r}"
+            )
+        if self.step_control == "residual" and self.mode != "open_loop":
+            raise ValueError(
+                "step_control='residual' needs mode='open_loop': it decreases the open-loop "
+                "Nash residual, which a feedback equilibrium does not zero"
             )
         if self.convexify not in _CONVEXIFY:
             raise ValueError(f"convexify must be one of {_CONVEXIFY}, got {self.convexify!r}")
@@ -749,16 +765,72 @@ def _deviation(xs_new: Array, xs_hat: Array) -> Array:
     return jnp.where(jnp.isfinite(d), d, jnp.inf)
 
 
+def _merit(problem: GameProblem, x0: Array, us: Array) -> Array:
+    """``sum_i |dJ^i/du^i|^2``, the squared open-loop Nash residual of ``us (T, N, m)`` from
+    ``x0 (n,)`` (see :func:`nash_residual`); ``inf`` where it is not finite."""
+    merit = jnp.sum(_own_gradients(jax.jacrev(_costs_of_inputs(problem, x0))(us)) ** 2)
+    return jnp.where(jnp.isfinite(merit), merit, jnp.inf)
+
+
+# Sufficient decrease of the residual rule: accept eta when the squared residual falls to
+# (1 - 2 c eta) of its value, the first-order decrease of an exact Newton step (1 - eta)^2
+# with Armijo's customary c = 1e-4.
+_RESIDUAL_DECREASE = 1e-4
+
+
+def _residual_step(problem, xs_hat, us_hat, K, k, eta0, options: SolverOptions):
+    """Backtracking on the open-loop Nash residual (``step_control="residual"``).
+
+    Tries ``eta0 * step_decay^j`` until the step stays inside the trust region and
+    decreases ``sum_i |dJ^i/du^i|^2`` sufficiently. If no trial does (the Gauss-Newton LQ
+    game's direction need not be a descent direction of the residual, e.g. from a cold
+    start), it takes the first trial inside the trust region, the default rule's step.
+    Returns ``(xs, us, eta, deviation, ok)`` like :func:`_step`.
+    """
+    radius = options.trust_radius
+    x0 = xs_hat[0]
+    merit0 = _merit(problem, x0, us_hat)
+
+    def accepted(dev, merit, eta):
+        return (dev <= radius) & (merit <= (1.0 - 2.0 * _RESIDUAL_DECREASE * eta) * merit0)
+
+    def cond(c):
+        _, _, eta, dev, merit, trial, _ = c
+        return (trial == 0) | (~accepted(dev, merit, eta) & (trial <= options.max_backtracks))
+
+    def body(c):
+        _, _, eta, _, _, trial, inside = c
+        eta = jnp.where(trial == 0, eta, eta * options.step_decay)
+        xs, us = _forward(problem, xs_hat, us_hat, K, k, eta)
+        dev = _deviation(xs, xs_hat)
+        merit = jnp.where(dev <= radius, _merit(problem, x0, us), jnp.inf)
+        first_inside = (dev <= radius) & (inside[3] > radius)
+        inside = _select(first_inside, (xs, us, eta, dev), inside)
+        return xs, us, eta, dev, merit, trial + 1, inside
+
+    inf = jnp.asarray(jnp.inf, xs_hat.dtype)
+    start = (xs_hat, us_hat, eta0, inf, inf, 0, (xs_hat, us_hat, eta0, inf))
+    xs, us, eta, dev, merit, _, inside = jax.lax.while_loop(cond, body, start)
+    xs, us, eta, dev = _select(accepted(dev, merit, eta), (xs, us, eta, dev), inside)
+    return xs, us, eta, dev, dev <= radius
+
+
+def _select(pred: Array, new, old):
+    """``new`` where the scalar ``pred`` holds, else ``old`` (pytrees of equal structure)."""
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(pred, a, b), new, old)
+
+
 def _step(problem, xs_hat, us_hat, K, k, eta0, options: SolverOptions):
-    """Trust-region step-size search from ``eta0``. Returns ``(xs, us, eta, deviation, ok)``."""
+    """Step-size search from ``eta0``. Returns ``(xs, us, eta, deviation, ok)``."""
     eta0 = jnp.asarray(eta0, xs_hat.dtype)
     if options.step_control == "none":
         xs, us = _forward(problem, xs_hat, us_hat, K, k, eta0)
         dev = _deviation(xs, xs_hat)
         return xs, us, eta0, dev, jnp.isfinite(dev)
+    if options.step_control == "residual":
+        return _residual_step(problem, xs_hat, us_hat, K, k, eta0, options)
 
     radius = options.trust_radius
-
     # Trial 0 runs at eta0, trial j > 0 at eta0 * step_decay^j. The first trial is a pass of
     # the loop too, so the compiled solver holds one forward pass instead of two (compile
     # time; the trials and their results are the same).
@@ -1277,12 +1349,14 @@ def _map_split(kind: str, problem: GameProblem, batch, *, leaf_axes, options, me
     return jax.tree_util.tree_map(lambda leaf: leaf[:size], result) if pad else result
 
 
+def _costs_of_inputs(problem: GameProblem, x0: Array) -> Callable[[Array], Array]:
+    """``us (T, N, m) -> (N,)`` every player's total cost of the rollout from ``x0``."""
+    return lambda us: total_costs(problem, rollout(problem, x0, us), us)
+
+
 @jax.jit
 def _nash_residual_problem(problem: GameProblem, x0: Array, us: Array) -> Array:
-    def J(U):
-        return total_costs(problem, rollout(problem, x0, U), U)
-
-    return _own_gradient_norms(jax.jacrev(J)(us))
+    return _own_gradient_norms(jax.jacrev(_costs_of_inputs(problem, x0))(us))
 
 
 @jax.jit
@@ -1293,11 +1367,15 @@ def _nash_residual_game(game, x0: Array, us: Array) -> Array:
     return _own_gradient_norms(jax.jacrev(J)(us))
 
 
+def _own_gradients(G: Array) -> Array:
+    """``G (N, T, N, m)`` = dJ^i/du^j -> ``(N, T, m)``, every player's dJ^i/du^i."""
+    idx = jnp.arange(G.shape[0])
+    return G[idx, :, idx, :]
+
+
 def _own_gradient_norms(G: Array) -> Array:
     """``G (N, T, N, m)`` = dJ^i/du^j -> ``(N,)`` norms of dJ^i/du^i."""
-    idx = jnp.arange(G.shape[0])
-    own = G[idx, :, idx, :]  # (N, T, m)
-    return jnp.sqrt(jnp.sum(own**2, axis=(1, 2)))
+    return jnp.sqrt(jnp.sum(_own_gradients(G) ** 2, axis=(1, 2)))
 
 
 def nash_residual(problem_or_game, x0, us) -> Array:

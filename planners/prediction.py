@@ -151,7 +151,8 @@ class PlannerPrediction:
         if planner not in _PLANNERS:
             raise ValueError(f"planner must be one of {list(_PLANNERS)}, got {planner!r}")
         check_levels(planner, levels)
-        ilq.SolverOptions(**{k: v for k, v in solver_options.items() if k != "mode"})  # refuse bad options now
+        # refuse bad options now, in the mode the solves will use
+        ilq.SolverOptions(**{**solver_options, "mode": _GAME_MODES.get(planner, "feedback")})
         self.planner = planner
         self.ego = int(ego)
         self.levels = int(levels)

@@ -74,6 +74,8 @@ def test_spec_options_reach_the_agent():
     ("ilqgame-fb:trailing.c_gap=x", "expected a number"),
     ("ilqgame-fb:middle.c_gap=1", "belief.<weight>, leading.<weight>, trailing.<weight>"),
     ("ilqgame-fb:step_control=magic", "step_control must be one of"),
+    ("ilqgame-fb:step_control=residual", "needs mode='open_loop'"),
+    ("ilqr:step_control=residual", "needs mode='open_loop'"),
     ("ilqgame-fb:trust_radius=0", "trust_radius"),
     ("ilqr:pad=ones", "pad must be"),
     ("lane-keeping:target_speed=0", "target_speed must be > 0"),

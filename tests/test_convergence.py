@@ -57,6 +57,7 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     (["--spread", "-1"], "spread"),
     (["--speed", "19", "10"], "speed"),
     (["--track", "nowhere"], "trefoil"),
+    (["--step-control", "residual"], "open-loop solves"),  # the default modes include feedback
 ])
 def test_convergence_cli_rejects_bad_input_before_any_work(tmp_path, capsys, bad, message):
     assert main(["convergence", "--out", str(tmp_path / "out")] + bad) == 2

@@ -231,6 +231,57 @@ def test_step_control_converges_where_the_fixed_full_step_cycles():
     assert float(jnp.nanmin(controlled.step_history)) < 1.0  # the control did intervene
 
 
+def _merits_per_iteration(game, options):
+    """``sum_i |dJ^i/du^i|^2`` after every iteration of a cold solve, from the public
+    :func:`ilq.nash_residual` (through ``RaceGame.rollout``/``costs``, not the solver's
+    own merit), and the accepted step sizes."""
+    problem, _ = ilq._as_problem(game)
+    iterate = jax.jit(lambda c: ilq._iterate(problem, c, options))
+    c = ilq._initial_carry(problem, jnp.asarray(X0).reshape(-1), jnp.zeros((50, 2, 2)), options)
+    merits = [float(np.sum(np.asarray(ilq.nash_residual(game, X0, c.us)) ** 2))]
+    while int(c.status) == ilq.RUNNING:
+        c = iterate(c)
+        merits.append(float(np.sum(np.asarray(ilq.nash_residual(game, X0, c.us)) ** 2)))
+    return np.array(merits), np.asarray(c.step_history)[: int(c.it)], c
+
+
+def test_residual_step_control_decreases_the_open_loop_residual(game, open_loop):
+    options = ilq.SolverOptions(mode="open_loop", step_control="residual")
+    merits, etas, last = _merits_per_iteration(game, options)
+    assert int(last.status) == ilq.CONVERGED
+    # From zero inputs the LQ game's step raises the residual at every step size (the
+    # Gauss-Newton model is far off there): the rule falls back to the trust region's
+    # step, from the same LQ solution at the same step size.
+    assert merits[1] > merits[0]
+    assert etas[0] == float(open_loop.step_history[0]) < 1.0
+    # Every later step satisfies the rule's sufficient decrease 1 - 2e-4 eta (a relative
+    # 1e-12 for the rounding of a sum of squares).
+    bound = (1.0 - 2e-4 * etas[1:]) * merits[1:-1] * (1 + 1e-12)
+    assert np.all(merits[2:] <= bound), (merits, etas)
+    # The same open-loop equilibrium as the trust region's (both stop at full steps of
+    # at most 1e-6).
+    np.testing.assert_allclose(np.asarray(last.xs).reshape(open_loop.xs.shape), np.asarray(open_loop.xs),
+                               atol=1e-5)
+
+
+def test_residual_step_control_converges_where_the_trust_region_cycles():
+    game = paper_game(CostWeights(r_jx=0.01, r_jy=0.01))  # the tournaments' jerk weight
+    trust_region = ilq.solve(game, X0, mode="open_loop")
+    residual = ilq.solve(game, X0, mode="open_loop", step_control="residual")
+    assert int(trust_region.status) == ilq.MAX_ITERATIONS
+    assert np.nanmin(np.asarray(trust_region.history[-20:])) > 1e-3  # still moving by millimetres
+    assert bool(residual.converged), ilq.status_message(residual.status)
+    zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
+    assert np.all(np.asarray(ilq.nash_residual(game, X0, residual.us)) <= 1e-4 * zero)
+
+
+def test_residual_step_control_is_refused_for_feedback(game):
+    with pytest.raises(ValueError, match="needs mode='open_loop'"):
+        ilq.SolverOptions(step_control="residual")
+    with pytest.raises(ValueError, match="needs mode='open_loop'"):
+        ilq.solve(game, X0, mode="feedback", step_control="residual")
+
+
 def test_ilqr_ego_swerves_right_of_the_predicted_opponent(game):
     res = solve_ilqr(game, X0, ego=0)
     assert bool(res.converged), ilq.status_message(res.status)
