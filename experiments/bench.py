@@ -491,8 +491,11 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     ``solver_options`` are the solver's (:class:`planners.ilq.SolverOptions`; the other
     options its defaults);
     ``jerk_weight`` is every car's jerk weight ``r`` (default: ``CostWeights``' default,
-    as are the other cost weights). With ``per_scene`` a row also lists every scene's
-    start state ``x0`` (N x 6), ``iterations`` and ``status`` (message), in scene order."""
+    as are the other cost weights). Open-loop rows also give the first-order open-loop Nash
+    residual of every solve, ``max_i |dJ^i/du^i|`` (:func:`planners.ilq.nash_residual`, the
+    cost's units per m/s^3): its median, p90 and largest value. With ``per_scene`` a row
+    also lists every scene's start state ``x0`` (N x 6), ``iterations``, ``status``
+    (message) and, in open loop, ``residual``, in scene order."""
     from planners import ilq
     from experiments.timing import time_jax_call
     from racing_env import CostWeights, RaceGame, VehicleParams
@@ -538,10 +541,20 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
                "iterations_p90": float(np.percentile(iterations, 90)) if iterations.size else None,
                "iterations_max": int(iterations.max()) if iterations.size else None,
                "ms_batch": 1e3 * run, "compile_s": first - run}
+        residuals = None
+        if mode != "feedback":
+            # how near an open-loop equilibrium each solve ended, converged or not (a
+            # feedback equilibrium does not zero this residual, so feedback rows skip it)
+            residuals = np.array([float(np.max(ilq.nash_residual(game, x0, us)))
+                                  for x0, us in zip(x0s, np.asarray(res.us))])
+            row.update(residual_median=float(np.median(residuals)),
+                       residual_p90=float(np.percentile(residuals, 90)), residual_max=float(residuals.max()))
         if per_scene:
             row["x0"] = x0s.tolist()
             row["iterations"] = all_iterations.tolist()
             row["status"] = [ilq.status_message(k) for k in status]
+            if residuals is not None:
+                row["residual"] = residuals.tolist()
         yield row
 
 

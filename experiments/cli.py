@@ -259,8 +259,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="how often the game solvers converge from random close-quarters starts (table, JSON, PNG)",
         description="Per track and number of cars, draw --scenes seeded random close-quarters starts anywhere on "
         "the track (cars up to --spread apart, at --speed, not in contact) and solve them cold, as one batch per "
-        "solver mode. Reports the converged fraction, the other outcomes and the iterations of the converged "
-        "solves; writes OUT/convergence.json (after every row: Ctrl-C keeps what was measured) and "
+        "solver mode. Reports the converged fraction, the other outcomes, the iterations of the converged "
+        "solves and, in open loop, how near an equilibrium every solve ended (its first-order Nash residual); "
+        "writes OUT/convergence.json (after every row: Ctrl-C keeps what was measured) and "
         "OUT/convergence.png (fraction converged within k iterations). Four circuits, two cars, both modes: "
         "about 50 s on a 2-core machine, mostly compilation.",
     )

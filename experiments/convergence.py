@@ -168,6 +168,8 @@ def _summary(row: dict[str, Any]) -> str:
     text = f"{converged}/{row['scenes']} converged ({row['converged_fraction']:.1%})"
     if row["iterations_median"] is not None:
         text += f", median {row['iterations_median']:g} / p90 {row['iterations_p90']:.3g} iterations"
+    if "residual_p90" in row:
+        text += f", residual p90 {row['residual_p90']:.2g}"
     return text + f", {row['ms_batch'] / 1e3:.2f} s"
 
 
@@ -177,15 +179,17 @@ def _table(rows: list[dict[str, Any]]):
     short = {ilq.status_message(code): label for code, label in (
         (ilq.MAX_ITERATIONS, "capped"), (ilq.NON_FINITE, "non-finite"), (ilq.LINE_SEARCH_FAILED, "no step"))}
     table = Table(title="solves from random close-quarters starts",
-                  caption="median, p90, max: iterations of the converged solves; "
-                          "ol from fb: open loop started from the feedback solution")
-    for column in ("track", "cars", "mode", "converged", "median", "p90", "max", "others"):
+                  caption="median, p90, max: iterations of the converged solves; residual p90: of every "
+                          "solve, max_i |dJ^i/du^i| (open loop only); ol from fb: open loop started from "
+                          "the feedback solution")
+    for column in ("track", "cars", "mode", "converged", "median", "p90", "max", "residual p90", "others"):
         table.add_column(column, no_wrap=column in ("track", "others"))
     for row in rows:
         others = ", ".join(f"{v} {short.get(k, k)}" for k, v in row["statuses"].items() if k != "converged")
         table.add_row(row["track"], str(row["cars"]), _MODE_LABELS[row["mode"]],
                       f"{row['statuses'].get('converged', 0)}/{row['scenes']}",
-                      *(("-" if row[k] is None else f"{row[k]:.3g}") for k in ("iterations_median", "iterations_p90", "iterations_max")),
+                      *(("-" if row.get(k) is None else f"{row[k]:.3g}")
+                        for k in ("iterations_median", "iterations_p90", "iterations_max", "residual_p90")),
                       others)
     return table
 

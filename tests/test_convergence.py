@@ -9,7 +9,10 @@ import pytest
 
 from experiments import convergence
 from experiments.cli import main
+from planners import ilq
+from racing_env import CostWeights, RaceGame, VehicleParams
 from racing_env.dynamics import S, V
+from racing_env.track import get_track
 
 # Not tests/test_bench.py's cap: that test checks that its first call compiles.
 ARGS = ["convergence", "--scenes", "6", "--seed", "3", "--modes", "open_loop", "--max-iterations", "30",
@@ -33,6 +36,16 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     converged = [st == "converged" for st in row["status"]]
     assert row["converged_fraction"] == sum(converged) / 6
     assert sum(row["statuses"].values()) == 6
+    # the residual of every solve, as nash_residual gives it for that scene's own solve
+    assert len(row["residual"]) == 6 and row["residual_max"] == max(row["residual"])
+    race_game = RaceGame.create(get_track("trefoil"), [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)],
+                                CostWeights(r_jx=0.5, r_jy=0.5))  # convergence_rows' two cars
+    x0 = np.array(row["x0"][0])
+    single = ilq.solve(race_game, x0, mode="open_loop", max_iterations=30, step_control="none",
+                       initial_step=0.5, max_backtracks=3)
+    assert int(single.iterations) == row["iterations"][0]
+    np.testing.assert_allclose(row["residual"][0], float(np.max(ilq.nash_residual(race_game, x0, single.us))),
+                               rtol=1e-9)
     (same,) = convergence.convergence_rows(6, seed=3, repeats=1, modes=("open_loop",), max_iterations=30,
                                            jerk_weight=0.5, per_scene=True, spread=8.0, speed=(12.0, 14.0),
                                            step_control="none", initial_step=0.5, max_backtracks=3)
