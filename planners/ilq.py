@@ -459,8 +459,8 @@ class SolverOptions:
             )
         if self.step_control == "residual" and self.mode != "open_loop":
             raise ValueError(
-                "step_control='residual' needs mode='open_loop': it decreases the open-loop "
-                "Nash residual, which a feedback equilibrium does not zero"
+                "step_control='residual' needs mode='open_loop' (of the agents, ilqgame-ol): it "
+                "decreases the open-loop Nash residual, which a feedback equilibrium does not zero"
             )
         if self.convexify not in _CONVEXIFY:
             raise ValueError(f"convexify must be one of {_CONVEXIFY}, got {self.convexify!r}")
