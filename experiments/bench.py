@@ -469,6 +469,19 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     yield from convergence_rows(batch)
 
 
+def solver_options_by_mode(modes, **fields: Any) -> dict[str, Any]:
+    """The :class:`planners.ilq.SolverOptions` (``fields``) of every solver mode that
+    :func:`convergence_rows` runs for ``modes``: ``"feedback"``, ``"open_loop"``, and for
+    ``"open_loop_from_feedback"`` both (a feedback, then an open-loop solve). Building them
+    checks the options in each of those modes."""
+    from planners import ilq
+
+    solver_modes = {"feedback" if mode == "feedback" else "open_loop" for mode in modes}
+    if "open_loop_from_feedback" in modes:
+        solver_modes.add("feedback")
+    return {mode: ilq.SolverOptions(mode=mode, **fields) for mode in solver_modes}
+
+
 def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
                      modes: tuple[str, ...] = ("feedback", "open_loop"),
                      track: Any = "trefoil", num_cars: int = 2, max_iterations: int = 100,
@@ -507,13 +520,8 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     v_max = _BENCH_V_MAX + (22.0,) * max(0, num_cars - 3)
     vehicles = [VehicleParams(v_max=v) for v in v_max[:num_cars]]
     weights = None if jerk_weight is None else CostWeights(r_jx=jerk_weight, r_jy=jerk_weight)
-    # the solver modes the rows use (open_loop_from_feedback: a feedback, then an open-loop
-    # solve), each one's options checked before the work
-    solver_modes = {"feedback" if mode == "feedback" else "open_loop" for mode in modes}
-    if "open_loop_from_feedback" in modes:
-        solver_modes.add("feedback")
-    options = {mode: ilq.SolverOptions(mode=mode, max_iterations=max_iterations, tolerance=tolerance,
-                                       **solver_options) for mode in solver_modes}
+    # checked before the work
+    options = solver_options_by_mode(modes, max_iterations=max_iterations, tolerance=tolerance, **solver_options)
     track = get_track(track)
     game = RaceGame.create(track, vehicles, weights)
     x0s = random_scenes(track, vehicles, count, seed=seed, spread=spread, speed=tuple(speed))

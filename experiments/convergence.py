@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from experiments.bench import convergence_rows, write_json_atomically
+from experiments.bench import convergence_rows, solver_options_by_mode, write_json_atomically
 from planners import ilq
 from racing_env.scenarios import check_scene_ranges
 
@@ -85,8 +85,7 @@ class ConvergenceConfig:
         if self.step_control == "residual" and set(self.modes) != {"open_loop"}:
             raise ValueError("step_control 'residual' is for open-loop solves: use it with the "
                              f"modes ('open_loop',) only, not {self.modes}")
-        ilq.SolverOptions(**self.solver_options(), mode="open_loop" if self.step_control == "residual"
-                          else "feedback")  # its own checks, before any work
+        solver_options_by_mode(self.modes, **self.solver_options())  # their own checks, before any work
         if self.jerk_weight is not None and not (np.isfinite(self.jerk_weight) and self.jerk_weight > 0):
             raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight!r}")
 
