@@ -239,9 +239,15 @@ def _merits_per_iteration(game, options):
     iterate = jax.jit(lambda c: ilq._iterate(problem, c, options))
     c = ilq._initial_carry(problem, jnp.asarray(X0).reshape(-1), jnp.zeros((50, 2, 2)), options)
     merits = [float(np.sum(np.asarray(ilq.nash_residual(game, X0, c.us)) ** 2))]
+    carried = [float(c.merit)]
     while int(c.status) == ilq.RUNNING:
         c = iterate(c)
         merits.append(float(np.sum(np.asarray(ilq.nash_residual(game, X0, c.us)) ** 2)))
+        carried.append(float(c.merit))
+    # The rule carries each accepted point's residual into the next iteration's test
+    # instead of recomputing it: the carried value is that point's (also after the
+    # fallback step), up to the rounding of two evaluations of one sum of squares.
+    np.testing.assert_allclose(carried, merits, rtol=1e-9)
     return np.array(merits), np.asarray(c.step_history)[: int(c.it)], c
 
 
