@@ -51,6 +51,7 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
 
 def _cmd_agents(args: argparse.Namespace) -> int:
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     from planners.agents import AGENT_SPECS, AGENT_SUMMARIES, agent_options
@@ -65,7 +66,7 @@ def _cmd_agents(args: argparse.Namespace) -> int:
         for row in rows:
             if not args.name and "." in row[0]:
                 continue  # prefixed weights (leading., trailing., belief.): explained below, unless asked by name
-            table.add_row(*row)
+            table.add_row(*(escape(cell) for cell in row))  # units like "[m]" are text, not markup
         console.print(table)
         if any(row[0].startswith("leading.") for row in rows):
             console.print("  leading.<weight>, trailing.<weight>: that cost weight in re-plans made while the car "

@@ -34,7 +34,7 @@ import numpy as np
 
 from planners import ilq, ilqr, prediction as prediction_models
 from planners.agent_specs import convert_options, describe_options, split_spec
-from planners.scripted import ConstantSpeed, LaneKeeping, check_target_speed
+from planners.scripted import ConstantSpeed, LaneKeeping, check_targets
 from racing_env.dynamics import V
 
 __all__ = [
@@ -575,9 +575,6 @@ class RecedingHorizonAgent(BaseAgent):
         record["step"] = self._steps
         if self._plan is None or self._age + 1 >= self.replan_every or self._age + 1 >= self._plan["us"].shape[0]:
             record["replanned"] = True
-            if self._games_by_place is not None:
-                record["leading"] = self._is_leading(x)
-                self.planning_game = self._games_by_place[record["leading"]]
             init = None
             if self.warm_start and self._plan is not None:
                 init = self._shifted(self._plan["us"], self._age + 1)
@@ -586,6 +583,9 @@ class RecedingHorizonAgent(BaseAgent):
             try:
                 if x.shape != (self.game.num_players, 6):
                     raise ValueError(f"joint state must have shape ({self.game.num_players}, 6), got {x.shape}")
+                if self._games_by_place is not None:
+                    record["leading"] = self._is_leading(x)
+                    self.planning_game = self._games_by_place[record["leading"]]
                 solution = self._solve(self._game_at_speed(x, record), x, init)
                 us, xs, K, res = solution
                 record["iterations"] = int(res.iterations)
@@ -746,7 +746,7 @@ class _ScriptedAgent(BaseAgent):
         unknown = sorted(set(kwargs) - set(self.spec_options()))
         if unknown:
             raise ValueError(f"{self.name} has no option {unknown}; its options: {sorted(self.spec_options())}")
-        check_target_speed(kwargs.get("target_speed"))  # before the race, not at the controller's reset
+        check_targets(**kwargs)  # before the race, not at the controller's reset
         self.kwargs = kwargs
         self.controller = None
 

@@ -39,8 +39,9 @@ class ILQRResult(NamedTuple):
             predictions in the other rows.
         us: ``(T, N, 2)`` joint inputs: the ego's planned jerks in row ``ego``, zeros for the
             opponents (their predicted motion has zero jerk).
-        predicted: ``(T+1, N, 6)`` the constant-velocity prediction of every car (the
-            opponents' rows are what the ego planned against).
+        predicted: ``(T+1, N, 6)`` the prediction the ego planned against: the one passed
+            as ``predicted``, else the constant-velocity prediction of every car (the
+            opponents' rows are what matters; the ego's row is not used).
         ego: index of the ego car.
         cost: the ego's total cost of the plan against the prediction.
         converged, status, iterations: as in :class:`planners.ilq.SolverResult`.

@@ -46,10 +46,13 @@ def _curvature_grid(track: Track) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate((s[-1:] - period, s, s[:1] + period)), np.concatenate((kappa[-1:], kappa, kappa[:1]))
 
 
-def check_target_speed(target_speed: float | None) -> None:
-    """Refuse a cruise speed that is not positive (``None``: the car's v_max)."""
-    if target_speed is not None and not float(target_speed) > 0:
-        raise ValueError(f"target_speed must be > 0 m/s, got {target_speed!r}")
+def check_targets(target_speed: float | None = None, target_n: float = 0.0) -> None:
+    """Refuse a cruise speed that is not finite and positive (``None``: the car's v_max) and
+    a lateral offset that is not finite (a NaN target would make every action NaN)."""
+    if target_speed is not None and not 0 < float(target_speed) < np.inf:
+        raise ValueError(f"target_speed must be a finite speed > 0 m/s, got {target_speed!r}")
+    if not np.isfinite(float(target_n)):
+        raise ValueError(f"target_n must be a finite lateral offset [m], got {target_n!r}")
 
 
 class LaneKeeping:
@@ -73,7 +76,7 @@ class LaneKeeping:
         target_speed: float | None = None,
         target_n: float = 0.0,
     ) -> None:
-        check_target_speed(target_speed)
+        check_targets(target_speed, target_n)
         self.track, self.index, self.vehicle = track, int(index), vehicle
         self.target_speed = float(vehicle.v_max if target_speed is None else target_speed)
         self.target_n = float(target_n)

@@ -78,7 +78,9 @@ def test_spec_options_reach_the_agent():
     ("ilqr:step_control=residual", "needs mode='open_loop'"),
     ("ilqgame-fb:trust_radius=0", "trust_radius"),
     ("ilqr:pad=ones", "pad must be"),
-    ("lane-keeping:target_speed=0", "target_speed must be > 0"),
+    ("lane-keeping:target_speed=0", "target_speed must be a finite speed > 0"),
+    ("lane-keeping:target_speed=inf", "target_speed must be a finite speed > 0"),
+    ("lane-keeping:target_n=nan", "target_n must be a finite"),
     ("lane-keeping:max_iterations=3", "has no option 'max_iterations'"),
     ("constant-speed:target_n=1", "has no option 'target_n'"),
     ("wizard:x=1", "unknown agent spec"),
@@ -187,6 +189,7 @@ def test_every_agent_lists_its_options(capsys):
     assert main(["agents"]) == 0
     out = capsys.readouterr().out
     assert "max_iterations" in out and "target_speed" in out and "leading.<weight>" in out
+    assert "cruise speed [m/s]" in out  # units in brackets are text, not rich markup
     assert main(["agents", "ilqr"]) == 0
     assert "trailing.c_collision" in capsys.readouterr().out
     assert main(["agents", "wizard"]) == 2
@@ -205,4 +208,4 @@ def test_tournament_command_line_takes_specs_with_options(tmp_path, capsys):
         "lane-keeping:target_speed=20,target_n=1", "constant-speed:target_speed=12"}
     code = main(["tournament", "--agents", "lane-keeping:target_speed=-3", "constant-speed",
                  "--out", str(tmp_path / "bad")])
-    assert code == 2 and "target_speed must be > 0" in capsys.readouterr().err
+    assert code == 2 and "target_speed must be a finite speed > 0" in capsys.readouterr().err

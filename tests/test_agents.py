@@ -181,6 +181,18 @@ def test_a_car_stopped_at_the_edge_facing_out_rejoins_in_recovery(spec):
     assert speeds[1e-3] > 5.0  # measured 10.4 m/s after 2 s (12 re-plans in recovery) for all three
 
 
+@pytest.mark.parametrize("spec", ["ilqr:max_iterations=2", "ilqr:max_iterations=2,leading.c_collision=10"])
+def test_a_joint_state_of_the_wrong_shape_brakes_with_or_without_place_weights(spec):
+    env = racing_env.parallel_env(track="trefoil", num_agents=2)
+    agent = make_agent(spec)
+    agent.reset(0, 0, env)
+    obs, _ = env.reset(seed=0)
+    a = agent.act(obs["car_0"], env.state().reshape(-1))  # (12,) instead of (2, 6)
+    d = agent.diagnostics()
+    assert d["fallback_kind"] == "brake" and "joint state must have shape (2, 6)" in d["error"]
+    assert a[0] < 0
+
+
 @pytest.mark.parametrize("spec", GAME_SPECS)
 def test_fallback_on_nan_state(spec):
     """A real solver failure: a NaN in the joint state gives non-finite solver output."""
