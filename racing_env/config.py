@@ -24,7 +24,8 @@ class RewardConfig:
         position: per step, times ``(cars behind - cars ahead) / (N - 1)``.
         collision: per step with the car's footprint overlapping another (negative = penalty).
         off_track: per step with the car's centre beyond a track boundary.
-        finish: on crossing the finish line, times ``(N - place) / (N - 1)`` (winner gets it all).
+        finish: on crossing the finish line, times ``(N - place) / (N - 1)`` (winner gets it all;
+            a lone car, N = 1, too).
     """
 
     progress: float = 0.1
@@ -47,7 +48,8 @@ class RaceConfig:
         weights: cost weights the planners use (one for all, one per car, or None = defaults).
         laps: race length in laps on closed tracks.
         race_distance: finish line position [m] of arc length; overrides ``laps``. Default on
-            open tracks: 20 m before the end of the track.
+            open tracks: 20 m before the end of the track. The env refuses a finish line
+            that is not ahead of every car's start or lies beyond an open track's end.
         max_steps: steps after which the race is truncated.
         dt: time step [s].
         horizon: planning horizon in steps for the game built from this config.
@@ -86,8 +88,8 @@ class RaceConfig:
             raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {sorted(SCENARIOS)}")
         if not isinstance(self.laps, (int, np.integer)) or self.laps < 1:
             raise ValueError(f"laps must be an integer >= 1, got {self.laps!r}")
-        if self.race_distance is not None and not self.race_distance > 0:
-            raise ValueError(f"race_distance must be > 0 metres, got {self.race_distance!r}")
+        if self.race_distance is not None and not (np.isfinite(self.race_distance) and self.race_distance > 0):
+            raise ValueError(f"race_distance must be a finite number > 0 metres, got {self.race_distance!r}")
         if not isinstance(self.max_steps, (int, np.integer)) or self.max_steps < 1:
             raise ValueError(f"max_steps must be an integer >= 1, got {self.max_steps!r}")
         if not (np.isfinite(self.dt) and self.dt > 0):
@@ -99,8 +101,10 @@ class RaceConfig:
             raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {self.render_mode!r}")
         if self.camera not in ("auto", "track", "follow"):
             raise ValueError(f"camera must be 'auto', 'track' or 'follow', got {self.camera!r}")
-        if len(self.preview_distances) < 1 or any(d < 0 for d in self.preview_distances):
-            raise ValueError(f"preview_distances must be non-empty and >= 0, got {self.preview_distances!r}")
+        if len(self.preview_distances) < 1 or not all(np.isfinite(d) and d >= 0 for d in self.preview_distances):
+            raise ValueError(
+                f"preview_distances must be non-empty, finite and >= 0, got {self.preview_distances!r}"
+            )
         if isinstance(self.vehicles, Sequence) and len(self.vehicles) != self.num_agents:
             raise ValueError(f"got {len(self.vehicles)} VehicleParams for num_agents={self.num_agents}")
         if isinstance(self.weights, Sequence) and len(self.weights) != self.num_agents:

@@ -8,14 +8,16 @@ Python values.
 
 Actions are normalised jerks in ``[-1, 1]^2``, scaled by each car's jerk limits
 ``(jx_max, jy_max)``. Finite actions outside the box are clipped to it (the only silent
-correction); NaN/inf, wrong shapes and unknown or missing agents are refused with an
-error and leave the environment unchanged.
+correction); a container other than a mapping, non-numeric values (strings, booleans,
+objects), NaN/inf, wrong shapes and unknown or missing agents are refused with an error and
+leave the environment unchanged.
 """
 
 from __future__ import annotations
 
 import functools
 import math
+import numbers
 import warnings
 from typing import Any, Mapping, NamedTuple
 
@@ -33,7 +35,7 @@ from racing_env.packing import Layout, pack, unpack
 from racing_env.physics import drive, footprint_overlap, off_track
 from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
 from racing_env.scenarios import make_scenario
-from racing_env.track import get_track
+from racing_env.track import Track, get_track
 
 
 def _per_car_rows(game: RaceGame, x, status: RaceStatus, race_positions, collided, outside, contact, reward, terms):
@@ -117,6 +119,54 @@ def _race_rules(config: RaceConfig) -> RaceRules:
     )
 
 
+def _finish_line(config: RaceConfig, track: Track) -> float:
+    """The finish line's arc length [m]: ``race_distance``, else ``laps`` laps of a closed
+    track or 20 m before the end of an open one.
+
+    Raises ``ValueError`` when it lies beyond the end of an open track (the cars would drive
+    off its end, never to finish).
+    """
+    if config.race_distance is not None:
+        finish_s = float(config.race_distance)
+    elif track.closed:
+        finish_s = float(config.laps * track.length)
+    else:
+        finish_s = float(track.length - 20.0)
+    if not math.isfinite(finish_s):
+        raise ValueError(f"the finish line must be a finite arc length [m], got {finish_s!r}")
+    if not track.closed and finish_s > track.length:
+        raise ValueError(
+            f"the finish line at s = {finish_s:g} m lies beyond the end of the open track "
+            f"{track.name!r} ({track.length:g} m): give a race_distance <= {track.length:g} m"
+        )
+    return finish_s
+
+
+def _check_starts_behind(finish_s: float, x0: np.ndarray, scenario: str) -> None:
+    """Raise ``ValueError`` unless every car of the scenario's start ``x0 (N, 6)`` is behind
+    the finish line ``finish_s`` [m] (a car on or past it would finish on the first step)."""
+    furthest = float(np.max(x0[:, S]))
+    if not furthest < finish_s:
+        raise ValueError(
+            f"the finish line at s = {finish_s:g} m is not ahead of every start: scenario "
+            f"{scenario!r} places a car at s = {furthest:g} m (use a longer track or race_distance)"
+        )
+
+
+def _is_real(action: Any) -> bool:
+    """Whether ``action`` holds real numbers only. NumPy would silently turn strings such as
+    ``'0.5'`` and booleans into floats."""
+    if isinstance(action, np.ndarray):
+        return action.dtype.kind in "fiu"
+    if isinstance(action, (bool, np.bool_, str, bytes)):
+        return False
+    if isinstance(action, (list, tuple)):
+        return all(map(_is_real, action))
+    if isinstance(action, numbers.Real):
+        return True
+    return np.asarray(action).dtype.kind in "fiu"  # e.g. JAX arrays
+
+
 def agent_name(index: int) -> str:
     return f"car_{index}"
 
@@ -149,12 +199,8 @@ class RacingParallelEnv(ParallelEnv):
         self.game = RaceGame.create(
             self.track, scenario.vehicles, config.weights, dt=config.dt, horizon=config.horizon
         )
-        if config.race_distance is not None:
-            self.finish_s = float(config.race_distance)
-        elif self.track.closed:
-            self.finish_s = float(config.laps * self.track.length)
-        else:
-            self.finish_s = float(self.track.length - 20.0)
+        self.finish_s = _finish_line(config, self.track)
+        _check_starts_behind(self.finish_s, scenario.x0, config.scenario)
         # on the device once, as one array: a step neither re-transfers them nor pays for
         # their ~30 argument leaves
         self._constants, self._layout = pack(
@@ -208,7 +254,10 @@ class RacingParallelEnv(ParallelEnv):
                     f"got shape {x0.shape}"
                 )
         else:
-            x0 = make_scenario(self.config.scenario, self.track, self.num_cars, None, scenario_seed).x0
+            config = self.config
+            x0 = make_scenario(config.scenario, self.track, self.num_cars, config.vehicles, scenario_seed).x0
+            # seed 0's grid was checked in __init__; another seed's jitter moves cars by up to 1 m
+            _check_starts_behind(self.finish_s, x0, config.scenario)
         if options:
             # PettingZoo's parallel_api_test resets with options={"options": 1}: unknown keys
             # are ignored with a warning rather than refused.
@@ -238,13 +287,20 @@ class RacingParallelEnv(ParallelEnv):
         """The live agents' normalised actions as ``(N, 2)`` (zero for cars no longer
         racing; clipped and scaled in the jitted step); raises on bad input before anything
         changes."""
+        if not isinstance(actions, Mapping):
+            raise TypeError(
+                f"actions must be a mapping {{agent: action}} (e.g. a dict), got {type(actions).__name__}"
+            )
         live = self.agents
         if live and len(actions) == len(live) and all(agent in actions for agent in live):
             # The usual case in one go: every live agent acts with a finite (2,) action.
-            try:
-                normalised = np.array([actions[agent] for agent in live], dtype=np.float64)
-            except (TypeError, ValueError):
-                normalised = None
+            raw = [actions[agent] for agent in live]
+            normalised = None
+            if all(map(_is_real, raw)):
+                try:
+                    normalised = np.array(raw, dtype=np.float64)
+                except (TypeError, ValueError):
+                    pass
             if (
                 normalised is not None
                 and normalised.shape == (len(live), 2)
@@ -272,6 +328,8 @@ class RacingParallelEnv(ParallelEnv):
         if missing:
             raise KeyError(f"missing action(s) for {missing}; every live agent must act")
         for agent, action in actions.items():
+            if not _is_real(action):
+                raise TypeError(f"action of {agent} must hold real numbers (no strings or booleans), got {action!r}")
             a = np.asarray(action, dtype=np.float64)
             if a.shape != (2,):
                 raise ValueError(f"action of {agent} must have shape (2,) (normalised [jx, jy]), got {a.shape}")

@@ -5,7 +5,8 @@ The environment calls :func:`judge` inside the same jitted call as the physics, 
 crosses from Python to XLA once and reads back a few packed arrays. The formulas perform
 the same floating-point operations in the same order as the NumPy bookkeeping they
 replaced, so races are the same bit for bit, except that an incident term without an
-incident is now 0.0 where NumPy's ``weight * False`` gave -0.0.
+incident is now 0.0 where NumPy's ``weight * False`` gave -0.0, and that a lone car (N = 1)
+gets the whole finish weight where ``(N - place) / spread`` gave it nothing.
 """
 
 from __future__ import annotations
@@ -132,13 +133,16 @@ def judge(
     pos = positions(s, finished, place)
 
     spread, w = rules.spread, rules.weights
+    # N = 1: the lone car wins (the race's formula would give it (1 - 1) / 1 = 0)
+    finish = w[4] * crossed * (num - place) / spread if num > 1 else w[4] * crossed
     terms = jnp.stack(
         [
             w[0] * (s - s_prev),
             w[1] * (((num - pos) - (pos - 1)) / spread),
-            w[2] * collided.astype(s.dtype),
-            w[3] * outside.astype(s.dtype),
-            w[4] * crossed * (num - place) / spread,
+            # +0.0 without an incident (a negative weight times 0 is -0.0)
+            jnp.where(collided, w[2], 0.0),
+            jnp.where(outside, w[3], 0.0),
+            finish,
         ],
         axis=1,
     )

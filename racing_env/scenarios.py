@@ -87,7 +87,8 @@ def grid(
 
     Slot k sits ``k * row_spacing / 2`` metres behind the front, alternately at
     ``+lateral_offset`` (left) and ``-lateral_offset``. With ``jitter`` each car gets up to
-    +-1 m in s, +-0.3 m in n and +-1 m/s in speed, drawn from ``seed``.
+    +-1 m in s, +-0.3 m in n and +-1 m/s in speed, drawn from ``seed``. Start speeds [m/s]
+    are then capped to ``[0, 0.95 * v_max]`` of each car.
     """
     vehicles = _default_vehicles(num_cars, vehicles)
     rng = np.random.default_rng(seed)
@@ -98,11 +99,14 @@ def grid(
     for slot, car in enumerate(order):
         x0[car, S] = front - 0.5 * row_spacing * slot
         x0[car, N_LAT] = lateral_offset if slot % 2 == 0 else -lateral_offset
-        x0[car, V] = min(speed, 0.95 * float(vehicles[car].v_max))
+        x0[car, V] = speed
     if jitter and seed is not None:
         x0[:, S] += rng.uniform(-1.0, 1.0, num_cars)
         x0[:, N_LAT] += rng.uniform(-0.3, 0.3, num_cars)
         x0[:, V] += rng.uniform(-1.0, 1.0, num_cars)
+    # capped after the jitter, which could otherwise lift a car above its cap (or below 0)
+    v_cap = np.array([0.95 * float(v.v_max) for v in vehicles])
+    x0[:, V] = np.clip(x0[:, V], 0.0, v_cap)
     return Scenario("grid", x0, vehicles)
 
 

@@ -76,9 +76,10 @@ class RaceEnv(gymnasium.Env):
 
     Args:
         opponents: one policy per opponent (in car order, skipping the learner), or an
-            :class:`OpponentPool` that draws the car's driver every episode; default:
-            coasting cars. Their number fixes N = len(opponents) + 1 unless ``num_agents``
-            is given, in which case a single policy is reused for every opponent.
+            :class:`OpponentPool` that draws the car's driver every episode; default: one
+            coasting car (one per opponent when ``num_agents`` is given, none for a lone
+            learner). Their number fixes N = len(opponents) + 1 unless ``num_agents`` is
+            given, in which case a single policy is reused for every opponent.
         learner: index of the learner's car.
         **config: ``RaceConfig`` fields (track, scenario, laps, reward, ...).
 
@@ -100,10 +101,10 @@ class RaceEnv(gymnasium.Env):
         learner: int = 0,
         **config: Any,
     ) -> None:
+        opponents = None if opponents is None else list(opponents)
+        num = int(config.pop("num_agents", 2 if opponents is None else len(opponents) + 1))
         if opponents is None:
-            opponents = [coasting_policy]
-        opponents = list(opponents)
-        num = int(config.pop("num_agents", len(opponents) + 1))
+            opponents = [coasting_policy] * (num - 1)  # one coasting car per opponent
         if len(opponents) == 1 and num > 2:
             opponents = opponents * (num - 1)
         if len(opponents) != num - 1:

@@ -30,6 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from racing_env.vehicle import is_concrete
+
 ArrayLike = float | np.ndarray | jax.Array
 
 #: Default positional noise [m] assumed by :func:`from_centerline` / :func:`from_csv`.
@@ -85,9 +87,11 @@ class Track:
     def __post_init__(self) -> None:
         arrays = {f: getattr(self, f) for f in _ARRAY_FIELDS}
         # Unflattening inside jit/vmap rebuilds the Track from tracers (or other leaf
-        # types); those were validated when the concrete Track was built.
-        if not all(isinstance(a, np.ndarray) for a in arrays.values()):
+        # types); those were validated when the concrete Track was built. Concrete JAX
+        # arrays are checked and copied like NumPy ones.
+        if not all(isinstance(a, (np.ndarray, jax.Array)) and is_concrete(a) for a in arrays.values()):
             return
+        arrays = {f: np.asarray(a) for f, a in arrays.items()}
         if not (np.isfinite(self.length) and self.length > 0):
             raise ValueError(f"Track.length must be finite and > 0 [m], got {self.length!r}")
         shape = arrays["s"].shape

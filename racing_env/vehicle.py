@@ -17,14 +17,24 @@ import numpy as np
 ArrayLike = float | np.ndarray | jax.Array
 
 
+def is_concrete(value: object) -> bool:
+    """Whether ``value`` is a number or an array whose values are at hand (NumPy or JAX), as
+    opposed to a tracer inside jit/vmap or a placeholder JAX unflattens a pytree with (such
+    as vmap's axis specs)."""
+    if isinstance(value, jax.core.Tracer):
+        return False
+    return isinstance(value, (int, float, np.ndarray, np.number, jax.Array))
+
+
 def concrete_fields(params) -> dict[str, tuple[ArrayLike, np.ndarray]] | None:
     """A parameter dataclass's fields as ``{name: (value, float array)}``, each checked finite.
 
     ``None`` while any field is traced or abstract (inside jit/vmap): such values were
-    validated when the concrete object was built.
+    validated when the concrete object was built. Concrete JAX arrays are checked like
+    NumPy ones.
     """
     values = {f.name: getattr(params, f.name) for f in dataclasses.fields(params)}
-    if not all(isinstance(v, (int, float, np.ndarray, np.number)) for v in values.values()):
+    if not all(map(is_concrete, values.values())):
         return None
     checked = {}
     for name, value in values.items():

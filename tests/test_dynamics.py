@@ -209,6 +209,9 @@ def test_vehicle_params_are_validated():
                 dict(min_turn_radius=0.0)):
         with pytest.raises(ValueError, match=f"VehicleParams.{next(iter(bad))}"):
             VehicleParams(**bad)
+        # concrete JAX values are checked like NumPy ones (only tracers are not)
+        with pytest.raises(ValueError, match=f"VehicleParams.{next(iter(bad))}"):
+            VehicleParams(**{k: jnp.asarray(v) for k, v in bad.items()})
 
 
 def test_a_car_at_the_turn_limit_drives_a_circle_of_min_turn_radius():

@@ -4,6 +4,7 @@ incidents, finishing, input validation, spaces, rendering and scenarios."""
 import math
 import warnings
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test, parallel_seed_test
@@ -283,12 +284,21 @@ BAD_ACTIONS = [
     ({"car_0": 0.5, "car_1": COAST}, ValueError, r"must have shape \(2,\)"),
     ({"car_0": COAST, "car_1": COAST, "car_9": COAST}, KeyError, "unknown agent"),
     ({"car_0": COAST}, KeyError, r"missing action\(s\) for \['car_1'\]"),
+    ([COAST, COAST], TypeError, "actions must be a mapping"),
+    (np.zeros((2, 2)), TypeError, "actions must be a mapping"),
+    ({"car_0": ["0.5", "1"], "car_1": COAST}, TypeError, "car_0 must hold real numbers"),
+    ({"car_0": COAST, "car_1": [True, False]}, TypeError, "car_1 must hold real numbers"),
+    ({"car_0": np.array([True, False]), "car_1": COAST}, TypeError, "car_0 must hold real numbers"),
+    ({"car_0": [0.5, True], "car_1": COAST}, TypeError, "car_0 must hold real numbers"),
+    ({"car_0": np.array([None, 1.0]), "car_1": COAST}, TypeError, "car_0 must hold real numbers"),
 ]
 
 
 @pytest.mark.parametrize("actions, error, message", BAD_ACTIONS)
 def test_bad_actions_are_refused_without_side_effects(env2, actions, error, message):
-    """NaN/inf, wrong shapes, unknown and missing agents raise; state, agents, step count unchanged."""
+    """NaN/inf, wrong shapes, non-numeric values (which NumPy would turn into floats), a
+    container other than a mapping, unknown and missing agents raise; state, agents, step
+    count unchanged."""
     env2.reset(seed=5)
     env2.step({"car_0": COAST, "car_1": COAST})
     before = (env2.state(), list(env2.agents), env2._steps)
@@ -298,6 +308,17 @@ def test_bad_actions_are_refused_without_side_effects(env2, actions, error, mess
     assert env2.agents == before[1] and env2._steps == before[2]
     env2.step({"car_0": COAST, "car_1": COAST})  # the env still works
     assert env2._steps == before[2] + 1
+
+
+def test_numeric_lists_and_jax_arrays_are_accepted_as_actions(env2):
+    """Lists of Python numbers and JAX arrays act like the equal float64 NumPy arrays."""
+    results = []
+    for a0, a1 in ((np.array([0.5, 1.0]), np.array([-1.0, 0.0])), ([0.5, 1], (-1, 0.0)),
+                   (jnp.asarray([0.5, 1.0]), np.array([-1.0, 0.0], dtype=np.float32))):
+        env2.reset(seed=4)
+        env2.step({"car_0": a0, "car_1": a1})
+        results.append(env2.state())
+    assert all(r.tobytes() == results[0].tobytes() for r in results)
 
 
 def test_out_of_box_actions_are_clipped(env2):
@@ -327,6 +348,17 @@ def test_out_of_box_actions_are_clipped(env2):
         (lambda: racing_env.parallel_env(track="no_such_track"), "unknown track 'no_such_track'"),
         (lambda: racing_env.parallel_env(scenario="paper", num_agents=3), "exactly 2 cars"),
         (lambda: RaceConfig(vehicles=[VehicleParams()] * 3, num_agents=2), "3 VehicleParams for num_agents=2"),
+        (lambda: RaceConfig(race_distance=math.inf), "race_distance must be a finite number > 0"),
+        (lambda: RaceConfig(race_distance=math.nan), "race_distance must be a finite number > 0"),
+        (lambda: RaceConfig(preview_distances=(0.0, math.nan)), "preview_distances must be non-empty, finite"),
+        (lambda: RaceConfig(preview_distances=(0.0, math.inf)), "preview_distances must be non-empty, finite"),
+        # the default finish line of an open track, 20 m before its end, lies behind the grid
+        (lambda: racing_env.parallel_env(track=tr.straight(length=15.0), num_agents=1),
+         r"finish line at s = -5 m is not ahead of every start"),
+        (lambda: racing_env.parallel_env(track="straight", race_distance=8.0),
+         r"finish line at s = 8 m is not ahead of every start"),
+        (lambda: racing_env.parallel_env(track="straight", race_distance=300.5),
+         r"finish line at s = 300.5 m lies beyond the end of the open track 'straight' \(300 m\)"),
     ],
 )
 def test_bad_configuration_is_refused(make, message):

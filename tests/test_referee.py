@@ -102,3 +102,26 @@ def test_cars_not_racing_are_not_judged():
     np.testing.assert_array_equal(np.asarray(v.status.out), [False, True])
     np.testing.assert_array_equal(np.asarray(v.status.active), [True, False])
     assert np.asarray(v.terms)[1, REWARD_TERMS.index("finish")] == 0.0
+
+
+def test_a_lone_car_gets_the_whole_finish_reward():
+    # N = 1: (N - place) / (N - 1) has no second car to share with; the lone car wins it all
+    v = judge(jnp.asarray([99.0]), jnp.asarray([101.0]), _status([True]), jnp.zeros(1, bool),
+              jnp.zeros(1, bool), jnp.asarray(4), DT, jnp.asarray(FINISH), _rules(1))
+    assert np.asarray(v.status.place).tolist() == [1]
+    assert np.asarray(v.terms)[0, REWARD_TERMS.index("finish")] == WEIGHTS["finish"]
+    # and nothing before it crosses
+    v = judge(jnp.asarray([90.0]), jnp.asarray([92.0]), _status([True]), jnp.zeros(1, bool),
+              jnp.zeros(1, bool), jnp.asarray(4), DT, jnp.asarray(FINISH), _rules(1))
+    assert np.asarray(v.terms)[0, REWARD_TERMS.index("finish")] == 0.0
+
+
+def test_incident_terms_without_an_incident_are_positive_zero():
+    """The module docstring's promise: 0.0, not the -0.0 of a negative weight times 0."""
+    collided, outside = jnp.asarray([True, False]), jnp.asarray([False, True])
+    v = judge(jnp.asarray([10.0, 20.0]), jnp.asarray([11.0, 21.0]), _status([True, True]), collided,
+              outside, jnp.asarray(2), DT, jnp.asarray(FINISH), _rules(2))
+    terms = np.asarray(v.terms)
+    collision, off_track = terms[:, REWARD_TERMS.index("collision")], terms[:, REWARD_TERMS.index("off_track")]
+    assert collision.tolist() == [-5.0, 0.0] and off_track.tolist() == [0.0, -1.0]
+    assert not np.signbit(collision[1]) and not np.signbit(off_track[0])

@@ -41,6 +41,20 @@ def test_make_registered_id_with_opponents(trefoil):
     env.close()
 
 
+@pytest.mark.parametrize("num_agents", [1, 3])
+def test_default_opponents_are_one_coasting_car_per_opponent(trefoil, num_agents):
+    """Without opponents, num_agents sets the field: a lone learner, or N - 1 coasting cars."""
+    env = gymnasium.make(ENV_ID, num_agents=num_agents, track=trefoil, max_steps=5)
+    race = env.unwrapped.race
+    assert race.num_cars == num_agents and len(env.unwrapped._opponents) == num_agents - 1
+    env.reset(seed=0)
+    x0 = race.state()
+    env.step(np.array([1.0, 0.0], dtype=np.float32))
+    # the opponents coast: zero jerk keeps their accelerations at zero
+    np.testing.assert_array_equal(race.state()[1:, 4:], x0[1:, 4:])
+    env.close()
+
+
 def test_opponents_are_called_with_observation_and_joint_state(trefoil):
     """Each opponent is called with its own observation and the joint state before the step,
     and its action drives its car (checked against the PettingZoo env driven by hand)."""

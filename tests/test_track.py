@@ -314,6 +314,28 @@ def test_track_validation() -> None:
     assert repr(good) == "Track(name='straight', length=10.0 m, closed=False, M=11)"
 
 
+def test_track_from_jax_arrays_is_validated_and_copied_like_numpy() -> None:
+    """Concrete JAX arrays are checked and stored as read-only float64 NumPy copies; only
+    tracers (inside jit/vmap) skip the checks."""
+    good = tr.straight(length=10.0)
+    fields = {f: jnp.asarray(getattr(good, f)) for f in ("s", "kappa", "width_left", "width_right", "x",
+                                                         "y", "heading")}
+    with pytest.raises(ValueError, match="width_left must be > 0"):
+        tr.Track(**{**fields, "width_left": fields["width_left"].at[5:].set(-3.0)}, length=10.0, closed=False)
+    with pytest.raises(ValueError, match="must be finite everywhere"):
+        tr.Track(**{**fields, "kappa": fields["kappa"].at[0].set(jnp.nan)}, length=10.0, closed=False)
+    track = tr.Track(**fields, length=10.0, closed=False)
+    assert isinstance(track.kappa, np.ndarray) and track.kappa.dtype == np.float64
+    assert not track.kappa.flags.writeable
+    np.testing.assert_array_equal(track.width_left, good.width_left)
+    # a Track returned by a jitted function is rebuilt from concrete arrays: checked, NumPy again
+    out = jax.jit(lambda t: t)(good)
+    assert isinstance(out.s, np.ndarray) and out.s.tobytes() == good.s.tobytes()
+    # built from tracers (invalid widths included) it is not checked: its values are unknown
+    widths = jax.jit(lambda w: tr.Track(**{**fields, "width_left": w}, length=10.0, closed=False).width_left_at(2.0))
+    assert float(widths(-jnp.ones(11))) == -1.0
+
+
 def test_get_track(trefoil: tr.Track) -> None:
     assert set(tr.BUILTIN_TRACKS) >= {"straight", "trefoil"}
     assert tr.get_track(trefoil) is trefoil
