@@ -384,6 +384,7 @@ class RecedingHorizonAgent(BaseAgent):
     name = "receding-horizon"
     feedback = False
     mode = "feedback"  # the solver mode of its plans (iLQR's is a one-player feedback solve)
+    planned_players = 1  # players of its own solve: 1 for iLQR, 2 (or more) for a game
 
     def __init__(
         self,
@@ -423,7 +424,9 @@ class RecedingHorizonAgent(BaseAgent):
         if unknown:
             raise ValueError(f"unknown solver options {unknown}; allowed: {sorted(self._solver_option_types())}")
         # refuses bad values (max_iterations too) now, not at the first solve
-        ilq.SolverOptions(**{"mode": self.mode, "max_iterations": self.max_iterations, **self.solver_options})
+        options = ilq.SolverOptions(**{"mode": self.mode, "max_iterations": self.max_iterations,
+                                       **self.solver_options})
+        ilq.check_adaptive_regularization(options, self.planned_players)
 
     @staticmethod
     def _solver_option_types() -> dict[str, type]:
@@ -474,7 +477,11 @@ class RecedingHorizonAgent(BaseAgent):
             "oscillation_damping": "start shorter after a step that reverses the recent direction",
             "damping_memory": "decay of the running sum of step directions, in [0, 1)",
             "state_regularization": "added to the diagonal of every Q",
-            "control_regularization": "added to the diagonal of every R^ii",
+            "control_regularization": ("added to the diagonal of every R^ii (with adaptive_regularization: "
+                                       "its start and floor after a reversal)"),
+            "adaptive_regularization": ("ilqgame-ol and ilqr only: shrink control_regularization while the "
+                                        "iterates keep their direction, raise it when they reverse"),
+            "regularization_factor": "factor of each change of the adaptive regularization, > 1",
             "convexify": "auto, gauss_newton, eig, diag or none: how the cost Hessians are made convex",
         }
         weights = {"r_jx": "longitudinal jerk weight", "r_jy": "lateral jerk weight",
@@ -621,6 +628,8 @@ class RecedingHorizonAgent(BaseAgent):
 
 
 class _GameAgent(RecedingHorizonAgent):
+    planned_players = 2  # at least: every car of the race
+
     def _solve(self, game, x0, init):
         res = ilq.solve(
             game,
@@ -679,6 +688,7 @@ class ILQRAgent(RecedingHorizonAgent):
         prediction_models.check_prediction(prediction)  # when the agent is made, not at its reset
         prediction_models.check_levels(prediction, levels)
         super().__init__(**kwargs)
+        prediction_models.check_solver_options(prediction, max_iterations=self.max_iterations, **self.solver_options)
         self.prediction = prediction
         self.levels = int(levels)
 

@@ -161,6 +161,7 @@ __all__ = [
     "RUNNING",
     "SolverOptions",
     "SolverResult",
+    "check_adaptive_regularization",
     "nash_residual",
     "problem_from_race_game",
     "rollout",
@@ -433,7 +434,15 @@ class SolverOptions:
             ``"diag"`` (exact Hessians made diagonally dominant: more conservative),
             ``"none"`` (exact Hessians), or ``"auto"`` (the default): ``"gauss_newton"``
             where the problem has the hooks, else ``"eig"``.
-        control_regularization: ``lambda_u >= 0`` added to the diagonal of every ``R_t^{ii}``.
+        control_regularization: ``lambda_u >= 0`` added to the diagonal of every ``R_t^{ii}``
+            (a proximal term on the input change: it shortens the LQ step without moving an
+            open-loop fixed point).
+        adaptive_regularization: adapt ``lambda_u`` per iteration (Levenberg-Marquardt
+            style, open loop or one player only): divided by ``regularization_factor``
+            after a step that continues the recent direction of travel, raised to
+            ``max(factor * lambda_u, control_regularization)`` after one that reverses it.
+            Starts at ``control_regularization``, which must then be > 0.
+        regularization_factor: that factor, > 1.
     """
 
     mode: str = "feedback"
@@ -449,6 +458,8 @@ class SolverOptions:
     state_regularization: float = 0.0
     convexify: str = "auto"
     control_regularization: float = 0.0
+    adaptive_regularization: bool = False
+    regularization_factor: float = 1.5
 
     def __post_init__(self) -> None:
         if self.mode not in _MODES:
@@ -461,6 +472,11 @@ class SolverOptions:
             raise ValueError(
                 "step_control='residual' needs mode='open_loop' (of the agents, ilqgame-ol): it "
                 "decreases the open-loop Nash residual, which a feedback equilibrium does not zero"
+            )
+        if self.adaptive_regularization and not self.control_regularization > 0:
+            raise ValueError(
+                "adaptive_regularization needs control_regularization > 0 (the value it starts "
+                f"at and returns to after a reversing step), got {self.control_regularization!r}"
             )
         if self.convexify not in _CONVEXIFY:
             raise ValueError(f"convexify must be one of {_CONVEXIFY}, got {self.convexify!r}")
@@ -476,6 +492,7 @@ class SolverOptions:
             "damping_memory": 0 <= self.damping_memory < 1,
             "state_regularization": self.state_regularization >= 0,
             "control_regularization": self.control_regularization >= 0,
+            "regularization_factor": self.regularization_factor > 1,
         }
         allowed = {
             "tolerance": ">= 0 (0: run all max_iterations unless a step is exactly zero)",
@@ -485,6 +502,7 @@ class SolverOptions:
             "damping_memory": "in [0, 1)",
             "state_regularization": ">= 0",
             "control_regularization": ">= 0",
+            "regularization_factor": "> 1",
         }
         for name, ok in checks.items():
             value = getattr(self, name)
@@ -707,7 +725,10 @@ def _psd_part_sequential(Q: Array) -> Array:
 _psd_part = one_at_a_time(_psd_part_sequential)
 
 
-def _regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str) -> tuple[Array, Array]:
+def _regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str,
+                control_regularization: Array | float | None = None) -> tuple[Array, Array]:
+    """PSD ``Q`` per ``convexify`` and the diagonal terms; ``control_regularization`` is the
+    current ``lambda_u`` (the solver state's, adapted or not; default: the options')."""
     # Gauss-Newton Q is PSD by construction (and symmetrised by the LQ solvers).
     if convexify != "gauss_newton":
         Q = 0.5 * (Q + jnp.swapaxes(Q, -1, -2))
@@ -720,16 +741,19 @@ def _regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str) ->
     if options.state_regularization > 0:
         Q = Q + options.state_regularization * jnp.eye(Q.shape[-1], dtype=Q.dtype)
     if options.control_regularization > 0:
-        Rii = Rii + options.control_regularization * jnp.eye(Rii.shape[-1], dtype=Rii.dtype)
+        lam = options.control_regularization if control_regularization is None else control_regularization
+        Rii = Rii + lam * jnp.eye(Rii.shape[-1], dtype=Rii.dtype)
     return Q, Rii
 
 
-def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions):
-    """Linearise, quadratise and solve the local LQ game: ``K (T, N, m, n)``, ``k (T, N, m)``."""
+def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions,
+             control_regularization: Array | float | None = None):
+    """Linearise, quadratise and solve the local LQ game: ``K (T, N, m, n)``, ``k (T, N, m)``
+    (``control_regularization``: the current ``lambda_u``, see :func:`_regularize`)."""
     convexify = _convexify(problem, options)
     A, B = _linearize(problem, xs, us)
     Q, q, Rii, rii = _quadratize(problem, xs, us, convexify == "gauss_newton")
-    Q, Rii = _regularize(Q, Rii, options, convexify)
+    Q, Rii = _regularize(Q, Rii, options, convexify, control_regularization)
     if options.mode == "feedback" and convexify != "none":
         # Every Q^i is PSD: the own-input solver's block elimination is safe.
         K, k = lq_game.solve_feedback_own(A, B, Q, q, Rii, rii)
@@ -863,7 +887,8 @@ class _Carry(NamedTuple):
     k: Array
     eta: Array
     cap: Array  # eta tried first in the next iteration
-    last_step: Array  # xs change of the last accepted step, for oscillation detection
+    last_step: Array  # decaying sum of the accepted steps' directions (overshoot detection)
+    control_regularization: Array  # lambda_u of the next LQ game (adapted or constant)
     merit: Array  # the residual rule's squared Nash residual of (xs, us); nan for other rules
     status: Array
     history: Array
@@ -888,6 +913,7 @@ def _initial_carry(problem: GameProblem, x0: Array, us0: Array, options: SolverO
         eta=jnp.asarray(0.0, dtype),
         cap=jnp.asarray(options.initial_step, dtype),
         last_step=jnp.zeros_like(xs0),
+        control_regularization=jnp.asarray(options.control_regularization, dtype),
         merit=_merit(problem, x0, us0) if options.step_control == "residual" else jnp.asarray(jnp.nan, dtype),
         status=jnp.where(jnp.all(jnp.isfinite(xs0)), RUNNING, NON_FINITE),
         history=nan_hist,
@@ -899,8 +925,9 @@ def _initial_carry(problem: GameProblem, x0: Array, us0: Array, options: SolverO
 def _iterate(problem: GameProblem, c: _Carry, options: SolverOptions) -> _Carry:
     """One iteration: LQ game around ``(c.xs, c.us)``, step-size search, status update."""
     damping = options.step_control == "trust_region" and options.oscillation_damping
+    adaptive = options.adaptive_regularization
     dtype = c.xs.dtype
-    K, k = _lq_step(problem, c.xs, c.us, options)
+    K, k = _lq_step(problem, c.xs, c.us, options, c.control_regularization)
     lq_ok = jnp.all(jnp.isfinite(K)) & jnp.all(jnp.isfinite(k))
     xs, us, eta, dev, step_ok, merit = _step(problem, c.xs, c.us, K, k, c.cap, c.merit, options)
     ok = lq_ok & step_ok
@@ -909,17 +936,19 @@ def _iterate(problem: GameProblem, c: _Carry, options: SolverOptions) -> _Carry:
     # change is linear in eta to first order).
     measure = dev * (options.initial_step / eta)
     step = xs - c.xs
+    direction = c.last_step
+    if damping or adaptive:
+        # A step that reverses the recent direction of travel (negative inner product with
+        # a decaying sum of the previous unit steps) was too long for a contraction.
+        reversed_ = jnp.vdot(step, c.last_step) < 0
+        unit = step / jnp.maximum(jnp.sqrt(jnp.vdot(step, step)), 1e-300)
+        direction = options.damping_memory * c.last_step + unit
     if damping:
-        # Overshoot damping: a step that reverses the recent direction of travel
-        # (negative inner product with a decaying sum of the previous unit steps)
-        # means the last step was too long for a contraction: halve the next one.
+        # Overshoot damping: after a reversal the next search starts at eta * step_decay.
         # Otherwise the next search starts again at initial_step: a step cut short by
         # the trust region says nothing about the next one (typically a soft
         # constraint just became active and the next proposal is orders of magnitude
         # smaller), and a trial costs one rollout, a fraction of an LQ solve.
-        reversed_ = jnp.vdot(step, c.last_step) < 0
-        unit = step / jnp.maximum(jnp.sqrt(jnp.vdot(step, step)), 1e-300)
-        step = options.damping_memory * c.last_step + unit
         cap = jnp.where(
             reversed_,
             eta * options.step_decay,
@@ -927,6 +956,12 @@ def _iterate(problem: GameProblem, c: _Carry, options: SolverOptions) -> _Carry:
         )
     else:
         cap = jnp.asarray(options.initial_step, dtype)
+    lam = c.control_regularization
+    if adaptive:
+        # Levenberg-Marquardt: more damping of the LQ step after a reversal (the iterates
+        # cycle between active sets of the limit costs), less while they keep going.
+        factor = options.regularization_factor
+        lam = jnp.where(reversed_, jnp.maximum(lam * factor, options.control_regularization), lam / factor)
     status = jnp.where(
         ~lq_ok,
         NON_FINITE,
@@ -949,7 +984,8 @@ def _iterate(problem: GameProblem, c: _Carry, options: SolverOptions) -> _Carry:
         k=keep(k, c.k),
         eta=keep(eta, c.eta),
         cap=keep(cap, c.cap),
-        last_step=keep(step, c.last_step),
+        last_step=keep(direction, c.last_step),
+        control_regularization=keep(lam, c.control_regularization),
         merit=keep(merit, c.merit),
         status=status,
         history=c.history.at[c.it].set(jnp.where(ok, measure, jnp.nan)),
@@ -1071,6 +1107,22 @@ def validate_problem(problem_or_game, x0=None, us0=None, control_regularization:
 # --------------------------------------------------------------------------------------
 
 
+def check_adaptive_regularization(options: SolverOptions, num_players: int) -> None:
+    """Refuse ``adaptive_regularization`` for a feedback game of ``num_players > 1``.
+
+    ``lambda_u`` does not move an open-loop fixed point (``k = 0`` exactly where every
+    player's gradient vanishes) nor a one-player one, but a feedback game's fixed point
+    depends on the players' gains ``K``, which depend on ``R^{ii} + lambda_u I``: a
+    ``lambda_u`` that changes with every reversal moves the point the iterates converge to.
+    """
+    if options.adaptive_regularization and options.mode == "feedback" and num_players > 1:
+        raise ValueError(
+            "adaptive_regularization is for open-loop games and one-player problems (ilqgame-ol, "
+            "ilqr): in a feedback game the gains, and with them the equilibrium, depend on the "
+            "adapted control_regularization"
+        )
+
+
 def _make_options(options: SolverOptions | None, overrides: dict) -> SolverOptions:
     if options is None:
         options = SolverOptions()
@@ -1132,6 +1184,7 @@ def solve(
     options = _make_options(options, overrides)
     problem, is_game = _as_problem(problem_or_game)
     _convexify(problem, options)  # a clear error for an unusable convexification
+    check_adaptive_regularization(options, problem.num_players)
     x0 = _as_array(x0)
     if not jnp.issubdtype(x0.dtype, jnp.floating):
         x0 = x0.astype(jnp.result_type(float))
@@ -1211,6 +1264,7 @@ def solve_batch(
         raise ValueError(f"batching must be one of {_BATCHING}, got {batching!r}")
     options = _make_options(options, overrides)
     problem, is_game = _as_problem(problem_or_game)
+    check_adaptive_regularization(options, problem.num_players)
     x0s = jnp.asarray(x0s)
     if not jnp.issubdtype(x0s.dtype, jnp.floating):
         x0s = x0s.astype(jnp.result_type(float))

@@ -118,6 +118,15 @@ class PolicyRollout:
         return out
 
 
+def check_solver_options(prediction: str, **solver_options: Any) -> None:
+    """Refuse :class:`planners.ilq.SolverOptions` fields that the solves of a planned
+    ``prediction`` (``"ilqr"`` or a game) cannot take, in the mode they use; other
+    predictions solve nothing and take any."""
+    if prediction in _PLANNERS:
+        options = ilq.SolverOptions(**{**solver_options, "mode": _GAME_MODES.get(prediction, "feedback")})
+        ilq.check_adaptive_regularization(options, 2 if prediction in _GAME_MODES else 1)
+
+
 class PlannerPrediction:
     """Predicts the other cars by the plans a planner in their place would make.
 
@@ -151,8 +160,7 @@ class PlannerPrediction:
         if planner not in _PLANNERS:
             raise ValueError(f"planner must be one of {list(_PLANNERS)}, got {planner!r}")
         check_levels(planner, levels)
-        # refuse bad options now, in the mode the solves will use
-        ilq.SolverOptions(**{**solver_options, "mode": _GAME_MODES.get(planner, "feedback")})
+        check_solver_options(planner, **solver_options)  # now, not at the first solve
         self.planner = planner
         self.ego = int(ego)
         self.levels = int(levels)

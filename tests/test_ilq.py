@@ -281,6 +281,55 @@ def test_residual_step_control_converges_where_the_trust_region_cycles():
     assert np.all(np.asarray(ilq.nash_residual(game, X0, residual.us)) <= 1e-4 * zero)
 
 
+ADAPTIVE = dict(control_regularization=0.3, adaptive_regularization=True, regularization_factor=1.5)
+
+
+def test_adaptive_regularization_converges_where_the_trust_region_cycles():
+    game = paper_game(CostWeights(r_jx=0.01, r_jy=0.01))  # the tournaments' jerk weight
+    trust_region = ilq.solve(game, X0, mode="open_loop")
+    adaptive = ilq.solve(game, X0, mode="open_loop", **ADAPTIVE)
+    assert int(trust_region.status) == ilq.MAX_ITERATIONS
+    assert bool(adaptive.converged), ilq.status_message(adaptive.status)
+    zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
+    assert np.all(np.asarray(ilq.nash_residual(game, X0, adaptive.us)) <= 1e-4 * zero)
+
+
+def test_adaptive_regularization_follows_its_rule_and_keeps_the_equilibrium(game, open_loop):
+    """lambda_u is divided by the factor after every step that keeps the direction of travel
+    and raised to max(factor lambda_u, its start) after a reversal; it shortens steps but
+    does not move the open-loop fixed point."""
+    options = ilq.SolverOptions(mode="open_loop", **ADAPTIVE)
+    problem, _ = ilq._as_problem(game)
+    iterate = jax.jit(lambda c: ilq._iterate(problem, c, options))
+    c = ilq._initial_carry(problem, jnp.asarray(X0).reshape(-1), jnp.zeros((50, 2, 2)), options)
+    lams, direction = [float(c.control_regularization)], np.zeros(c.xs.size)
+    reversals = []
+    while int(c.status) == ilq.RUNNING:
+        xs_before = np.asarray(c.xs).ravel()
+        c = iterate(c)
+        step = np.asarray(c.xs).ravel() - xs_before
+        reversals.append(float(step @ direction) < 0)
+        direction = 0.8 * direction + step / np.linalg.norm(step)  # damping_memory = 0.8
+        lams.append(float(c.control_regularization))
+    assert int(c.status) == ilq.CONVERGED
+    lams, reversals = np.array(lams), np.array(reversals)
+    expected = np.where(reversals, np.maximum(1.5 * lams[:-1], 0.3), lams[:-1] / 1.5)
+    np.testing.assert_allclose(lams[1:], expected, rtol=1e-12)
+    assert reversals.any() and not reversals.all()  # both branches were taken
+    # the same open-loop equilibrium as the unregularised solve (both stop at full steps
+    # of at most 1e-6)
+    np.testing.assert_allclose(np.asarray(c.xs).reshape(open_loop.xs.shape), np.asarray(open_loop.xs), atol=1e-5)
+
+
+def test_adaptive_regularization_is_refused_where_it_would_move_the_equilibrium(game):
+    with pytest.raises(ValueError, match="open-loop games and one-player problems"):
+        ilq.solve(game, X0, mode="feedback", **ADAPTIVE)
+    with pytest.raises(ValueError, match="needs control_regularization > 0"):
+        ilq.SolverOptions(mode="open_loop", adaptive_regularization=True)
+    with pytest.raises(ValueError, match="regularization_factor must be > 1"):
+        ilq.SolverOptions(regularization_factor=1.0)
+
+
 def test_residual_step_control_is_refused_for_feedback(game):
     with pytest.raises(ValueError, match="needs mode='open_loop'"):
         ilq.SolverOptions(step_control="residual")
@@ -302,6 +351,10 @@ def test_ilqr_ego_swerves_right_of_the_predicted_opponent(game):
     ego = ego_problem(game, X0, 0)
     grad = jax.jit(jax.grad(lambda u: ilq.total_costs(ego, ilq.rollout(ego, X0[0], u), u)[0]))
     assert float(jnp.linalg.norm(grad(res.plan.us))) < 1e-6
+    # One player: an adaptive lambda_u does not move the fixed point either.
+    adaptive = solve_ilqr(game, X0, ego=0, **ADAPTIVE)
+    assert bool(adaptive.converged), ilq.status_message(adaptive.status)
+    assert float(jnp.linalg.norm(grad(adaptive.plan.us))) < 1e-6
 
 
 def _assert_same_solution(batch, b, single):
