@@ -17,6 +17,8 @@ from typing import Any, Callable, Iterator, NamedTuple
 
 import numpy as np
 
+from experiments.jsonl import replace_atomically
+
 
 def _median_rate(run: Callable[[], int], repeats: int) -> tuple[float, list[float]]:
     rates = []
@@ -703,14 +705,6 @@ def _verdict_text(row: dict[str, Any], verdict: tuple[str, bool], missed: str = 
         text += (f" (the target needs {row['gflop_per_s_at_target']:.3g} GFLOP/s,"
                  f" {row['dgemm_share_at_target']:.0%} of dgemm)")
     return text
-
-
-def replace_atomically(write: Callable[[Path], Any], path: Path) -> None:
-    """``write(partial)`` to ``path`` + ``.partial``, then rename it onto ``path``, so a
-    reader (or an interrupted run) never finds a half-written file: the old one stays."""
-    partial = path.with_name(path.name + ".partial")
-    write(partial)
-    partial.replace(path)
 
 
 def write_json_atomically(report: dict[str, Any], path: Path) -> None:

@@ -16,7 +16,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if args.scripted:
         from experiments.demo import run_demo
 
-        run_demo(Path(args.out), track=args.track, laps=args.laps, seed=args.seed)
+        run_demo(Path(args.out), track=args.track, laps=args.laps, race_distance=args.race_distance, seed=args.seed)
         return 0
     from experiments.tournament import TournamentConfig, run_tournament
 
@@ -197,7 +197,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--out", default="runs/demo", help="output folder (default: runs/demo)")
     demo.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps (default: a lap)")
-    demo.add_argument("--scripted", action="store_true", help="race two scripted cars (lap race, GIF + trajectory plot)")
+    demo.add_argument("--scripted", action="store_true",
+                      help="race two scripted cars (--laps or --race-distance; GIF + trajectory plot)")
     demo.add_argument("--track", default="trefoil", help="built-in track name or TUMFTM CSV path (default: trefoil)")
     demo.add_argument("--laps", type=int, default=1, help="race length in laps (default: 1)")
     demo.add_argument("--seed", type=int, default=0, help="start-grid seed (default: 0)")
@@ -397,8 +398,12 @@ def main(argv: list[str] | None = None) -> int:
 
             enable_compile_cache()
         return args.func(args)
-    except (ValueError, KeyError, FileNotFoundError) as err:
+    except (ValueError, KeyError) as err:
         print(f"racing {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # a missing file, a folder given as a file, --out naming a file, ...
+        where = f"{err.filename}: " if err.filename is not None else ""
+        print(f"racing {args.command}: error: {where}{err.strerror or err}", file=sys.stderr)
         return 2
 
 

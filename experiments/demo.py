@@ -15,20 +15,25 @@ from racing_env.config import RaceConfig
 from racing_env.render import plot_race, save_gif
 
 
-def run_demo(out: Path, track: str = "trefoil", laps: int = 1, seed: int = 0, gif_every: int = 4) -> dict:
-    """Race a lane-keeping car (v_max) against a 20 m/s cruiser; write GIF, plot and JSON."""
+def run_demo(out: Path, track: str = "trefoil", laps: int = 1, seed: int = 0, gif_every: int = 4,
+             race_distance: float | None = None) -> dict:
+    """Race a lane-keeping car (v_max) against a 20 m/s cruiser over ``laps``, or
+    ``race_distance`` [m] when given; write GIF, plot and JSON."""
     console = Console()
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed (--seed) must be an integer >= 0, got {seed!r}")
+    config = RaceConfig(track=track, num_agents=2, scenario="grid", laps=laps, race_distance=race_distance,
+                        render_mode="rgb_array", render_size=480)  # checks the race before out is made
     out.mkdir(parents=True, exist_ok=True)
-    env = RacingParallelEnv(
-        RaceConfig(track=track, num_agents=2, scenario="grid", laps=laps, render_mode="rgb_array", render_size=480)
-    )
+    env = RacingParallelEnv(config)
     vehicles = [env.game.vehicles.car(i) for i in range(2)]
     policies = [
         LaneKeeping(env.track, 0, vehicles[0], target_n=1.0),
         ConstantSpeed(env.track, 1, vehicles[1], target_speed=20.0),
     ]
     names = ["lane-keeping", "constant-speed 20 m/s"]
-    console.print(f"[bold]racing demo[/]: {names[0]} vs {names[1]} on {env.track!r}, {laps} lap(s)")
+    length = f"{laps} lap(s)" if race_distance is None else f"{race_distance:g} m"
+    console.print(f"[bold]racing demo[/]: {names[0]} vs {names[1]} on {env.track!r}, {length}")
     record = run_race(env, policies, seed=seed, render_every=gif_every, progress=True)
     table = Table(title=f"result ({record.steps} steps of {env.config.dt} s)")
     for column in ("pos", "car", "driver", "finish [s]", "mean speed [m/s]", "contact steps", "off track [s]"):
@@ -43,7 +48,8 @@ def run_demo(out: Path, track: str = "trefoil", laps: int = 1, seed: int = 0, gi
     gif = save_gif(record.frames, out / "race.gif", fps=10.0 / gif_every)
     plot = out / "trajectories.png"
     plot_race(env.track, record.xs, labels=[f"car_{i} ({n})" for i, n in enumerate(names)], title="racing demo", path=plot)
-    result = {"track": env.track.name, "drivers": names, "summary": record.summary, "steps": record.steps}
+    result = {"track": env.track.name, "laps": laps, "race_distance": race_distance, "drivers": names,
+              "summary": record.summary, "steps": record.steps}
     (out / "result.json").write_text(json.dumps(result, indent=2))
     console.print(f"wrote {gif}, {plot} and {out / 'result.json'}")
     return result

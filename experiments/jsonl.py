@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 
 def read_jsonl(path: Path) -> list[dict[str, Any]]:
@@ -32,7 +32,17 @@ def drop_cut_line(path: Path) -> None:
         return
     data = path.read_bytes()
     if data and not data.endswith(b"\n"):
-        path.write_bytes(data[: data.rfind(b"\n") + 1])
+        # not in place: a kill while rewriting would truncate the records before the cut line
+        replace_atomically(lambda partial: partial.write_bytes(data[: data.rfind(b"\n") + 1]), path)
+
+
+def replace_atomically(write: Callable[[Path], Any], path: Path) -> None:
+    """``write(partial)`` to ``path`` + ``.partial`` in the same folder, then rename it onto
+    ``path``, so a reader (or an interrupted run) never finds a half-written file: the old
+    one stays."""
+    partial = path.with_name(path.name + ".partial")
+    write(partial)
+    partial.replace(path)
 
 
 def append_jsonl(path: Path, record: dict[str, Any]) -> None:
@@ -42,21 +52,25 @@ def append_jsonl(path: Path, record: dict[str, Any]) -> None:
 
 
 def open_run_log(out: Path, log: str, settings_file: str, settings_json: str, fresh: bool,
-                 what: str) -> dict[str, dict[str, Any]]:
+                 what: str, outputs: tuple[str, ...] = ()) -> dict[str, dict[str, Any]]:
     """Prepare ``out`` for a resumable run that appends its records (each with an ``id``)
     to ``out/log``, and return the records already there by id.
 
-    ``fresh`` discards them. Otherwise a log written under other settings (``settings_file``
-    holds those of the last run) is refused: its records would mix two ``what``s. A line
-    cut by an interruption is dropped, so the next record starts on a line of its own.
+    ``fresh`` discards them, and the files in ``out`` named in ``outputs`` (drawn from
+    earlier records, e.g. a GIF, which would otherwise outlive them). Otherwise a log
+    written under other settings (``settings_file`` holds those of the last run) is
+    refused: its records would mix two ``what``s. A line cut by an interruption is
+    dropped, so the next record starts on a line of its own. The settings file is replaced,
+    never rewritten in place, so a kill leaves the old or the new one whole.
     """
     out.mkdir(parents=True, exist_ok=True)
     settings = out / settings_file
     if fresh:
-        (out / log).unlink(missing_ok=True)
+        for name in (log, *outputs):
+            (out / name).unlink(missing_ok=True)
     elif settings.exists() and settings.read_text() != settings_json and (out / log).exists():
         raise ValueError(f"{out} holds results of a different {what}; use another --out folder or --fresh "
                          "to start over")
-    settings.write_text(settings_json)
+    replace_atomically(lambda partial: partial.write_text(settings_json), settings)
     drop_cut_line(out / log)
     return {record["id"]: record for record in read_jsonl(out / log)}

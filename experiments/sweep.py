@@ -57,6 +57,7 @@ else:  # pragma: no cover - Python 3.10
 RESULTS = "results.jsonl"
 CONFIG = "sweep.json"
 RACE_PARAMETERS = ("track", "laps", "race_distance", "max_steps", "jerk_weight")
+NUMBER_PARAMETERS = ("laps", "race_distance", "max_steps", "jerk_weight")
 WEIGHT_FIELDS = tuple(f.name for f in dataclasses.fields(CostWeights))
 VEHICLE_FIELDS = tuple(f.name for f in dataclasses.fields(VehicleParams))
 CAR_FIELDS = WEIGHT_FIELDS + VEHICLE_FIELDS  # what ``weights.``/``vehicles.`` and ``agent<i>.`` set on a car
@@ -91,14 +92,30 @@ class SweepConfig:
     def __post_init__(self) -> None:
         if len(self.lineup) < 2:
             raise ValueError(f"a lineup needs at least 2 agent specs, got {list(self.lineup)}")
-        if not isinstance(self.grids, int) or self.grids < 1:
+        if not _is_int(self.grids) or self.grids < 1:
             raise ValueError(f"grids must be an integer >= 1, got {self.grids!r}")
+        if not _is_int(self.seed) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        budget = self.step_budget_s
+        if budget is not None and (not _is_number(budget) or not budget > 0):
+            # a budget of 0 s would fault both cars at their second action
+            raise ValueError(f"step_budget_s must be a number of seconds > 0 (or left out: no budget), "
+                             f"got {budget!r}")
         if not self.parameters:
             raise ValueError("a sweep needs a [parameters] table with at least one parameter")
         for name, values in self.parameters:
             check_parameter_name(name, self.lineup)
             if not isinstance(values, tuple) or not values:
                 raise ValueError(f"parameter {name} needs a non-empty list of values, got {values!r}")
+            if name in NUMBER_PARAMETERS or name.partition(".")[2] in CAR_FIELDS:
+                _check_numbers(name, values)
+        _check_numbers("jerk_weight", (self.jerk_weight,))
+        if self.race_distance is not None:
+            _check_numbers("race_distance", (self.race_distance,))
+        tracks = [self.track, *dict(self.parameters).get("track", ())]
+        bad = [track for track in tracks if not isinstance(track, str)]  # a Path would not go into sweep.json
+        if bad:
+            raise ValueError(f"track values must be strings, built-in track names or TUMFTM CSV paths, got {bad[0]!r}")
         from planners.agents import check_specs
 
         for point in self.points():  # every value is checked where it is used, before any race
@@ -144,6 +161,22 @@ class SweepConfig:
                           vehicles=vehicles if any_car else None)  # None: the scenario's cars, as before
 
 
+def _check_numbers(name: str, values: tuple[Any, ...]) -> None:
+    """Refuse a value that is not a number (the race's own checks compare, and a string
+    there is a TypeError or, in a weight, a crash at the first race)."""
+    for value in values:
+        if not _is_number(value):
+            raise ValueError(f"{name} must be a number, got {value!r}")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
+
+
 def _spec_option_types(spec: str) -> dict[str, type]:
     """The options (other than the car's cost weights) a sweep may set on an agent spec."""
     from planners.agent_specs import split_spec
@@ -160,12 +193,17 @@ def check_parameter_name(name: str, lineup: tuple[str, ...]) -> None:
     """Refuse a parameter the sweep does not know, saying which it does."""
     cars = len(lineup)
     head, _, field = name.partition(".")
-    known_agent = head.startswith("agent") and head[5:].isdigit() and int(head[5:]) < cars
+    index = head[5:]
+    if head.startswith("agent") and index.isdigit() and head != f"agent{int(index)}":
+        # only agent<i>. is applied to agent i: agent01. would be accepted and then never set
+        raise ValueError(f"sweep parameter {name!r}: write the agent index without leading zeros, "
+                         f"agent{int(index)}.{field}")
+    known_agent = head.startswith("agent") and index.isdigit() and int(index) < cars
     if name in RACE_PARAMETERS or ((head == "weights" or known_agent) and field in WEIGHT_FIELDS):
         return
     if (head == "vehicles" or known_agent) and field in VEHICLE_FIELDS:
         return
-    if known_agent and field in _spec_option_types(lineup[int(head[5:])]):
+    if known_agent and field in _spec_option_types(lineup[int(index)]):
         return
     raise ValueError(f"unknown sweep parameter {name!r}; use one of {list(RACE_PARAMETERS)}, "
                      f"weights.<weight>, vehicles.<car> or agent<i>.<weight|car|option> (i < {cars}) with <weight> "
@@ -190,8 +228,21 @@ def load_sweep(path: Path) -> SweepConfig:
     table = data.get("parameters", {})
     if not isinstance(table, dict):
         raise ValueError(f"{path}: parameters must be a table ([parameters]), got {table!r}")
-    parameters = tuple((name, tuple(v) if isinstance(v, list) else v) for name, v in table.items())
+    parameters = tuple((name, tuple(v) if isinstance(v, list) else v) for name, v in _flatten(path, table).items())
     return SweepConfig(**{**data, "lineup": tuple(data["lineup"]), "parameters": parameters})
+
+
+def _flatten(path: Path, table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Parameters by dotted name: an unquoted dotted key (``agent0.c_gap = [...]``) is a
+    nested table in TOML, the same parameter as the quoted ``"agent0.c_gap"``."""
+    flat: dict[str, Any] = {}
+    for key, value in table.items():
+        name = f"{prefix}{key}"
+        for inner, values in (_flatten(path, value, f"{name}.") if isinstance(value, dict) else {name: value}).items():
+            if inner in flat:
+                raise ValueError(f"{path}: parameter {inner!r} is given twice (quoted and unquoted)")
+            flat[inner] = values
+    return flat
 
 
 def schedule(config: SweepConfig) -> list[dict[str, Any]]:

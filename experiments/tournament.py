@@ -32,6 +32,7 @@ from racing_env.env import RacingParallelEnv
 
 RESULTS = "results.jsonl"
 CONFIG = "tournament.json"
+GIF = "race.gif"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,18 +63,33 @@ class TournamentConfig:
     def __post_init__(self) -> None:
         if len(self.agents) < 2:
             raise ValueError(f"a tournament needs at least 2 agent specs, got {list(self.agents)}")
-        if len(set(self.agents)) != len(self.agents):
-            raise ValueError(f"agent specs must be distinct, got {list(self.agents)}")
+        if len({normal_spec(spec) for spec in self.agents}) != len(self.agents):
+            raise ValueError(f"agent specs must be distinct (names ignore case, options their order), "
+                             f"got {list(self.agents)}")
         if not 2 <= self.cars <= len(self.agents):
             raise ValueError(f"cars per race must be in [2, {len(self.agents)}], got {self.cars}")
         if self.grids < 1:
             raise ValueError(f"grids must be >= 1, got {self.grids}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise ValueError(f"seed (--seed) must be an integer >= 0, got {self.seed!r}")
         if not self.jerk_weight > 0:
             raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight}")
         if self.versus is not None and self.versus not in self.agents:
             raise ValueError(f"versus must be one of the agents {list(self.agents)}, got {self.versus!r}")
         if not self.step_budget_s > 0:
             raise ValueError(f"step_budget_s must be > 0 seconds, got {self.step_budget_s}")
+
+
+def normal_spec(spec: str) -> tuple[str, frozenset[tuple[str, str]]]:
+    """What makes two agent specs the same agent: the name (any case) and the options in any
+    order; the path of an ``rl:`` spec is kept as written."""
+    from planners.agent_specs import split_spec
+
+    head, sep, rest = spec.strip().partition(":")
+    if head.strip().lower() == "rl":
+        return f"rl:{rest.strip()}", frozenset()
+    name, options = split_spec(spec)
+    return name, frozenset(options.items())
 
 
 def schedule(config: TournamentConfig) -> list[dict[str, Any]]:
@@ -306,17 +322,19 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     check_backend(backend, workers)
     check_specs(config.agents)
     done = open_run_log(out, RESULTS, CONFIG, json.dumps(dataclasses.asdict(config), sort_keys=True), fresh,
-                        "tournament configuration")
+                        "tournament configuration", outputs=(GIF,))
     races = schedule(config)
     todo = [r for r in races if r["id"] not in done]
     if done:
         console.print(f"resuming: {len(done)} of {len(races)} races already in {out / RESULTS}")
     with tqdm(total=len(todo), desc="tournament", disable=not progress) as bar:
-        if todo and gif and not (out / "race.gif").exists():
+        # with no race recorded a GIF here is not this run's (e.g. results.jsonl deleted by hand): draw it
+        # again; a resumed run keeps the GIF of its first race
+        if todo and gif and (not done or not (out / GIF).exists()):
             record, frames = run_one_race(config, todo[0], render_every=3)
             append_jsonl(out / RESULTS, record)
             done[record["id"]] = record
-            save_gif(frames, out / "race.gif", fps=10.0 / 3)
+            save_gif(frames, out / GIF, fps=10.0 / 3)
             todo = todo[1:]
             bar.update(1)
         records = run_jobs(functools.partial(_race_record, config), todo, backend, workers, address)
@@ -351,5 +369,5 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
                       "-" if row["converged_fraction"] is None else f"{row['converged_fraction']:.0%}")
     console.print(table)
     console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'head_to_head.png'}"
-                  + (f", {out / 'race.gif'}" if (out / 'race.gif').exists() else ""))
+                  + (f", {out / GIF}" if (out / GIF).exists() else ""))
     return board

@@ -130,6 +130,8 @@ class TrainConfig:
             raise ValueError(f"algo must be one of {SB3_ALGOS}, got {self.algo!r}")
         if not isinstance(self.pool_cars, (int, np.integer)) or self.pool_cars < 2:
             raise ValueError(f"pool_cars must be an integer >= 2, got {self.pool_cars!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise ValueError(f"seed (--seed) must be an integer >= 0, got {self.seed!r}")
         for name in ("timesteps", "envs", "eval_grids"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
@@ -476,7 +478,11 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
             return algo("MlpPolicy", VecNormalize(venv) if config.normalize else venv, seed=config.seed,
                         device="cpu", verbose=0, **hyperparameters)
         except (TypeError, ValueError, AssertionError) as err:
-            raise ValueError(f"{config.algo} refused the hyperparameters {hyperparameters}: {err}") from err
+            if not hyperparameters and isinstance(err, TypeError):
+                raise  # not a setting of the user's: a bug, keep its traceback
+            # an error here need not be the hyperparameters' (e.g. one about the env): name them, not blame them
+            given = f" (hyperparameters {hyperparameters})" if hyperparameters else ""
+            raise ValueError(f"{config.algo} refused the model settings{given}: {type(err).__name__}: {err}") from err
     stats = vecnormalize_path(config.init_model)
     if config.normalize != stats.exists():
         raise ValueError(f"init_model {config.init_model} was trained {'with' if stats.exists() else 'without'} "

@@ -32,6 +32,32 @@ def test_demo_writes_gif_plot_and_result(tmp_path):
     assert all(row["finished"] for row in result["summary"])
 
 
+def test_scripted_demo_races_the_race_distance(tmp_path, capsys):
+    """--race-distance sets the finish line of the scripted demo too (it was ignored: a 300 m lap)."""
+    assert main(["demo", "--scripted", "--out", str(tmp_path), "--track", "straight", "--race-distance", "50"]) == 0
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert result["race_distance"] == 50.0
+    assert all(row["finished"] and row["distance"] < 60.0 for row in result["summary"])
+    assert "50 m" in capsys.readouterr().out
+    assert main(["demo", "--scripted", "--out", str(tmp_path / "x"), "--seed", "-1"]) == 2
+    assert "seed (--seed) must be an integer >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_folder_for_a_file_or_a_file_for_a_folder_is_a_one_line_error(tmp_path, capsys):
+    """OSErrors (here IsADirectoryError, FileExistsError) exit with status 2, not a traceback."""
+    assert main(["sweep", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("racing sweep: error: ") and str(tmp_path) in err and len(err.splitlines()) == 1
+    (tmp_path / "afile").write_text("")
+    assert main(["tournament", "--agents", "lane-keeping", "constant-speed", "--out", str(tmp_path / "afile")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("racing tournament: error: ") and "afile" in err and len(err.splitlines()) == 1
+    assert main(["tournament", "--agents", "lane-keeping", "constant-speed",
+                 "--out", str(tmp_path / "afile" / "sub")]) == 2
+    assert "afile" in capsys.readouterr().err
+
+
 def test_tournament_cli_runs_and_resumes(tmp_path, capsys):
     """`racing tournament` with scripted agents writes its outputs; a rerun resumes."""
     args = ["tournament", "--agents", "lane-keeping", "constant-speed", "--track", "straight",

@@ -196,12 +196,39 @@ def test_summary_of_hand_made_records():
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent0.c_collision" = [-1.0]', "c_collision"),
     ('lineup = ["lane-keeping"]\n[parameters]\nlaps = [1]', "at least 2 agent specs"),
     ('lineup = ["lane-keeping", "constant-speed"\n', "not valid TOML"),
+    # only agent<i>. is applied to agent i: agent01. would be accepted and never set
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent01.c_gap" = [1.0]', "agent1.c_gap"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent00.target_n" = [1.0]', "agent0.target_n"),
+    ('lineup = ["lane-keeping", "constant-speed"]\nseed = "abc"\n[parameters]\nlaps = [1]', "seed must be an integer >= 0"),
+    ('lineup = ["lane-keeping", "constant-speed"]\nseed = -3\n[parameters]\nlaps = [1]', "seed must be an integer >= 0"),
+    ('lineup = ["lane-keeping", "constant-speed"]\nstep_budget_s = -1.0\n[parameters]\nlaps = [1]', "step_budget_s must"),
+    ('lineup = ["lane-keeping", "constant-speed"]\nstep_budget_s = 0.0\n[parameters]\nlaps = [1]', "step_budget_s must"),
+    ('lineup = ["lane-keeping", "constant-speed"]\nstep_budget_s = "1"\n[parameters]\nlaps = [1]', "step_budget_s must"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\ntrack = ["straight", 5]', "track values"),
+    ('lineup = ["lane-keeping", "constant-speed"]\ntrack = 5\n[parameters]\nlaps = [1]', "track values"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\njerk_weight = ["x"]', "jerk_weight must be a number"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nrace_distance = ["x"]', "race_distance must be a number"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"weights.c_gap" = ["x"]', "weights.c_gap must be"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent1.v_max" = [true]', "agent1.v_max must be"),
+    ('lineup = ["lane-keeping", "constant-speed"]\njerk_weight = "x"\n[parameters]\nlaps = [1]', "jerk_weight must be"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent0.c_gap" = [1.0]\nagent0.c_gap = [2.0]',
+     "'agent0.c_gap' is given twice"),
 ])
 def test_bad_sweep_files_are_refused(tmp_path, text, message):
     path = tmp_path / "bad.toml"
     path.write_text(text)
     with pytest.raises(ValueError, match=message):
         load_sweep(path)
+
+
+def test_dotted_keys_need_no_quotes(tmp_path):
+    """An unquoted dotted key is a nested table in TOML; it names the same parameter as the quoted key."""
+    head = 'lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n'
+    quoted, dotted = tmp_path / "quoted.toml", tmp_path / "dotted.toml"
+    quoted.write_text(head + '"agent0.target_speed" = [20.0, 25.0]\n"weights.c_gap" = [1.0]\nlaps = [1]')
+    dotted.write_text(head + 'agent0.target_speed = [20.0, 25.0]\nweights = {c_gap = [1.0]}\nlaps = [1]')
+    assert load_sweep(dotted) == load_sweep(quoted)
+    assert load_sweep(dotted).lineup_specs({"agent0.target_speed": 25.0})[0] == "lane-keeping:target_speed=25.0"
 
 
 def test_bad_command_lines_fail_before_any_race(tmp_path, capsys):

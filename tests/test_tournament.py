@@ -104,6 +104,53 @@ def test_bad_configurations_are_refused():
         tour.TournamentConfig(agents=("a", "a"))
     with pytest.raises(ValueError, match="step_budget_s"):
         tour.TournamentConfig(agents=("a", "b"), step_budget_s=0)
+    with pytest.raises(ValueError, match=r"seed \(--seed\) must be an integer >= 0, got -1"):
+        tour.TournamentConfig(agents=("a", "b"), seed=-1)
+
+
+@pytest.mark.parametrize("agents", [("ilqr", "ILQR"), (" ilqr", "ilqr"), ("ilqr:a=1,b=2", "iLQR:b=2, a=1")])
+def test_specs_naming_the_same_agent_are_not_distinct(agents):
+    """Names are matched in any case, options in any order: these would race an agent against itself."""
+    with pytest.raises(ValueError, match="distinct"):
+        tour.TournamentConfig(agents=agents)
+
+
+def test_specs_of_different_agents_are_distinct():
+    tour.TournamentConfig(agents=("ilqr", "ilqr:max_iterations=5", "rl:Model.zip", "rl:model.zip"))
+
+
+def test_negative_seed_fails_before_the_output_folder_is_written(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["tournament", "--agents", "lane-keeping", "constant-speed", "--seed", "-1", "--out", str(out)]) == 2
+    assert "seed (--seed) must be an integer >= 0" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_fresh_replaces_the_gif_and_a_resumed_run_keeps_it(tmp_path):
+    """The GIF shows the first race of the results it sits with: --fresh draws it again (or,
+    with --no-gif, deletes the old one), a resumed run keeps it."""
+    config = tour.TournamentConfig(agents=("lane-keeping", "constant-speed"), track="straight",
+                                   race_distance=100.0, grids=1, max_steps=300)
+    gif, results = tmp_path / "race.gif", tmp_path / tour.RESULTS
+
+    def run(**kwargs):
+        tour.run_tournament(config, tmp_path, progress=False, **kwargs)
+
+    run()
+    assert gif.read_bytes().startswith(b"GIF")
+    gif.write_bytes(b"stale")
+    results.write_text(results.read_text().splitlines()[0] + "\n")  # the second race is run again
+    run()
+    assert gif.read_bytes() == b"stale"  # its first race was recorded: the GIF is that race's
+    run(fresh=True)
+    assert gif.read_bytes().startswith(b"GIF")
+    gif.write_bytes(b"stale")
+    results.unlink()  # results deleted by hand: the GIF is not of the races recorded next
+    run()
+    assert gif.read_bytes().startswith(b"GIF")
+    gif.write_bytes(b"stale")
+    run(fresh=True, gif=False)
+    assert not gif.exists()
 
 
 def test_raising_and_slow_agents_lose_and_the_tournament_completes(tmp_path, extra_specs):

@@ -130,6 +130,7 @@ def test_interrupted_training_process_resumes(tmp_path, subprocesses):
     (dict(laps=0), "laps"),
     (dict(hyperparameters=(("nsteps", 64),)), "no hyperparameter 'nsteps'"),
     (dict(pool=True, pool_cars=1), "pool_cars"),
+    (dict(seed=-1), r"seed \(--seed\) must be an integer >= 0"),
 ])
 def test_bad_settings_are_refused(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -141,7 +142,8 @@ def test_bad_command_lines_fail_before_training(tmp_path, capsys):
         (["--opponents", "wizard"], "unknown agent spec 'wizard'"),
         (["--opponents", f"rl:{tmp_path / 'missing.zip'}"], "could not load"),
         (["--hyperparameter", "n_steps"], "NAME=VALUE"),
-        (["--hyperparameter", "n_steps=-4"], "refused the hyperparameters"),
+        (["--hyperparameter", "n_steps=-4"], "ppo refused the model settings (hyperparameters {'n_steps': -4, "),
+        (["--seed", "-1"], "seed (--seed) must be an integer >= 0, got -1"),
         (["--track", str(tmp_path / "nowhere.csv")], "nowhere.csv"),
     ]
     for extra, message in cases:
@@ -149,6 +151,22 @@ def test_bad_command_lines_fail_before_training(tmp_path, capsys):
         assert main([*TINY_ARGS, "--timesteps", "512", "--out", str(out), *extra]) == 2, extra
         assert message in capsys.readouterr().err, extra
         assert not (out / "checkpoints").exists()
+
+
+def test_a_refused_model_without_hyperparameters_does_not_blame_them(tmp_path, monkeypatch):
+    """An error building the model names the hyperparameters only if some were given, and keeps its own message."""
+    import stable_baselines3
+
+    def refuse(*args, **kwargs):
+        raise ValueError("the env's observations are not a Box")
+
+    plain, tuned = TrainConfig(**{**TINY, "hyperparameters": ()}), TrainConfig(**TINY)
+    monkeypatch.setattr(stable_baselines3, "PPO", refuse)
+    with pytest.raises(ValueError) as info:
+        train_rl._build_model(plain, tmp_path, None)
+    assert str(info.value) == "ppo refused the model settings: ValueError: the env's observations are not a Box"
+    with pytest.raises(ValueError, match=r"model settings \(hyperparameters \{'n_steps': 256.*not a Box"):
+        train_rl._build_model(tuned, tmp_path, None)
 
 
 def test_training_against_a_pool_draws_both_drivers_and_evaluates_each(tmp_path):
