@@ -607,14 +607,21 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
             "same_iterations": all(np.array_equal(iterations["lockstep"], it) for it in iterations.values())}
 
 
+# The agents' adaptive control regularization as the README measures it (lambda_u from 0.3,
+# the default factor 1.5).
+_ADAPTIVE_REGULARIZATION = "control_regularization=0.3,adaptive_regularization=true"
+
+
 def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
     """Re-plan time of each game agent racing a copy of itself (warm start) on the trefoil,
     with the tournaments' jerk weight (``RACING_JERK_WEIGHT``); iLQR also with the
     lane-keeping, iLQR (one and two levels) and feedback-game predictions (its re-plan
     includes making the prediction: a rollout, one or three iLQR solves, a feedback game
-    solve).
+    solve); open-loop iLQGame also with the residual line search; both also with the
+    adaptive control regularization.
 
-    Car 0's solve times over ``steps`` steps, the first (compiling) solve excluded.
+    Car 0's solve times over ``steps`` steps, the first (compiling) solve excluded, and the
+    share of those re-plans that converged (``converged_share``).
     """
     from planners.agents import make_agent, reset_agents
     from racing_env import CostWeights, parallel_env
@@ -624,7 +631,9 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
              "ilqr_ilqr_prediction": "ilqr:prediction=ilqr",
              "ilqr_ilqr_level2_prediction": "ilqr:prediction=ilqr,levels=2",
              "ilqr_feedback_game_prediction": "ilqr:prediction=ilqgame-fb",
+             "ilqr_adaptive_regularization": f"ilqr:{_ADAPTIVE_REGULARIZATION}",
              "ilqgame-ol": "ilqgame-ol", "ilqgame-ol_residual": "ilqgame-ol:step_control=residual",
+             "ilqgame-ol_adaptive_regularization": f"ilqgame-ol:{_ADAPTIVE_REGULARIZATION}",
              "ilqgame-fb": "ilqgame-fb"}
     for name, spec in specs.items():
         env = parallel_env(track="trefoil", num_agents=2, max_steps=steps,
@@ -632,7 +641,7 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
         drivers = [make_agent(spec), make_agent(spec)]
         reset_agents(drivers, env, seed=0)
         observations, _ = env.reset(seed=0)
-        times, iterations, fallbacks = [], [], 0
+        times, iterations, converged, fallbacks = [], [], [], 0
         while env.agents:
             state = env.state()
             actions = {a: drivers[i].act(observations[a], state) for i, a in enumerate(env.possible_agents) if a in env.agents}
@@ -640,12 +649,14 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
             if record["solve_time"] is not None:
                 times.append(record["solve_time"])
                 iterations.append(record["iterations"])
+                converged.append(record["converged"])
             fallbacks += bool(record["fallback"])
             observations, *_ = env.step(actions)
         compile_s, runs = times[0], np.array(times[1:])
         yield {"name": f"{name}_replan", "ms_median": 1e3 * float(np.median(runs)),
                "ms_p95": 1e3 * float(np.percentile(runs, 95)), "compile_s": compile_s,
-               "iterations_median": float(np.median(iterations[1:])), "fallbacks": fallbacks,
+               "iterations_median": float(np.median(iterations[1:])),
+               "converged_share": float(np.mean(converged[1:])), "fallbacks": fallbacks,
                "target_ms_p95": 50.0 if spec == "ilqgame-fb" else None}
 
 

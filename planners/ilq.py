@@ -440,8 +440,9 @@ class SolverOptions:
         adaptive_regularization: adapt ``lambda_u`` per iteration (Levenberg-Marquardt
             style, open loop or one player only): divided by ``regularization_factor``
             after a step that continues the recent direction of travel, raised to
-            ``max(factor * lambda_u, control_regularization)`` after one that reverses it.
-            Starts at ``control_regularization``, which must then be > 0.
+            ``max(factor * lambda_u, control_regularization)`` after one that reverses it,
+            and 0 after a step within ``tolerance``: only an undamped step certifies
+            convergence. Starts at ``control_regularization``, which must then be > 0.
         regularization_factor: that factor, > 1.
     """
 
@@ -957,11 +958,18 @@ def _iterate(problem: GameProblem, c: _Carry, options: SolverOptions) -> _Carry:
     else:
         cap = jnp.asarray(options.initial_step, dtype)
     lam = c.control_regularization
+    small = measure <= options.tolerance
+    certifies = True
     if adaptive:
         # Levenberg-Marquardt: more damping of the LQ step after a reversal (the iterates
         # cycle between active sets of the limit costs), less while they keep going.
+        # A damped step is short because of lambda_u, not only because the iterate is near
+        # a fixed point: a step below the tolerance is checked by an undamped one, and only
+        # an undamped step certifies convergence (the test of the other rules).
         factor = options.regularization_factor
-        lam = jnp.where(reversed_, jnp.maximum(lam * factor, options.control_regularization), lam / factor)
+        lam = jnp.where(small, 0.0, jnp.where(reversed_, jnp.maximum(lam * factor, options.control_regularization),
+                                              lam / factor))
+        certifies = c.control_regularization == 0
     status = jnp.where(
         ~lq_ok,
         NON_FINITE,
@@ -969,7 +977,7 @@ def _iterate(problem: GameProblem, c: _Carry, options: SolverOptions) -> _Carry:
             ~step_ok,
             jnp.where(jnp.isfinite(dev), LINE_SEARCH_FAILED, NON_FINITE),
             jnp.where(
-                (measure <= options.tolerance) & (eta >= c.cap),
+                small & (eta >= c.cap) & certifies,
                 CONVERGED,
                 jnp.where(it >= options.max_iterations, MAX_ITERATIONS, RUNNING),
             ),

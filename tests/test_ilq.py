@@ -284,19 +284,25 @@ def test_residual_step_control_converges_where_the_trust_region_cycles():
 ADAPTIVE = dict(control_regularization=0.3, adaptive_regularization=True, regularization_factor=1.5)
 
 
-def test_adaptive_regularization_converges_where_the_trust_region_cycles():
+def test_adaptive_regularization_ends_near_the_equilibrium_where_the_trust_region_cycles():
     game = paper_game(CostWeights(r_jx=0.01, r_jy=0.01))  # the tournaments' jerk weight
     trust_region = ilq.solve(game, X0, mode="open_loop")
     adaptive = ilq.solve(game, X0, mode="open_loop", **ADAPTIVE)
-    assert int(trust_region.status) == ilq.MAX_ITERATIONS
-    assert bool(adaptive.converged), ilq.status_message(adaptive.status)
     zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
-    assert np.all(np.asarray(ilq.nash_residual(game, X0, adaptive.us)) <= 1e-4 * zero)
+    cycling = np.asarray(ilq.nash_residual(game, X0, trust_region.us))
+    near = np.asarray(ilq.nash_residual(game, X0, adaptive.us))
+    assert int(trust_region.status) == ilq.MAX_ITERATIONS
+    assert np.all(near <= 1e-4 * zero)
+    assert near.max() < 1e-3 * cycling.max()  # measured: 2.8e-7 against 0.085
+    # Not certified at the 1e-6 m tolerance: near the limits' kinks an undamped step
+    # still moves the states by about 1e-5 m (only undamped steps certify).
+    assert int(adaptive.status) == ilq.MAX_ITERATIONS
 
 
 def test_adaptive_regularization_follows_its_rule_and_keeps_the_equilibrium(game, open_loop):
-    """lambda_u is divided by the factor after every step that keeps the direction of travel
-    and raised to max(factor lambda_u, its start) after a reversal; it shortens steps but
+    """lambda_u is divided by the factor after every step that keeps the direction of travel,
+    raised to max(factor lambda_u, its start) after a reversal and set to 0 after a step
+    within the tolerance, which only an undamped step may certify; it shortens steps but
     does not move the open-loop fixed point."""
     options = ilq.SolverOptions(mode="open_loop", **ADAPTIVE)
     problem, _ = ilq._as_problem(game)
@@ -313,9 +319,11 @@ def test_adaptive_regularization_follows_its_rule_and_keeps_the_equilibrium(game
         lams.append(float(c.control_regularization))
     assert int(c.status) == ilq.CONVERGED
     lams, reversals = np.array(lams), np.array(reversals)
-    expected = np.where(reversals, np.maximum(1.5 * lams[:-1], 0.3), lams[:-1] / 1.5)
+    small = np.asarray(c.history)[: len(reversals)] <= options.tolerance
+    expected = np.where(small, 0.0, np.where(reversals, np.maximum(1.5 * lams[:-1], 0.3), lams[:-1] / 1.5))
     np.testing.assert_allclose(lams[1:], expected, rtol=1e-12)
     assert reversals.any() and not reversals.all()  # both branches were taken
+    assert lams[-2] == 0.0  # the certifying step was undamped
     # the same open-loop equilibrium as the unregularised solve (both stop at full steps
     # of at most 1e-6)
     np.testing.assert_allclose(np.asarray(c.xs).reshape(open_loop.xs.shape), np.asarray(open_loop.xs), atol=1e-5)
