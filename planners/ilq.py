@@ -54,7 +54,9 @@ Around the nominal trajectory ``(x_hat, u_hat)``:
      clipped at zero); ``"diag"`` makes it diagonally dominant instead; ``"none"`` keeps
      the exact Hessian;
 3. regularisation: ``Q_t^i += state_regularization * I`` and
-   ``R_t^{ii} += control_regularization * I``. Why convexify: the collision term makes the
+   ``R_t^{ii} += lambda_u * I``, ``lambda_u = control_regularization``, or adapted per
+   iteration with ``adaptive_regularization`` (open loop and one player only; see
+   :class:`SolverOptions` and :func:`check_adaptive_regularization`). Why convexify: the collision term makes the
    exact ``Q^i`` indefinite; with it, the local LQ "equilibria" are often saddle points of
    a player's local problem and the iteration wanders (observed on the paper's scenario).
    A PSD ``Q^i`` keeps every player's local problem convex, so each LQ solution is a
