@@ -243,7 +243,8 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
     tour.add_argument("--grids", type=int, default=2, help="seeded start grids per pairing (default: 2)")
     tour.add_argument("--versus", default=None, metavar="SPEC",
-                      help="race every other agent against this one only (a gauntlet), not a full round robin")
+                      help="race every other agent against this one only (a gauntlet), not a full round robin; "
+                           "one of --agents (name in any case, options in any order)")
     tour.add_argument("--cars", type=int, default=2, help="cars per race (default: 2)")
     tour.add_argument("--seed", type=int, default=0, help="tournament seed (default: 0)")
     tour.add_argument("--max-steps", type=int, default=3000, help="truncate races after this many steps")

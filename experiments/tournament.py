@@ -75,7 +75,11 @@ class TournamentConfig:
         if not self.jerk_weight > 0:
             raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight}")
         if self.versus is not None and self.versus not in self.agents:
-            raise ValueError(f"versus must be one of the agents {list(self.agents)}, got {self.versus!r}")
+            # the same agent written another way (name case, option order) is that agent
+            same = [spec for spec in self.agents if normal_spec(spec) == normal_spec(self.versus)]
+            if not same:
+                raise ValueError(f"versus must be one of the agents {list(self.agents)}, got {self.versus!r}")
+            object.__setattr__(self, "versus", same[0])
         if not self.step_budget_s > 0:
             raise ValueError(f"step_budget_s must be > 0 seconds, got {self.step_budget_s}")
 

@@ -115,6 +115,13 @@ def test_specs_naming_the_same_agent_are_not_distinct(agents):
         tour.TournamentConfig(agents=agents)
 
 
+def test_versus_names_an_agent_as_the_agents_do():
+    config = tour.TournamentConfig(agents=("ilqr:a=1,b=2", "lane-keeping"), versus="iLQR:b=2,a=1")
+    assert config.versus == "ilqr:a=1,b=2"  # the spec as the lineup writes it
+    with pytest.raises(ValueError, match="versus must be one of the agents"):
+        tour.TournamentConfig(agents=("ilqr:a=1,b=2", "lane-keeping"), versus="ilqr:a=1")
+
+
 def test_specs_of_different_agents_are_distinct():
     tour.TournamentConfig(agents=("ilqr", "ilqr:max_iterations=5", "rl:Model.zip", "rl:model.zip"))
 
