@@ -195,7 +195,8 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             "act_time_mean_s": float(np.mean(times)) if times else float("nan"),
             "act_time_max_s": float(np.max(times)) if times else float("nan"),
             "solver_failures": int(summary.get("fallbacks", 0)),
-            "solver_converged_fraction": summary.get("converged_fraction"), "error": faults.get(i),
+            "solver_converged_fraction": summary.get("converged_fraction"),
+            "actions_clipped_fraction": summary.get("clipped_fraction"), "error": faults.get(i),
         })
     record = {"steps": result.steps, "order": [lineup[i] for i in order], "gap": gap,
               "overtakes": count_overtakes(xs[:, :, 0]), "cars": cars}

@@ -119,6 +119,7 @@ def _empty_record() -> dict:
         "fallback": False,
         "fallback_kind": None,
         "error": None,
+        "clipped": False,
     }
 
 
@@ -207,6 +208,8 @@ class BaseAgent:
             record["fallback_kind"] = "brake"
             record["error"] = (record.get("error") or "") + "; non-finite action replaced by braking"
             a = self._safe_action(joint_state).astype(np.float64)
+        # a planned jerk beyond the car's limits is driven at the limit: say so
+        record["clipped"] = bool(np.any(np.abs(a) > 1.0))
         a = np.clip(a, -1.0, 1.0).astype(np.float32)
         record["action"] = a.tolist()
         self._last = record
@@ -249,6 +252,9 @@ class BaseAgent:
             "fallbacks": int(sum(bool(r.get("fallback")) for r in self.history)),
             # share of re-plans that met the solver's tolerance (the rest use the last iterate)
             "converged_fraction": float(np.mean(converged)) if converged else None,
+            # share of steps whose action exceeded the jerk limits and was clipped to them
+            "clipped_fraction": float(np.mean([bool(r.get("clipped")) for r in self.history]))
+            if self.history else None,
         }
         recovering = [bool(r["recovering"]) for r in self.history if r.get("recovering") is not None]
         if any(recovering):  # re-plans made in recovery from a standstill (recovery_track_scale)

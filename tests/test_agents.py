@@ -12,6 +12,7 @@ from experiments.race import run_race
 from planners import ilq
 from planners.agents import (
     Agent,
+    BaseAgent,
     ConstantSpeedAgent,
     FeedbackGameAgent,
     ILQRAgent,
@@ -69,6 +70,26 @@ def test_short_race_monza(spec, shared_tracks):
     _check_race(record, agent, actions)
     if spec in GAME_SPECS:
         assert agent.summary()["fallbacks"] == 0
+
+
+class _Saturating(BaseAgent):
+    """Asks for 3x the longitudinal jerk limit on every other step."""
+
+    def act(self, observation, joint_state):
+        wanted = np.array([3.0, 0.2]) if self._steps % 2 == 0 else np.array([0.3, -0.2])
+        return self._act_guarded(lambda o, x: wanted, observation, joint_state)
+
+
+def test_actions_beyond_the_jerk_limits_are_clipped_and_counted():
+    env = racing_env.parallel_env(track="trefoil", num_agents=2)
+    agent = _Saturating()
+    agent.reset(0, 0, env)
+    obs, _ = env.reset(seed=0)
+    actions = [agent.act(obs["car_0"], env.state()) for _ in range(4)]
+    np.testing.assert_allclose(actions[0], [1.0, 0.2], rtol=1e-6)
+    np.testing.assert_allclose(actions[1], [0.3, -0.2], rtol=1e-6)
+    assert [h["clipped"] for h in agent.history] == [True, False, True, False]
+    assert agent.summary()["clipped_fraction"] == 0.5
 
 
 def test_crossing_the_line_of_a_closed_track():
