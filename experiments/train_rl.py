@@ -219,7 +219,8 @@ def _config_json(config: TrainConfig) -> dict[str, Any]:
 
 
 def latest_checkpoint(out: Path) -> tuple[int, Path] | None:
-    """The checkpoint with the most timesteps in ``out/checkpoints``, or None."""
+    """The complete checkpoint with the most timesteps in ``out/checkpoints``, or None
+    (:func:`save_policy` writes a checkpoint's ``.zip`` after its companions)."""
     found = [(int(m.group(1)), p) for p in (out / CHECKPOINTS).glob("step_*.zip")
              if (m := _CHECKPOINT.search(p.name))]
     return max(found) if found else None
@@ -231,15 +232,18 @@ def _replay_buffer_path(model_path: Path) -> Path:
 
 def save_policy(model, venv, path: Path, replay_buffer: bool = False) -> None:
     """``model.zip`` and, under ``VecNormalize``, its statistics beside it; with
-    ``replay_buffer`` an off-policy model's buffer too (what a resumption needs)."""
+    ``replay_buffer`` an off-policy model's buffer too (what a resumption needs).
+
+    The model is written last: a checkpoint whose ``.zip`` exists is complete, so a run
+    killed while saving resumes from the checkpoint before (:func:`latest_checkpoint`)."""
     from stable_baselines3.common.vec_env import VecNormalize
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    replace_atomically(lambda tmp: model.save(tmp), path)
-    if isinstance(venv, VecNormalize):
-        replace_atomically(lambda tmp: venv.save(str(tmp)), vecnormalize_path(path))
     if replay_buffer and hasattr(model, "replay_buffer"):
         replace_atomically(lambda tmp: model.save_replay_buffer(tmp), _replay_buffer_path(path))
+    if isinstance(venv, VecNormalize):
+        replace_atomically(lambda tmp: venv.save(str(tmp)), vecnormalize_path(path))
+    replace_atomically(lambda tmp: model.save(tmp), path)
 
 
 @dataclasses.dataclass(frozen=True)

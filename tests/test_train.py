@@ -88,6 +88,24 @@ def test_training_is_deterministic_in_one_process_or_several(tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_a_checkpoint_cut_short_while_saving_is_not_resumed_from(tmp_path):
+    """A kill while a checkpoint's statistics are written leaves no .zip of it: the run
+    resumes from the checkpoint before, whose statistics are whole."""
+    config = TrainConfig(**{**TINY, "hyperparameters": (("n_steps", 64), ("batch_size", 32))})
+    model = train_rl._build_model(config, tmp_path, None)
+    first = train_rl.checkpoint(model, tmp_path)
+    model.num_timesteps = 512
+
+    def killed(path):
+        raise KeyboardInterrupt
+
+    model.get_env().save = killed  # the VecNormalize statistics are written before the model
+    with pytest.raises(KeyboardInterrupt):
+        train_rl.checkpoint(model, tmp_path)
+    assert train_rl.latest_checkpoint(tmp_path) == (0, first)
+    assert vecnormalize_path(first).exists()
+
+
 @pytest.mark.parametrize("subprocesses", [False, True], ids=["one-process", "worker-processes"])
 def test_interrupted_training_process_resumes(tmp_path, subprocesses):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) on a real `racing train`
