@@ -471,17 +471,21 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     yield from convergence_rows(batch)
 
 
-def solver_options_by_mode(modes, **fields: Any) -> dict[str, Any]:
+def solver_options_by_mode(modes, num_players: int, **fields: Any) -> dict[str, Any]:
     """The :class:`planners.ilq.SolverOptions` (``fields``) of every solver mode that
-    :func:`convergence_rows` runs for ``modes``: ``"feedback"``, ``"open_loop"``, and for
-    ``"open_loop_from_feedback"`` both (a feedback, then an open-loop solve). Building them
-    checks the options in each of those modes."""
+    :func:`convergence_rows` runs for ``modes`` on games of ``num_players``: ``"feedback"``,
+    ``"open_loop"``, and for ``"open_loop_from_feedback"`` both (a feedback, then an
+    open-loop solve). Building them checks the options in each of those modes, as the
+    solver will (:func:`planners.ilq.check_adaptive_regularization` too)."""
     from planners import ilq
 
     solver_modes = {"feedback" if mode == "feedback" else "open_loop" for mode in modes}
     if "open_loop_from_feedback" in modes:
         solver_modes.add("feedback")
-    return {mode: ilq.SolverOptions(mode=mode, **fields) for mode in solver_modes}
+    options = {mode: ilq.SolverOptions(mode=mode, **fields) for mode in solver_modes}
+    for mode_options in options.values():
+        ilq.check_adaptive_regularization(mode_options, num_players)
+    return options
 
 
 def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
@@ -523,7 +527,8 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     vehicles = [VehicleParams(v_max=v) for v in v_max[:num_cars]]
     weights = None if jerk_weight is None else CostWeights(r_jx=jerk_weight, r_jy=jerk_weight)
     # checked before the work
-    options = solver_options_by_mode(modes, max_iterations=max_iterations, tolerance=tolerance, **solver_options)
+    options = solver_options_by_mode(modes, num_cars, max_iterations=max_iterations, tolerance=tolerance,
+                                     **solver_options)
     track = get_track(track)
     game = RaceGame.create(track, vehicles, weights)
     x0s = random_scenes(track, vehicles, count, seed=seed, spread=spread, speed=tuple(speed))

@@ -85,7 +85,8 @@ class ConvergenceConfig:
         if self.step_control == "residual" and set(self.modes) != {"open_loop"}:
             raise ValueError("step_control 'residual' is for open-loop solves: use it with the "
                              f"modes ('open_loop',) only, not {self.modes}")
-        solver_options_by_mode(self.modes, **self.solver_options())  # their own checks, before any work
+        # their own checks, before any work (the most cars: a feedback game refuses what one car takes)
+        solver_options_by_mode(self.modes, max(int(n) for n in self.cars), **self.solver_options())
         if self.jerk_weight is not None and not (np.isfinite(self.jerk_weight) and self.jerk_weight > 0):
             raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight!r}")
 

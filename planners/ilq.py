@@ -750,7 +750,7 @@ def _regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str,
 
 
 def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions,
-             control_regularization: Array | float | None = None):
+             control_regularization: Array | float):
     """Linearise, quadratise and solve the local LQ game: ``K (T, N, m, n)``, ``k (T, N, m)``
     (``control_regularization``: the current ``lambda_u``, see :func:`_regularize`)."""
     convexify = _convexify(problem, options)
@@ -985,7 +985,7 @@ def _iterate(problem: GameProblem, c: _Carry, options: SolverOptions) -> _Carry:
             ),
         ),
     )
-    keep = lambda new, old: jnp.where(ok, new, old)
+    keep = functools.partial(_select, ok)
     return _Carry(
         it=it,
         xs=keep(xs, c.xs),

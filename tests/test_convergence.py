@@ -71,6 +71,8 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     (["--speed", "19", "10"], "speed"),
     (["--track", "nowhere"], "trefoil"),
     (["--step-control", "residual"], "open-loop solves"),  # the default modes include feedback
+    (["--solver-option", "control_regularization=0.3", "--solver-option", "adaptive_regularization=true"],
+     "open-loop games and one-player problems"),  # feedback games of two cars refuse it
 ])
 def test_convergence_cli_rejects_bad_input_before_any_work(tmp_path, capsys, bad, message):
     assert main(["convergence", "--out", str(tmp_path / "out")] + bad) == 2
