@@ -623,7 +623,7 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
     lane-keeping, iLQR (one and two levels) and feedback-game predictions (its re-plan
     includes making the prediction: a rollout, one or three iLQR solves, a feedback game
     solve); open-loop iLQGame also with the residual line search; both also with the
-    adaptive control regularization.
+    adaptive control regularization, and feedback iLQGame with it on the feed-forward terms.
 
     Car 0's solve times over ``steps`` steps, the first (compiling) solve excluded, and the
     share of those re-plans that converged (``converged_share``).
@@ -639,7 +639,9 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
              "ilqr_adaptive_regularization": f"ilqr:{_ADAPTIVE_REGULARIZATION}",
              "ilqgame-ol": "ilqgame-ol", "ilqgame-ol_residual": "ilqgame-ol:step_control=residual",
              "ilqgame-ol_adaptive_regularization": f"ilqgame-ol:{_ADAPTIVE_REGULARIZATION}",
-             "ilqgame-fb": "ilqgame-fb"}
+             "ilqgame-fb": "ilqgame-fb",
+             "ilqgame-fb_feedforward_regularization":
+                 f"ilqgame-fb:{_ADAPTIVE_REGULARIZATION},feedforward_regularization=true"}
     for name, spec in specs.items():
         env = parallel_env(track="trefoil", num_agents=2, max_steps=steps,
                            weights=CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT))

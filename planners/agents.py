@@ -485,8 +485,11 @@ class RecedingHorizonAgent(BaseAgent):
             "state_regularization": "added to the diagonal of every Q",
             "control_regularization": ("added to the diagonal of every R^ii (with adaptive_regularization: "
                                        "its start and floor after a reversal)"),
-            "adaptive_regularization": ("ilqgame-ol and ilqr only: shrink control_regularization while the "
-                                        "iterates keep their direction, raise it when they reverse"),
+            "adaptive_regularization": ("shrink control_regularization while the iterates keep their "
+                                        "direction, raise it when they reverse (ilqgame-fb: with "
+                                        "feedforward_regularization only)"),
+            "feedforward_regularization": ("ilqgame-fb: control_regularization damps the feed-forward "
+                                           "terms only, so the plans stay feedback equilibria"),
             "regularization_factor": "factor of each change of the adaptive regularization, > 1",
             "convexify": "auto, gauss_newton, eig, diag or none: how the cost Hessians are made convex",
         }

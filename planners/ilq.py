@@ -56,7 +56,9 @@ Around the nominal trajectory ``(x_hat, u_hat)``:
 3. regularisation: ``Q_t^i += state_regularization * I`` and
    ``R_t^{ii} += lambda_u * I``, ``lambda_u = control_regularization``, or adapted per
    iteration with ``adaptive_regularization`` (open loop and one player only; see
-   :class:`SolverOptions` and :func:`check_adaptive_regularization`). Why convexify: the collision term makes the
+   :class:`SolverOptions` and :func:`check_adaptive_regularization`). In feedback games
+   ``feedforward_regularization`` puts ``lambda_u`` on the feed-forward terms only, which
+   leaves the fixed points where they are, also with the adaptive rule. Why convexify: the collision term makes the
    exact ``Q^i`` indefinite; with it, the local LQ "equilibria" are often saddle points of
    a player's local problem and the iteration wanders (observed on the paper's scenario).
    A PSD ``Q^i`` keeps every player's local problem convex, so each LQ solution is a
@@ -446,6 +448,14 @@ class SolverOptions:
             and 0 after a step within ``tolerance``: only an undamped step certifies
             convergence. Starts at ``control_regularization``, which must then be > 0.
         regularization_factor: that factor, > 1.
+        feedforward_regularization: feedback games: ``lambda_u`` (fixed or adaptive) damps
+            only the feed-forward terms ``k`` of the LQ step
+            (:func:`~planners.lq_game.solve_feedback_own`'s ``feedforward_regularization``),
+            the gains ``K`` stay those of the local game. A feedback game's fixed points
+            then stay its equilibria (``k = 0`` exactly where the undamped ``k`` is), so
+            ``adaptive_regularization`` is allowed for it. Needs
+            ``control_regularization > 0``; refused in open loop, where the whole LQ step
+            is feed-forward (``control_regularization`` alone damps it).
     """
 
     mode: str = "feedback"
@@ -463,6 +473,7 @@ class SolverOptions:
     control_regularization: float = 0.0
     adaptive_regularization: bool = False
     regularization_factor: float = 1.5
+    feedforward_regularization: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in _MODES:
@@ -480,6 +491,16 @@ class SolverOptions:
             raise ValueError(
                 "adaptive_regularization needs control_regularization > 0 (the value it starts "
                 f"at and returns to after a reversing step), got {self.control_regularization!r}"
+            )
+        if self.feedforward_regularization and self.mode != "feedback":
+            raise ValueError(
+                "feedforward_regularization is for feedback games: an open-loop LQ step is all "
+                "feed-forward, and control_regularization alone damps it"
+            )
+        if self.feedforward_regularization and not self.control_regularization > 0:
+            raise ValueError(
+                "feedforward_regularization needs control_regularization > 0 (the lambda_u it "
+                f"puts on the feed-forward terms), got {self.control_regularization!r}"
             )
         if self.convexify not in _CONVEXIFY:
             raise ValueError(f"convexify must be one of {_CONVEXIFY}, got {self.convexify!r}")
@@ -743,7 +764,10 @@ def _regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str,
         Q = Q + jnp.eye(Q.shape[-1], dtype=Q.dtype) * jnp.maximum(off - diag, 0.0)[..., None]
     if options.state_regularization > 0:
         Q = Q + options.state_regularization * jnp.eye(Q.shape[-1], dtype=Q.dtype)
-    if options.control_regularization > 0:
+    # feedforward_regularization: lambda_u enters the feedback LQ solve instead (the gains
+    # stay those of the local game); in open loop every step is feed-forward.
+    on_feedforward = options.feedforward_regularization and options.mode == "feedback"
+    if options.control_regularization > 0 and not on_feedforward:
         lam = options.control_regularization if control_regularization is None else control_regularization
         Rii = Rii + lam * jnp.eye(Rii.shape[-1], dtype=Rii.dtype)
     return Q, Rii
@@ -757,11 +781,12 @@ def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions,
     A, B = _linearize(problem, xs, us)
     Q, q, Rii, rii = _quadratize(problem, xs, us, convexify == "gauss_newton")
     Q, Rii = _regularize(Q, Rii, options, convexify, control_regularization)
+    lam_k = control_regularization if options.feedforward_regularization else None
     if options.mode == "feedback" and convexify != "none":
         # Every Q^i is PSD: the own-input solver's block elimination is safe.
-        K, k = lq_game.solve_feedback_own(A, B, Q, q, Rii, rii)
+        K, k = lq_game.solve_feedback_own(A, B, Q, q, Rii, rii, lam_k)
     elif options.mode == "feedback":
-        K, k = lq_game.solve_feedback(A, B, Q, q, *_own_to_full(Rii, rii))
+        K, k = lq_game.solve_feedback(A, B, Q, q, *_own_to_full(Rii, rii), lam_k)
     else:
         # Deviation coordinates: the local game starts at dx_0 = 0, not at x_0.
         k, _ = lq_game.solve_open_loop_own(A, B, Q, q, Rii, rii, jnp.zeros_like(xs[0]))
@@ -1118,18 +1143,21 @@ def validate_problem(problem_or_game, x0=None, us0=None, control_regularization:
 
 
 def check_adaptive_regularization(options: SolverOptions, num_players: int) -> None:
-    """Refuse ``adaptive_regularization`` for a feedback game of ``num_players > 1``.
+    """Refuse ``adaptive_regularization`` on ``R^{ii}`` for a feedback game of ``num_players > 1``.
 
     ``lambda_u`` does not move an open-loop fixed point (``k = 0`` exactly where every
     player's gradient vanishes) nor a one-player one, but a feedback game's fixed point
     depends on the players' gains ``K``, which depend on ``R^{ii} + lambda_u I``: a
     ``lambda_u`` that changes with every reversal moves the point the iterates converge to.
+    With ``feedforward_regularization`` the gains do not see ``lambda_u``, and it is allowed.
     """
-    if options.adaptive_regularization and options.mode == "feedback" and num_players > 1:
+    if (options.adaptive_regularization and options.mode == "feedback" and num_players > 1
+            and not options.feedforward_regularization):
         raise ValueError(
             "adaptive_regularization is for open-loop games and one-player problems (ilqgame-ol, "
             "ilqr): in a feedback game the gains, and with them the equilibrium, depend on the "
-            "adapted control_regularization"
+            "adapted control_regularization; add feedforward_regularization=true to damp the "
+            "feed-forward terms only"
         )
 
 

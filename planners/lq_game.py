@@ -145,7 +145,8 @@ def validate_lq_game(A, B, Q, q, R, r) -> None:
 
 @jax.jit
 def solve_feedback(
-    A: Array, B: Array, Q: Array, q: Array, R: Array, r: Array
+    A: Array, B: Array, Q: Array, q: Array, R: Array, r: Array,
+    feedforward_regularization: Array | float | None = None,
 ) -> tuple[Array, Array]:
     """Feedback Nash equilibrium of an LQ game (under ``jax.vmap``: one game after another).
 
@@ -162,21 +163,33 @@ def solve_feedback(
         P_t^i = Q^i + F' P^i F + sum_j K^j' R^{ij} K^j
         p_t^i = q^i + F' (p^i + P^i beta) + sum_j K^j' (R^{ij} k^j - r^{ij})
 
+    The value recursion evaluates the strategies actually returned (any ``K, k``), which
+    lets the feed-forward terms be damped without moving the equilibrium:
+    ``feedforward_regularization = lambda > 0`` solves the ``k`` rows with every own block
+    ``R^{ii} + B^i' P^i B^i`` raised by ``lambda I`` and keeps the gains ``K`` of the game
+    itself. The returned ``k`` is then shorter than the equilibrium's (a proximal, i.e.
+    Levenberg-Marquardt, step on the feed-forward of an iterative game); it is zero exactly
+    where the equilibrium's is, so an iteration's fixed points stay the game's.
+
     Args:
       A: ``(T, n, n)``. B: ``(T, N, n, m)``. Q: ``(T+1, N, n, n)``. q: ``(T+1, N, n)``.
       R: ``(T, N, N, m, m)``. r: ``(T, N, N, m)``.
+      feedforward_regularization: ``lambda >= 0`` (scalar) or None (the equilibrium).
 
     Returns:
       ``K (T, N, m, n)`` and ``k (T, N, m)``; equilibrium strategies
       ``u_t^i = -K_t^i x_t - k_t^i``.
     """
-    return _feedback(A, B, Q, q, R, r)
+    if feedforward_regularization is None:
+        return _feedback(A, B, Q, q, R, r)
+    return _feedback(A, B, Q, q, R, r, feedforward_regularization)
 
 
-def _feedback_recursion(A, B, Q, q, R, r):
+def _feedback_recursion(A, B, Q, q, R, r, feedforward_regularization=None):
     """The recursion of :func:`solve_feedback` for one game."""
     N, n, m = B.shape[1], B.shape[2], B.shape[3]
     Q, R = _sym(Q), _sym(R)
+    lam = feedforward_regularization
 
     def step(carry, stage):
         P, p = carry  # (N, n, n), (N, n) at t+1
@@ -187,9 +200,15 @@ def _feedback_recursion(A, B, Q, q, R, r):
         S = S + jnp.einsum("ij,iml->imjl", jnp.eye(N, dtype=S.dtype), _own(R_t))
         rhs_K = BtP @ A_t  # (N, m, n)
         rhs_k = jnp.einsum("iam,ia->im", B_t, p) + _own(r_t)  # (N, m)
-        rhs = jnp.concatenate([rhs_K, rhs_k[..., None]], axis=-1).reshape(N * m, n + 1)
-        sol = jnp.linalg.solve(S.reshape(N * m, N * m), rhs).reshape(N, m, n + 1)
-        K, k = sol[..., :n], sol[..., n]
+        S = S.reshape(N * m, N * m)
+        if lam is None:
+            rhs = jnp.concatenate([rhs_K, rhs_k[..., None]], axis=-1).reshape(N * m, n + 1)
+            sol = jnp.linalg.solve(S, rhs).reshape(N, m, n + 1)
+            K, k = sol[..., :n], sol[..., n]
+        else:
+            K = jnp.linalg.solve(S, rhs_K.reshape(N * m, n)).reshape(N, m, n)
+            S_k = S + lam * jnp.eye(N * m, dtype=S.dtype)
+            k = jnp.linalg.solve(S_k, rhs_k.reshape(N * m)).reshape(N, m)
 
         F = A_t - jnp.einsum("jam,jmb->ab", B_t, K)  # closed-loop dynamics
         beta = -jnp.einsum("jam,jm->a", B_t, k)  # closed-loop drift
@@ -352,13 +371,21 @@ def pivoted_solve(S: Array, rhs: Array) -> Array:
     return M[:, p:]
 
 
-def _feedback_own_recursion(A, B, Q, q, Rii, rii):
+def _feedback_own_recursion(A, B, Q, q, Rii, rii, feedforward_regularization=None):
     """The recursion of :func:`solve_feedback_own` for one game: small products as fused
     element-wise code (:func:`_contract`), the coupled gains by :func:`block_solve`."""
-    N, n = B.shape[1], B.shape[2]
+    N, n, m = B.shape[1], B.shape[2], B.shape[3]
     Q, Rii = _sym(Q), _sym(Rii)
     eye_N = jnp.eye(N, dtype=Rii.dtype)
     c = _contract
+    lam = feedforward_regularization
+
+    def gains(S, rhs_K, rhs_k):
+        if lam is None:
+            sol = block_solve(S, jnp.concatenate([rhs_K, rhs_k[..., None]], axis=-1))
+            return sol[..., :n], sol[..., n]
+        eye = eye_N[:, None, :, None] * jnp.eye(m, dtype=S.dtype)[None, :, None, :]
+        return block_solve(S, rhs_K), block_solve(S + lam * eye, rhs_k[..., None])[..., 0]
 
     def step(carry, stage):
         P, p = carry  # (N, n, n), (N, n) at t+1
@@ -367,8 +394,7 @@ def _feedback_own_recursion(A, B, Q, q, Rii, rii):
         S = c("imb,jbl->imjl", BtP, B_t) + eye_N[:, None, :, None] * R_t[:, :, None, :]
         rhs_K = c("imb,bc->imc", BtP, A_t)
         rhs_k = c("iam,ia->im", B_t, p) + r_t
-        sol = block_solve(S, jnp.concatenate([rhs_K, rhs_k[..., None]], axis=-1))
-        K, k = sol[..., :n], sol[..., n]
+        K, k = gains(S, rhs_K, rhs_k)
         F = A_t - c("jam,jmb->ab", B_t, K)  # closed-loop dynamics
         beta = -c("jam,jm->a", B_t, k)  # closed-loop drift
         P_new = (
@@ -381,11 +407,11 @@ def _feedback_own_recursion(A, B, Q, q, Rii, rii):
             + c("ba,ib->ia", F, p + c("iab,b->ia", P, beta))
             + c("ima,im->ia", K, c("iml,il->im", R_t, k) - r_t)
         )
-        return (_sym(P_new), p_new), sol
+        return (_sym(P_new), p_new), (K, k)
 
     stages = (A, B, Q[:-1], q[:-1], Rii, rii)
-    _, sol = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True)
-    return sol[..., :n], sol[..., n]
+    _, (K, k) = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True)
+    return K, k
 
 
 _feedback_own = one_at_a_time(_feedback_own_recursion)
@@ -393,7 +419,8 @@ _feedback_own = one_at_a_time(_feedback_own_recursion)
 
 @jax.jit
 def solve_feedback_own(
-    A: Array, B: Array, Q: Array, q: Array, Rii: Array, rii: Array
+    A: Array, B: Array, Q: Array, q: Array, Rii: Array, rii: Array,
+    feedforward_regularization: Array | float | None = None,
 ) -> tuple[Array, Array]:
     """Feedback Nash equilibrium of an LQ game whose input costs are on own inputs only.
 
@@ -411,16 +438,21 @@ def solve_feedback_own(
     Requirements: ``Q_t^i >= 0`` and ``R_t^{ii} > 0`` (then every ``P_t^i >= 0`` and the
     pivots ``R^{ii} + B^i' P^i B^i`` are positive definite); a singular Schur complement
     (an LQ game without a unique feedback equilibrium) gives non-finite gains.
+    ``feedforward_regularization`` damps the feed-forward terms only, as in
+    :func:`solve_feedback`.
 
     Args:
       A: ``(T, n, n)``. B: ``(T, N, n, m)``. Q: ``(T+1, N, n, n)``. q: ``(T+1, N, n)``.
       Rii: ``(T, N, m, m)``. rii: ``(T, N, m)``.
+      feedforward_regularization: ``lambda >= 0`` (scalar) or None (the equilibrium).
 
     Returns:
       ``K (T, N, m, n)`` and ``k (T, N, m)``; equilibrium strategies
       ``u_t^i = -K_t^i x_t - k_t^i``.
     """
-    return _feedback_own(A, B, Q, q, Rii, rii)
+    if feedforward_regularization is None:
+        return _feedback_own(A, B, Q, q, Rii, rii)
+    return _feedback_own(A, B, Q, q, Rii, rii, feedforward_regularization)
 
 
 @jax.jit

@@ -59,6 +59,10 @@ def test_spec_options_reach_the_agent():
     assert agent.leading_weights == {"c_collision": 20.0} and agent.trailing_weights == {"c_collision": 1.0}
     lane = make_agent("lane-keeping:target_speed=20,target_n=-1.5")
     assert isinstance(lane, LaneKeepingAgent) and lane.kwargs == {"target_speed": 20.0, "target_n": -1.5}
+    damped = make_agent("ilqgame-fb:control_regularization=0.3,adaptive_regularization=true,"
+                        "feedforward_regularization=true")
+    assert damped.solver_options == {"tolerance": 1e-3, "control_regularization": 0.3,
+                                     "adaptive_regularization": True, "feedforward_regularization": True}
     # keyword arguments win over the spec's options
     assert make_agent("ilqr:max_iterations=7", max_iterations=9).max_iterations == 9
 
@@ -80,6 +84,10 @@ def test_spec_options_reach_the_agent():
     ("ilqr:prediction=ilqgame-fb,adaptive_regularization=true,control_regularization=0.3",
      "open-loop games and one-player"),
     ("ilqgame-ol:adaptive_regularization=true", "needs control_regularization > 0"),
+    ("ilqgame-ol:feedforward_regularization=true,control_regularization=0.3", "is for feedback games"),
+    ("ilqr:prediction=ilqgame-ol,feedforward_regularization=true,control_regularization=0.3",
+     "is for feedback games"),
+    ("ilqgame-fb:feedforward_regularization=true", "needs control_regularization > 0"),
     ("ilqgame-fb:trust_radius=0", "trust_radius"),
     ("ilqr:pad=ones", "pad must be"),
     ("lane-keeping:target_speed=0", "target_speed must be a finite speed > 0"),

@@ -132,7 +132,8 @@ def test_warm_start_reduces_iterations():
     assert sum(w[1:]) < 0.7 * sum(c[1:]), (w, c)
 
 
-@pytest.mark.parametrize("spec", ["ilqr", "ilqgame-ol", "ilqgame-fb"])
+@pytest.mark.parametrize("spec", ["ilqr", "ilqgame-ol", "ilqgame-fb", "ilqgame-fb:control_regularization=0.3,"
+                                  "adaptive_regularization=true,feedforward_regularization=true"])
 def test_only_the_first_action_compiles(spec):
     """The first re-plan compiles the solver; warm-started re-plans after it must not.
 

@@ -73,6 +73,8 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     (["--step-control", "residual"], "open-loop solves"),  # the default modes include feedback
     (["--solver-option", "control_regularization=0.3", "--solver-option", "adaptive_regularization=true"],
      "open-loop games and one-player problems"),  # feedback games of two cars refuse it
+    (["--solver-option", "control_regularization=0.3", "--solver-option", "feedforward_regularization=true"],
+     "is for feedback games"),  # the default modes include open loop
 ])
 def test_convergence_cli_rejects_bad_input_before_any_work(tmp_path, capsys, bad, message):
     assert main(["convergence", "--out", str(tmp_path / "out")] + bad) == 2

@@ -338,6 +338,43 @@ def test_adaptive_regularization_is_refused_where_it_would_move_the_equilibrium(
         ilq.SolverOptions(regularization_factor=1.0)
 
 
+FEEDFORWARD = dict(ADAPTIVE, feedforward_regularization=True)
+
+
+def test_feedforward_regularization_keeps_the_feedback_equilibrium(game, feedback):
+    """lambda_u on the feed-forward terms only, adapted by the rule, ends at the default's
+    feedback equilibrium (both stop at full steps of at most 1e-6); lambda_u on R^ii moves
+    it, because the gains, and with them the players' values, see it."""
+    damped = ilq.solve(game, X0, mode="feedback", **FEEDFORWARD)
+    assert bool(damped.converged), ilq.status_message(damped.status)
+    np.testing.assert_allclose(np.asarray(damped.xs), np.asarray(feedback.xs), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(damped.K), np.asarray(feedback.K), atol=1e-4)
+    moved = ilq.solve(game, X0, mode="feedback", control_regularization=0.1)
+    assert bool(moved.converged)
+    assert np.max(np.abs(np.asarray(moved.xs) - np.asarray(feedback.xs))) > 1e-4  # measured: 4.9e-4 m
+
+
+
+@pytest.mark.parametrize("convexify", ["gauss_newton", "none"])  # own-input / general LQ solver
+def test_feedforward_regularization_damps_the_first_step_but_not_its_gains(game, convexify):
+    first = {name: ilq.solve(game, X0, mode="feedback", convexify=convexify, max_iterations=1, **options)
+             for name, options in {"plain": {}, "damped": FEEDFORWARD}.items()}
+    K, k = (np.asarray(first["damped"].K), np.asarray(first["damped"].k))
+    np.testing.assert_allclose(K, np.asarray(first["plain"].K), rtol=1e-10, atol=1e-12)
+    # lambda_u reached the LQ solve (the stage-wise identity of the damped k is checked in
+    # test_lq_game.py)
+    assert np.max(np.abs(k - np.asarray(first["plain"].k))) > 1e-3 * np.max(np.abs(k))
+
+
+def test_feedforward_regularization_is_for_feedback_games_with_a_lambda(game):
+    with pytest.raises(ValueError, match="add feedforward_regularization=true"):
+        ilq.solve(game, X0, mode="feedback", **ADAPTIVE)
+    with pytest.raises(ValueError, match="feedforward_regularization is for feedback games"):
+        ilq.SolverOptions(mode="open_loop", control_regularization=0.3, feedforward_regularization=True)
+    with pytest.raises(ValueError, match="feedforward_regularization needs control_regularization > 0"):
+        ilq.SolverOptions(feedforward_regularization=True)
+
+
 def test_residual_step_control_is_refused_for_feedback(game):
     with pytest.raises(ValueError, match="needs mode='open_loop'"):
         ilq.SolverOptions(step_control="residual")

@@ -562,3 +562,58 @@ def test_gradients_match_central_differences(name):
         (functional(h) - functional(-h)) / (2 * h), derivative(0.0), jax.vmap(derivative)(e)))(jnp.zeros(3))
     assert abs(by_grad - central) <= 1e-6 * max(1.0, abs(central))
     np.testing.assert_allclose(np.asarray(by_vmap), float(by_grad), rtol=1e-12)
+
+
+# ------------------------------------------------------------------------------------
+# Feed-forward regularization: the gains of the game, damped feed-forward terms.
+# ------------------------------------------------------------------------------------
+
+
+def policy_value(game, K, k, i, t0):
+    """Player i's cost-to-go from stage ``t0`` when every player follows ``u^j = -K^j x - k^j``,
+    as a function of the state: its gradient and Hessian at ``x = 0`` (by autodiff of a
+    plain rollout, not by a value recursion)."""
+    A, B, Q, q, R, r = (jnp.asarray(a) for a in game)
+    T, N = B.shape[0], B.shape[1]
+
+    def cost(x):
+        total = 0.0
+        for t in range(t0, T):
+            us = [-(K[t, j] @ x) - k[t, j] for j in range(N)]
+            total += 0.5 * x @ Q[t, i] @ x + q[t, i] @ x
+            total += sum(0.5 * us[j] @ R[t, i, j] @ us[j] + r[t, i, j] @ us[j] for j in range(N))
+            x = A[t] @ x + sum(B[t, j] @ us[j] for j in range(N))
+        return total + 0.5 * x @ Q[T, i] @ x + q[T, i] @ x
+
+    x = jnp.zeros(A.shape[1])
+    return np.asarray(jax.grad(cost)(x)), np.asarray(jax.hessian(cost)(x))
+
+
+@pytest.mark.parametrize("N, own", [(1, False), (2, False), (3, False), (2, True), (3, True)])
+def test_feedforward_regularization_keeps_the_gains_and_damps_the_feedforward(N, own):
+    """With lambda > 0 the gains are the equilibrium's, and at every stage the feed-forward
+    terms solve the coupled first-order conditions with every own block raised by lambda I,
+    where each player's value is that of the strategies returned (checked against the
+    cost-to-go of those strategies, differentiated through a rollout)."""
+    full, own_arrays = own_input_game(seed=120 + N, N=N) if own else (random_game(seed=120 + N, N=N), None)
+    solver = (lambda *a: solve_feedback_own(*own_arrays, *a)) if own else (lambda *a: solve_feedback(*full, *a))
+    lam = 0.7
+    K_eq, k_eq = as_np(*solver())
+    K, k = as_np(*solver(lam))
+    assert rel_gap(K, K_eq) < 1e-10
+    assert rel_gap(k, k_eq) > 1e-3  # damped: not the equilibrium's feed-forward
+    A, B, Q, q, R, r = full
+    T, _, n, m = B.shape
+    for t in range(T):
+        values = [policy_value(full, K, k, i, t + 1) for i in range(N)]
+        S = np.zeros((N * m, N * m))
+        rhs = np.zeros(N * m)
+        for i, (p_next, P_next) in enumerate(values):
+            rows = slice(i * m, (i + 1) * m)
+            for j in range(N):
+                S[rows, j * m:(j + 1) * m] = B[t, i].T @ P_next @ B[t, j] + (i == j) * (R[t, i, i] + lam * np.eye(m))
+            rhs[rows] = B[t, i].T @ p_next + r[t, i, i]
+        assert rel_gap(np.linalg.solve(S, rhs), k[t].reshape(-1)) < TOL, t
+    # lambda = 0 is the equilibrium, by either path
+    K0, k0 = as_np(*solver(0.0))
+    assert rel_gap(K0, K_eq) < 1e-10 and rel_gap(k0, k_eq) < 1e-10
