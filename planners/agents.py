@@ -36,6 +36,7 @@ from planners import ilq, ilqr, prediction as prediction_models
 from planners.agent_specs import convert_options, describe_options, split_spec
 from planners.scripted import ConstantSpeed, LaneKeeping, check_targets
 from racing_env.dynamics import V
+from racing_env.observation import cars_racing
 
 __all__ = [
     "Agent",
@@ -376,8 +377,9 @@ class RecedingHorizonAgent(BaseAgent):
             the agent's own weights in its plans. They are private: the other cars plan
             with the race's weights for this car, as they would against an unknown driver.
         leading_weights, trailing_weights: own weights used (on top of ``own_weights``) for
-            re-plans made while the car is ahead of every other car in race distance, or
-            behind at least one (the paper's outlook: aggression that depends on place).
+            re-plans made while the car is ahead of every other car still racing (as the
+            observation's flags say) in race distance, or behind at least one (the paper's
+            outlook: aggression that depends on place).
         opponent_weights: ``{name: value}`` changes to the race's weights of every other
             car in this agent's plans: what it believes the others' costs are (e.g.
             ``{"c_collision": 100.0}``: they will do much to avoid contact). Applied on top
@@ -538,10 +540,12 @@ class RecedingHorizonAgent(BaseAgent):
         self._age = 0  # steps since the stored plan was made
         self._recovering = False  # from a standstill until RECOVERED_SPEED (recovery_track_scale)
 
-    def _is_leading(self, x: np.ndarray) -> bool:
-        """Ahead of every other car in race distance (``s`` is cumulative, laps included)."""
-        others = np.delete(x[:, 0], self.index)
-        return bool(np.all(x[self.index, 0] > others))
+    def _is_leading(self, x: np.ndarray, racing: np.ndarray | None = None) -> bool:
+        """Ahead of every other car still racing in race distance (``s`` is cumulative, laps
+        included); ``racing (N,)`` bool, None: all. A car that finished or retired is out of
+        the contest: the others race for the places behind it."""
+        rivals = [j for j in range(x.shape[0]) if j != self.index and (racing is None or racing[j])]
+        return bool(np.all(x[self.index, 0] > x[rivals, 0]))
 
     # the solve itself (subclasses) -> (us, xs, K or None, result)
     def _solve(self, game, x0: np.ndarray, init: np.ndarray | None):
@@ -600,7 +604,8 @@ class RecedingHorizonAgent(BaseAgent):
                 if x.shape != (self.game.num_players, 6):
                     raise ValueError(f"joint state must have shape ({self.game.num_players}, 6), got {x.shape}")
                 if self._games_by_place is not None:
-                    record["leading"] = self._is_leading(x)
+                    racing = cars_racing(observation, self.index, self.game.num_players)
+                    record["leading"] = self._is_leading(x, racing)
                     self.planning_game = self._games_by_place[record["leading"]]
                 solution = self._solve(self._game_at_speed(x, record), x, init)
                 us, xs, K, res = solution

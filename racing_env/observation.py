@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from racing_env.dynamics import AX, AY, CHI, N_LAT, S, V
 from racing_env.track import Track
@@ -26,6 +27,23 @@ PREVIEW_FEATURES = 3
 
 def observation_size(num_cars: int, num_preview: int) -> int:
     return OWN_FEATURES + OTHER_FEATURES * (num_cars - 1) + PREVIEW_FEATURES * num_preview
+
+
+def cars_racing(observation: np.ndarray | None, index: int, num_cars: int) -> np.ndarray:
+    """Which cars are still racing, ``(num_cars,)`` bool, as car ``index``'s observation says
+    (its own entry True). The observation's flags describe the start of the step just
+    taken. All True when ``observation`` is None or not of this layout (e.g. a wrapper's
+    transformed observation)."""
+    racing = np.ones(num_cars, dtype=bool)
+    if observation is None:
+        return racing
+    obs = np.asarray(observation)
+    rest = obs.size - observation_size(num_cars, 0)
+    if obs.ndim != 1 or rest < 0 or rest % PREVIEW_FEATURES:
+        return racing
+    flags = obs[OWN_FEATURES + OTHER_FEATURES - 1 : OWN_FEATURES + OTHER_FEATURES * (num_cars - 1) : OTHER_FEATURES]
+    racing[(index + 1 + np.arange(num_cars - 1)) % num_cars] = flags > 0.5
+    return racing
 
 
 def observe(

@@ -21,6 +21,7 @@ from planners.agents import (
 )
 from racing_env.config import RaceConfig
 from racing_env.costs import CostWeights
+from racing_env.observation import cars_racing, observe
 
 
 def test_split_spec():
@@ -188,6 +189,43 @@ def test_a_lead_counts_laps():
     assert not agent._is_leading(x)
     x[0, 0] = length + 60.0
     assert agent._is_leading(x)
+
+
+def test_cars_that_finished_or_retired_do_not_count_for_the_place():
+    """Three cars: car 0 finished in front (or retired there), car 1 is ahead of car 2. Car 1
+    leads the cars still racing, as its observation's flags say."""
+    env = racing_env.parallel_env(track="straight", num_agents=3)
+    agent = make_agent("ilqr:leading.c_collision=20", max_iterations=2)
+    agent.reset(0, 1, env)
+    observations, _ = env.reset(seed=0)
+    x = np.array(env.state(), dtype=np.float64)
+    x[:, 0] = [200.0, 150.0, 140.0]
+    config = env.config
+    active = np.array([False, True, True])
+    observation = np.asarray(observe(x, active, env.game.track, 500.0,
+                                     np.asarray(config.preview_distances, dtype=np.float64)))[1]
+    assert observation.shape == observations["car_1"].shape
+    agent.act(observation, x)
+    assert agent.diagnostics()["leading"] is True
+    agent.act(None, x)  # no observation: every car counts
+    assert agent.diagnostics()["leading"] is False
+
+
+@pytest.mark.parametrize("num_cars, num_preview", [(2, 0), (3, 3), (4, 1)])
+def test_cars_racing_reads_the_flags_of_the_observation(num_cars, num_preview):
+    rng = np.random.default_rng(num_cars)
+    x = np.zeros((num_cars, 6))
+    x[:, 0] = rng.uniform(0, 100, num_cars)
+    x[:, 1] = 10.0
+    track = racing_env.parallel_env(track="straight", num_agents=num_cars).game.track
+    active = rng.random(num_cars) < 0.5
+    obs = np.asarray(observe(x, active, track, 500.0, np.linspace(10.0, 30.0, num_preview)))
+    for i in range(num_cars):
+        expected = active.copy()
+        expected[i] = True
+        np.testing.assert_array_equal(cars_racing(obs[i], i, num_cars), expected)
+    assert cars_racing(None, 0, num_cars).all()
+    assert cars_racing(obs[0][:-1] if num_preview else obs[0][:-2], 0, num_cars).all()  # not this layout
 
 
 def test_every_agent_lists_its_options(capsys):
