@@ -490,8 +490,9 @@ class RecedingHorizonAgent(BaseAgent):
             "adaptive_regularization": ("shrink control_regularization while the iterates keep their "
                                         "direction, raise it when they reverse (ilqgame-fb: with "
                                         "feedforward_regularization only)"),
-            "feedforward_regularization": ("ilqgame-fb: control_regularization damps the feed-forward "
-                                           "terms only, so the plans stay feedback equilibria"),
+            "feedforward_regularization": ("ilqgame-fb and ilqr (not ilqgame-ol): control_regularization "
+                                           "damps the feed-forward terms only, so the plans stay feedback "
+                                           "equilibria"),
             "regularization_factor": "factor of each change of the adaptive regularization, > 1",
             "convexify": "auto, gauss_newton, eig, diag or none: how the cost Hessians are made convex",
         }
