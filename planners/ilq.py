@@ -475,6 +475,15 @@ class SolverOptions:
     regularization_factor: float = 1.5
     feedforward_regularization: bool = False
 
+    @property
+    def guaranteed_control_regularization(self) -> float:
+        """The ``lambda_u`` that every LQ step adds to ``R^{ii}`` (what
+        :func:`validate_problem` may count on): ``control_regularization``, or 0 where it is
+        adapted (it drops to 0 before a step may certify) or on the feed-forward terms."""
+        if self.adaptive_regularization or self.feedforward_regularization:
+            return 0.0
+        return self.control_regularization
+
     def __post_init__(self) -> None:
         if self.mode not in _MODES:
             raise ValueError(f"mode must be one of {_MODES}, got {self.mode!r}")
@@ -765,9 +774,8 @@ def _regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str,
     if options.state_regularization > 0:
         Q = Q + options.state_regularization * jnp.eye(Q.shape[-1], dtype=Q.dtype)
     # feedforward_regularization: lambda_u enters the feedback LQ solve instead (the gains
-    # stay those of the local game); in open loop every step is feed-forward.
-    on_feedforward = options.feedforward_regularization and options.mode == "feedback"
-    if options.control_regularization > 0 and not on_feedforward:
+    # stay those of the local game).
+    if options.control_regularization > 0 and not options.feedforward_regularization:
         lam = options.control_regularization if control_regularization is None else control_regularization
         Rii = Rii + lam * jnp.eye(Rii.shape[-1], dtype=Rii.dtype)
     return Q, Rii
@@ -1090,7 +1098,8 @@ def validate_problem(problem_or_game, x0=None, us0=None, control_regularization:
     For a RaceGame ``R^{ii} = 2 diag(r_jx, r_jy)`` of player i's jerk weights, checked
     directly. For a GameProblem the first quadratisation (along the rollout of ``us0``,
     zeros by default, from ``x0``) is checked at every stage. ``control_regularization``
-    is added first, as the solver does.
+    is added first: the part the solver adds in every LQ step
+    (:attr:`SolverOptions.guaranteed_control_regularization`).
 
     Raises:
         ValueError: naming the player (and stage) and the smallest eigenvalue.
@@ -1237,9 +1246,9 @@ def solve(
     us0 = _initial_inputs(problem, init, x0.dtype)
     if validate:
         if is_game:
-            validate_problem(problem_or_game, control_regularization=options.control_regularization)
+            validate_problem(problem_or_game, control_regularization=options.guaranteed_control_regularization)
         else:
-            validate_problem(problem, x0, us0, options.control_regularization)
+            validate_problem(problem, x0, us0, options.guaranteed_control_regularization)
     return _solve_jit(problem, x0, us0, options)
 
 
@@ -1321,10 +1330,10 @@ def solve_batch(
     if us_axis == 0 and us0.shape != (x0s.shape[0],) + shape:
         raise ValueError(f"init must have shape {shape} or {(x0s.shape[0],) + shape}, got {us0.shape}")
     if validate and is_game and params_axes is None:
-        validate_problem(problem_or_game, control_regularization=options.control_regularization)
+        validate_problem(problem_or_game, control_regularization=options.guaranteed_control_regularization)
     elif validate and params_axes is None:
         validate_problem(problem, x0s[0].reshape(-1), us0 if us_axis is None else us0[0],
-                         options.control_regularization)
+                         options.guaranteed_control_regularization)
 
     from jax.sharding import Mesh
 

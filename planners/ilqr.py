@@ -198,8 +198,8 @@ def solve_ilqr(game, x0, ego: int = 0, U0=None, *, predicted=None, options=None,
     if options is None:
         options = ilq.SolverOptions()
     overrides.setdefault("mode", "feedback")
-    ilq.validate_problem(game, control_regularization=overrides.get(
-        "control_regularization", options.control_regularization))
+    ilq.validate_problem(game, control_regularization=ilq._make_options(
+        options, overrides).guaranteed_control_regularization)
     plan = ilq.solve(problem, x0[ego], U0, options=options, validate=False, **overrides)
     pred = problem.params.predicted
     xs = pred.at[:, ego].set(plan.xs)

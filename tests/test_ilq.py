@@ -132,6 +132,21 @@ def test_refuses_non_positive_definite_input_weight():
         ilq.validate_problem(bad, x0)
 
 
+def test_validation_counts_only_the_regularization_that_every_step_adds():
+    """A singular R^ii is accepted with a fixed lambda_u on it, which every LQ step adds;
+    not when lambda_u is adapted (it drops to 0) or on the feed-forward terms only."""
+    problem, p, x0, _ = random_lq_game(seed=2)
+    R = np.array(p["R"])
+    R[:, 1, 1] = np.diag([1.0, 0.0])
+    singular = problem.replace(params={**p, "R": jnp.asarray(R)})
+    ilq.solve(singular, x0, mode="feedback", control_regularization=0.3, max_iterations=1)
+    for mode, options in (("open_loop", ADAPTIVE), ("feedback", FEEDFORWARD)):
+        with pytest.raises(ValueError, match=r"player 1 .*not positive definite"):
+            ilq.solve(singular, x0, mode=mode, **options)
+        with pytest.raises(ValueError, match=r"player 1 .*not positive definite"):
+            ilq.solve_batch(singular, jnp.stack([x0, x0]), mode=mode, **options)
+
+
 # --------------------------------------------------------------------------------------
 # Failures are reported, not returned as NaN.
 # --------------------------------------------------------------------------------------
