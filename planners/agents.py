@@ -485,7 +485,8 @@ class RecedingHorizonAgent(BaseAgent):
             "oscillation_damping": "start shorter after a step that reverses the recent direction",
             "damping_memory": "decay of the running sum of step directions, in [0, 1)",
             "state_regularization": "added to the diagonal of every Q",
-            "control_regularization": ("added to the diagonal of every R^ii (with adaptive_regularization: "
+            "control_regularization": ("added to the diagonal of every R^ii, or with feedforward_regularization "
+                                       "to the feed-forward rows of the step (with adaptive_regularization: "
                                        "its start and floor after a reversal)"),
             "adaptive_regularization": ("shrink control_regularization while the iterates keep their "
                                         "direction, raise it when they reverse (ilqgame-fb: with "

@@ -55,7 +55,7 @@ Around the nominal trajectory ``(x_hat, u_hat)``:
      the exact Hessian;
 3. regularisation: ``Q_t^i += state_regularization * I`` and
    ``R_t^{ii} += lambda_u * I``, ``lambda_u = control_regularization``, or adapted per
-   iteration with ``adaptive_regularization`` (open loop and one player only; see
+   iteration with ``adaptive_regularization`` (open loop and one player; see
    :class:`SolverOptions` and :func:`check_adaptive_regularization`). In feedback games
    ``feedforward_regularization`` puts ``lambda_u`` on the feed-forward terms only, which
    leaves the fixed points where they are, also with the adaptive rule. Why convexify: the collision term makes the
@@ -440,22 +440,24 @@ class SolverOptions:
             where the problem has the hooks, else ``"eig"``.
         control_regularization: ``lambda_u >= 0`` added to the diagonal of every ``R_t^{ii}``
             (a proximal term on the input change: it shortens the LQ step without moving an
-            open-loop fixed point).
+            open-loop fixed point); with ``feedforward_regularization``, to the feed-forward
+            rows of the feedback LQ step instead.
         adaptive_regularization: adapt ``lambda_u`` per iteration (Levenberg-Marquardt
-            style, open loop or one player only): divided by ``regularization_factor``
+            style; open loop, one player, or feedback with ``feedforward_regularization``):
+            divided by ``regularization_factor``
             after a step that continues the recent direction of travel, raised to
             ``max(factor * lambda_u, control_regularization)`` after one that reverses it,
             and 0 after a step within ``tolerance``: only an undamped step certifies
             convergence. Starts at ``control_regularization``, which must then be > 0.
         regularization_factor: that factor, > 1.
         feedforward_regularization: feedback games: ``lambda_u`` (fixed or adaptive) damps
-            only the feed-forward terms ``k`` of the LQ step
-            (:func:`~planners.lq_game.solve_feedback_own`'s ``feedforward_regularization``),
-            the gains ``K`` stay those of the local game. A feedback game's fixed points
-            then stay its equilibria (``k = 0`` exactly where the undamped ``k`` is), so
-            ``adaptive_regularization`` is allowed for it. Needs
-            ``control_regularization > 0``; refused in open loop, where the whole LQ step
-            is feed-forward (``control_regularization`` alone damps it).
+            only the feed-forward terms ``k`` of the LQ step, not ``R^{ii}``
+            (:func:`~planners.lq_game.solve_feedback`'s ``feedforward_regularization``,
+            which also says when it damps), the gains ``K`` stay those of the local game. A
+            feedback game's fixed points then stay its equilibria (all ``k = 0`` exactly
+            where the undamped ones are), so ``adaptive_regularization`` is allowed for it.
+            Needs ``control_regularization > 0``; refused in open loop, where the whole LQ
+            step is feed-forward (``control_regularization`` alone damps it).
     """
 
     mode: str = "feedback"

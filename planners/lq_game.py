@@ -166,10 +166,18 @@ def solve_feedback(
     The value recursion evaluates the strategies actually returned (any ``K, k``), which
     lets the feed-forward terms be damped without moving the equilibrium:
     ``feedforward_regularization = lambda > 0`` solves the ``k`` rows with every own block
-    ``R^{ii} + B^i' P^i B^i`` raised by ``lambda I`` and keeps the gains ``K`` of the game
-    itself. The returned ``k`` is then shorter than the equilibrium's (a proximal, i.e.
-    Levenberg-Marquardt, step on the feed-forward of an iterative game); it is zero exactly
-    where the equilibrium's is, so an iteration's fixed points stay the game's.
+    ``R^{ii} + B^i' P^i B^i`` raised by ``lambda I`` (``S + lambda I``, ``S`` the stage's
+    coupled matrix) and keeps the gains ``K`` of the game itself: a proximal
+    (Levenberg-Marquardt) step on the feed-forward of an iterative game. ``k`` vanishes at
+    every stage exactly when the equilibrium's does (by backward induction), so an
+    iteration's fixed points stay the game's. Where the symmetric part of every ``S`` is
+    positive definite (one player: ``S = R + B'PB``), ``S + lambda I`` is regular and each
+    stage's ``k`` is no longer than ``S^{-1}`` applied to the same right-hand side. Coupled
+    games can have an ``S`` with a negative eigenvalue ``-mu`` (a unique equilibrium all
+    the same): there ``lambda < mu`` lengthens the step, ``lambda = mu`` makes ``k``
+    non-finite and ``lambda > mu`` reverses it along that direction. On the paper's racing
+    scene (at zero inputs and at the feedback equilibrium) the smallest real eigenvalue of
+    every stage's ``S`` was that of ``R^{ii}``.
 
     Args:
       A: ``(T, n, n)``. B: ``(T, N, n, m)``. Q: ``(T+1, N, n, n)``. q: ``(T+1, N, n)``.
@@ -207,7 +215,7 @@ def _feedback_recursion(A, B, Q, q, R, r, feedforward_regularization=None):
             K, k = sol[..., :n], sol[..., n]
         else:
             K = jnp.linalg.solve(S, rhs_K.reshape(N * m, n)).reshape(N, m, n)
-            S_k = S + lam * jnp.eye(N * m, dtype=S.dtype)
+            S_k = S + jnp.asarray(lam, S.dtype) * jnp.eye(N * m, dtype=S.dtype)
             k = jnp.linalg.solve(S_k, rhs_k.reshape(N * m)).reshape(N, m)
 
         F = A_t - jnp.einsum("jam,jmb->ab", B_t, K)  # closed-loop dynamics
@@ -384,8 +392,9 @@ def _feedback_own_recursion(A, B, Q, q, Rii, rii, feedforward_regularization=Non
         if lam is None:
             sol = block_solve(S, jnp.concatenate([rhs_K, rhs_k[..., None]], axis=-1))
             return sol[..., :n], sol[..., n]
-        eye = eye_N[:, None, :, None] * jnp.eye(m, dtype=S.dtype)[None, :, None, :]
-        return block_solve(S, rhs_K), block_solve(S + lam * eye, rhs_k[..., None])[..., 0]
+        # lam in the games' dtype: a float64 lam must not promote a float32 recursion
+        eye = jnp.asarray(lam, S.dtype) * eye_N[:, None, :, None] * jnp.eye(m, dtype=S.dtype)[None, :, None, :]
+        return block_solve(S, rhs_K), block_solve(S + eye, rhs_k[..., None])[..., 0]
 
     def step(carry, stage):
         P, p = carry  # (N, n, n), (N, n) at t+1

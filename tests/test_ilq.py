@@ -381,6 +381,27 @@ def test_feedforward_regularization_damps_the_first_step_but_not_its_gains(game,
     assert np.max(np.abs(k - np.asarray(first["plain"].k))) > 1e-3 * np.max(np.abs(k))
 
 
+def test_a_non_finite_feedforward_step_is_reported():
+    """The LQ game of test_lq_game's indefinite coupled matrix, as a GameProblem: with
+    lambda_u at the magnitude of that matrix's negative eigenvalue the damped feed-forward
+    is not finite, and the solver says so instead of returning NaN."""
+    b = jnp.array([[1.0, 2.0], [2.0, 1.0]])  # rows: B^1', B^2'
+    Q_T = jnp.stack([jnp.diag(jnp.array([1.0, 0.0])), jnp.diag(jnp.array([0.0, 1.0]))])
+    q_T = jnp.array([[1.0, 0.0], [0.0, -1.0]])
+    problem = ilq.GameProblem(
+        dynamics=lambda p, t, x, u: x + b[0] * u[0, 0] + b[1] * u[1, 0],
+        stage_cost=lambda p, t, i, x, u_i: 0.05 * jnp.sum(u_i ** 2),
+        terminal_cost=lambda p, i, x: 0.5 * x @ Q_T[i] @ x + q_T[i] @ x,
+        num_players=2, state_dim=2, input_dim=1, horizon=1)
+    x0 = np.zeros(2)
+    plain = ilq.solve(problem, x0, mode="feedback", max_iterations=3)
+    assert bool(plain.converged)
+    damped = ilq.solve(problem, x0, mode="feedback", max_iterations=3, control_regularization=0.9,
+                       feedforward_regularization=True)
+    assert int(damped.status) == ilq.NON_FINITE
+    assert np.all(np.isfinite(np.asarray(damped.us))) and np.all(np.isfinite(np.asarray(damped.xs)))
+
+
 def test_feedforward_regularization_is_for_feedback_games_with_a_lambda(game):
     with pytest.raises(ValueError, match="add feedforward_regularization=true"):
         ilq.solve(game, X0, mode="feedback", **ADAPTIVE)

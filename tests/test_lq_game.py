@@ -617,3 +617,43 @@ def test_feedforward_regularization_keeps_the_gains_and_damps_the_feedforward(N,
     # lambda = 0 is the equilibrium, by either path
     K0, k0 = as_np(*solver(0.0))
     assert rel_gap(K0, K_eq) < 1e-10 and rel_gap(k0, k_eq) < 1e-10
+
+
+def _game_with_an_indefinite_coupled_matrix():
+    """One stage, two players, two states, scalar inputs that move both states: player 1
+    weighs x1 at the end, player 2 x2 (``q`` pushes them apart). Its coupled matrix
+    ``S = [[1.1, 2], [2, 1.1]]`` has the eigenvalues 3.1 and -0.9, and yet the game has a
+    unique feedback equilibrium (S is regular)."""
+    A = np.eye(2)[None]
+    B = np.array([[[[1.0], [2.0]], [[2.0], [1.0]]]])  # B^1 = (1, 2)', B^2 = (2, 1)'
+    Q = np.zeros((2, 2, 2, 2))
+    Q[1, 0], Q[1, 1] = np.diag([1.0, 0.0]), np.diag([0.0, 1.0])
+    q = np.zeros((2, 2, 2))
+    q[1, 0], q[1, 1] = [1.0, 0.0], [0.0, -1.0]
+    return A, B, Q, q, np.full((1, 2, 1, 1), 0.1), np.zeros((1, 2, 1))
+
+
+def test_feedforward_regularization_where_the_coupled_matrix_is_indefinite():
+    """What the docstring says of such games: S + lambda I for lambda below the negative
+    eigenvalue's magnitude lengthens the step by (-0.9) / (lambda - 0.9) along its
+    eigenvector, at it the step is not finite, above it the step is reversed."""
+    game = _game_with_an_indefinite_coupled_matrix()
+    _, k_eq = as_np(*solve_feedback_own(*game))
+    v = np.array([1.0, -1.0]) / np.sqrt(2.0)  # the eigenvector of -0.9; k_eq lies along it
+    assert rel_gap(k_eq.ravel(), (k_eq.ravel() @ v) * v) < 1e-12
+    for lam in (0.3, 2.0):
+        _, k = as_np(*solve_feedback_own(*game, lam))
+        assert rel_gap(k, k_eq * (-0.9) / (lam - 0.9)) < 1e-12
+    _, k = as_np(*solve_feedback_own(*game, 0.9))
+    assert not np.all(np.isfinite(k))
+
+
+def test_feedforward_regularization_keeps_the_dtype_of_the_game():
+    """A float64 lambda (e.g. a NumPy scalar) does not promote a float32 recursion."""
+    full, own = own_input_game(seed=3, N=2)
+    for solver, game in ((solve_feedback_own, own), (solve_feedback, full)):
+        game32 = [np.asarray(a, np.float32) for a in game]
+        K, k = solver(*game32, np.float64(0.3))
+        assert K.dtype == k.dtype == np.float32
+        _, k64 = solver(*game, 0.3)
+        assert rel_gap(k, k64) < 1e-4  # float32 rounding
