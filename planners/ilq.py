@@ -487,6 +487,10 @@ class SolverOptions:
         return self.control_regularization
 
     def __post_init__(self) -> None:
+        for name in ("oscillation_damping", "adaptive_regularization", "feedforward_regularization"):
+            # a string such as "false" would be truthy
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"SolverOptions.{name} must be True or False, got {getattr(self, name)!r}")
         if self.mode not in _MODES:
             raise ValueError(f"mode must be one of {_MODES}, got {self.mode!r}")
         if self.step_control not in _STEP_CONTROLS:

@@ -409,6 +409,9 @@ def test_feedforward_regularization_is_for_feedback_games_with_a_lambda(game):
         ilq.SolverOptions(mode="open_loop", control_regularization=0.3, feedforward_regularization=True)
     with pytest.raises(ValueError, match="feedforward_regularization needs control_regularization > 0"):
         ilq.SolverOptions(feedforward_regularization=True)
+    for name in ("oscillation_damping", "adaptive_regularization", "feedforward_regularization"):
+        with pytest.raises(ValueError, match=f"SolverOptions.{name} must be True or False"):
+            ilq.SolverOptions(control_regularization=0.3, **{name: "false"})
 
 
 def test_residual_step_control_is_refused_for_feedback(game):
