@@ -197,7 +197,10 @@ def _feedback_recursion(A, B, Q, q, R, r, feedforward_regularization=None):
     """The recursion of :func:`solve_feedback` for one game."""
     N, n, m = B.shape[1], B.shape[2], B.shape[3]
     Q, R = _sym(Q), _sym(R)
-    lam = feedforward_regularization
+    # lambda I for the feed-forward rows, made once, in the weights' dtype (a float64 lambda
+    # must not promote a float32 recursion)
+    lam_I = (None if feedforward_regularization is None
+             else jnp.asarray(feedforward_regularization, R.dtype) * jnp.eye(N * m, dtype=R.dtype))
 
     def step(carry, stage):
         P, p = carry  # (N, n, n), (N, n) at t+1
@@ -209,14 +212,13 @@ def _feedback_recursion(A, B, Q, q, R, r, feedforward_regularization=None):
         rhs_K = BtP @ A_t  # (N, m, n)
         rhs_k = jnp.einsum("iam,ia->im", B_t, p) + _own(r_t)  # (N, m)
         S = S.reshape(N * m, N * m)
-        if lam is None:
+        if lam_I is None:
             rhs = jnp.concatenate([rhs_K, rhs_k[..., None]], axis=-1).reshape(N * m, n + 1)
             sol = jnp.linalg.solve(S, rhs).reshape(N, m, n + 1)
             K, k = sol[..., :n], sol[..., n]
         else:
             K = jnp.linalg.solve(S, rhs_K.reshape(N * m, n)).reshape(N, m, n)
-            S_k = S + jnp.asarray(lam, S.dtype) * jnp.eye(N * m, dtype=S.dtype)
-            k = jnp.linalg.solve(S_k, rhs_k.reshape(N * m)).reshape(N, m)
+            k = jnp.linalg.solve(S + lam_I, rhs_k.reshape(N * m)).reshape(N, m)
 
         F = A_t - jnp.einsum("jam,jmb->ab", B_t, K)  # closed-loop dynamics
         beta = -jnp.einsum("jam,jm->a", B_t, k)  # closed-loop drift
@@ -386,15 +388,17 @@ def _feedback_own_recursion(A, B, Q, q, Rii, rii, feedforward_regularization=Non
     Q, Rii = _sym(Q), _sym(Rii)
     eye_N = jnp.eye(N, dtype=Rii.dtype)
     c = _contract
-    lam = feedforward_regularization
+    # lambda I on the own blocks for the feed-forward rows, made once, in the weights' dtype
+    # (a float64 lambda must not promote a float32 recursion)
+    lam_I = (None if feedforward_regularization is None
+             else jnp.asarray(feedforward_regularization, Rii.dtype)
+             * eye_N[:, None, :, None] * jnp.eye(m, dtype=Rii.dtype)[None, :, None, :])
 
     def gains(S, rhs_K, rhs_k):
-        if lam is None:
+        if lam_I is None:
             sol = block_solve(S, jnp.concatenate([rhs_K, rhs_k[..., None]], axis=-1))
             return sol[..., :n], sol[..., n]
-        # lam in the games' dtype: a float64 lam must not promote a float32 recursion
-        eye = jnp.asarray(lam, S.dtype) * eye_N[:, None, :, None] * jnp.eye(m, dtype=S.dtype)[None, :, None, :]
-        return block_solve(S, rhs_K), block_solve(S + eye, rhs_k[..., None])[..., 0]
+        return block_solve(S, rhs_K), block_solve(S + lam_I, rhs_k[..., None])[..., 0]
 
     def step(carry, stage):
         P, p = carry  # (N, n, n), (N, n) at t+1
