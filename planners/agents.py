@@ -17,7 +17,9 @@ the steps elapsed (the last input repeated, or zeros). Between re-plans the feed
 applies ``u = u_hat_t - K_t (x - x_hat_t)``, the others the planned ``u_hat_t``. A solve that
 raises or returns non-finite values falls back to the previous plan (shifted) or, without
 one, to a braking action with a lateral correction toward the centre line; actions are never
-NaN. The state's ``s`` is cumulative on closed tracks; the game wraps it itself (curvature,
+NaN. Cars that the observation flags as no longer racing (finished or retired: frozen by
+the env, which no car collides with) are ghosts in the plan (``RaceGame.with_racing``): no
+collision cost with them, and their progress does not count. The state's ``s`` is cumulative on closed tracks; the game wraps it itself (curvature,
 widths and gaps), so the agents pass the joint state through unchanged.
 """
 
@@ -605,11 +607,13 @@ class RecedingHorizonAgent(BaseAgent):
             try:
                 if x.shape != (self.game.num_players, 6):
                     raise ValueError(f"joint state must have shape ({self.game.num_players}, 6), got {x.shape}")
+                racing = cars_racing(observation, self.index, self.game.num_players)
                 if self._games_by_place is not None:
-                    racing = cars_racing(observation, self.index, self.game.num_players)
                     record["leading"] = self._is_leading(x, racing)
                     self.planning_game = self._games_by_place[record["leading"]]
-                solution = self._solve(self._game_at_speed(x, record), x, init)
+                # cars that finished or retired are ghosts in the plan, as in the env
+                game = self._game_at_speed(x, record).with_racing(racing)
+                solution = self._solve(game, x, init)
                 us, xs, K, res = solution
                 record["iterations"] = int(res.iterations)
                 record["converged"] = bool(res.converged)

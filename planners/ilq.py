@@ -292,7 +292,7 @@ def _race_stage_gauss_newton(game, t, i, x, u_i):
     * jerk: ``r = u_i``, ``rho = r_j u^2``, exact.
     """
     del t
-    from racing_env.costs import _NORM_EPS
+    from racing_env.costs import _NORM_EPS, racing_pairs
     from racing_env.dynamics import AX, AY, N_LAT, S, V
 
     N = game.num_players
@@ -305,7 +305,7 @@ def _race_stage_gauss_newton(game, t, i, x, u_i):
     length = 0.5 * (lengths[i] + lengths)
     width = 0.5 * (widths[i] + widths)
     a = (ds / length) ** 2 + (dn / width) ** 2  # (N,), a_ii = 0
-    others = (jnp.arange(N) != i).astype(x.dtype)
+    others = racing_pairs(game.racing, N, x.dtype)[i]  # zero for i itself and cars out of the race
     ce = jnp.asarray(weights.c_collision)[i] * jnp.exp(2.0 * (1.0 - a)) * others
     g_col = -2.0 * ce
     h_col = ce * jnp.maximum(4.0 * a - 1.0, 0.0) / jnp.maximum(a, 0.25)
@@ -334,13 +334,16 @@ def _race_stage_gauss_newton(game, t, i, x, u_i):
 
 
 def _race_terminal_gauss_newton(game, i, x):
-    """``-s_i + c_g sum_{j != i} s_j``: linear in the cars' arc lengths (zero curvature)."""
+    """``-s_i + c_g sum_{j != i, j racing} s_j``: linear in the cars' arc lengths (zero curvature)."""
     from racing_env.dynamics import S
 
     N = game.num_players
     s = x.reshape(N, -1)[:, S]
     own = jnp.arange(N) == i
-    g = jnp.where(own, -1.0, jnp.asarray(game.weights.c_gap)[i]).astype(x.dtype)
+    rival = jnp.asarray(game.weights.c_gap)[i]
+    if game.racing is not None:
+        rival = rival * jnp.asarray(game.racing).astype(x.dtype)
+    g = jnp.where(own, -1.0, rival).astype(x.dtype)
     return s, g, jnp.zeros_like(s)
 
 
@@ -1286,7 +1289,7 @@ def solve_batch(
     ``init``: ``None``, inputs shared by the batch ``(T, N, m)``, or batched ``(B, T, N, m)``
     (or a batched result). ``params_axes``: vmap axes of the problem's ``params`` (a pytree
     prefix, e.g. a RaceGame whose ``weights`` leaves are batched: build the game with
-    stacked weights and pass ``params_axes=game.replace(track=None, vehicles=None,
+    stacked weights and pass ``params_axes=game.replace(track=None, vehicles=None, racing=None,
     weights=0)``); ``None`` shares the params. The result has a leading batch axis.
 
     ``devices``: the batch is split evenly across these devices and the parts run in

@@ -20,6 +20,9 @@ enforces at low speed (no spinning on the spot, no reverse gear), so that a plan
 plan a way out of a standstill that the car cannot drive.
 
 Terminal cost: ``g_K^i = -s_K^i + c_g^i * sum_{j != i} s_K^j``.
+
+Cars out of the race (``racing``, bool ``(N,)``; ``None``: all race) are ghosts: the collision
+terms of every pair with such a car are zero, and its ``s_K`` leaves the others' sums.
 """
 
 from __future__ import annotations
@@ -111,18 +114,34 @@ def stack_weights(weights: Sequence[CostWeights]) -> CostWeights:
     return CostWeights(**{k: np.array([float(getattr(w, k)) for w in weights]) for k in names})
 
 
-def collision_proximity(x: jax.Array, vehicles: VehicleParams, track: Track) -> jax.Array:
-    """Pairwise proximity ``exp(1 - (ds/l)^2 - (dn/w)^2)^2``, shape ``(N, N)``, zero diagonal."""
+def racing_pairs(racing: jax.Array | None, num_cars: int, dtype) -> jax.Array:
+    """``(N, N)`` weights of the pairs of distinct cars that are both racing (1), else 0."""
+    pairs = 1.0 - jnp.eye(num_cars, dtype=dtype)
+    if racing is None:
+        return pairs
+    flags = jnp.asarray(racing).astype(dtype)
+    return pairs * flags[:, None] * flags[None, :]
+
+
+def collision_proximity(
+    x: jax.Array, vehicles: VehicleParams, track: Track, racing: jax.Array | None = None
+) -> jax.Array:
+    """Pairwise proximity ``exp(1 - (ds/l)^2 - (dn/w)^2)^2``, shape ``(N, N)``, zero on the
+    diagonal and for pairs with a car out of the race."""
     ds = track.wrap_ds(x[None, :, S] - x[:, None, S])
     dn = x[None, :, N_LAT] - x[:, None, N_LAT]
     length = 0.5 * (vehicles.length[:, None] + vehicles.length[None, :])
     width = 0.5 * (vehicles.width[:, None] + vehicles.width[None, :])
     proximity = jnp.exp(2.0 * (1.0 - (ds / length) ** 2 - (dn / width) ** 2))
-    return proximity * (1.0 - jnp.eye(x.shape[0], dtype=x.dtype))
+    return proximity * racing_pairs(racing, x.shape[0], x.dtype)
 
 
 def state_cost_terms(
-    x: jax.Array, vehicles: VehicleParams, weights: CostWeights, track: Track
+    x: jax.Array,
+    vehicles: VehicleParams,
+    weights: CostWeights,
+    track: Track,
+    racing: jax.Array | None = None,
 ) -> dict[str, jax.Array]:
     """The input-independent stage-cost terms of every player, each of shape ``(N,)``."""
     s, v, n = x[:, S], x[:, V], x[:, N_LAT]
@@ -134,7 +153,7 @@ def state_cost_terms(
     over_gg = jnp.maximum(jnp.sqrt(ax**2 + ay**2 + _NORM_EPS) - vehicles.rho(v), 0.0)
     over_turn = jnp.maximum(jnp.sqrt(ay**2 + _NORM_EPS) - vehicles.ay_turn_max(v), 0.0)
     return {
-        "collision": weights.c_collision * collision_proximity(x, vehicles, track).sum(axis=1),
+        "collision": weights.c_collision * collision_proximity(x, vehicles, track, racing).sum(axis=1),
         "track": weights.c_track * (beyond_left**2 + beyond_right**2),
         "ax_limit": weights.c_ax * over_ax**2,
         "gg_limit": weights.c_acc * over_gg**2,
@@ -149,14 +168,20 @@ def input_cost(u: jax.Array, weights: CostWeights) -> jax.Array:
 
 
 def stage_costs(
-    x: jax.Array, u: jax.Array, vehicles: VehicleParams, weights: CostWeights, track: Track
+    x: jax.Array,
+    u: jax.Array,
+    vehicles: VehicleParams,
+    weights: CostWeights,
+    track: Track,
+    racing: jax.Array | None = None,
 ) -> jax.Array:
     """Stage cost of every player: ``x (N, 6)``, ``u (N, 2)`` -> ``(N,)``."""
-    terms = state_cost_terms(x, vehicles, weights, track)
+    terms = state_cost_terms(x, vehicles, weights, track, racing)
     return input_cost(u, weights) + sum(terms.values())
 
 
-def terminal_costs(x: jax.Array, weights: CostWeights) -> jax.Array:
-    """Terminal cost ``-s^i + c_g^i sum_{j != i} s^j`` of every player, ``(N,)``."""
+def terminal_costs(x: jax.Array, weights: CostWeights, racing: jax.Array | None = None) -> jax.Array:
+    """Terminal cost ``-s^i + c_g^i sum_{j != i, j racing} s^j`` of every player, ``(N,)``."""
     s = x[:, S]
-    return -s + weights.c_gap * (jnp.sum(s) - s)
+    rivals = s if racing is None else s * jnp.asarray(racing).astype(s.dtype)
+    return -s + weights.c_gap * (jnp.sum(rivals) - rivals)

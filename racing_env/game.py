@@ -26,6 +26,12 @@ class RaceGame:
         weights: per-player cost weights, fields of shape ``(N,)``.
         dt: time step [s] (static).
         horizon: number of stages K of a planning problem (static).
+        racing: which cars are still in the race, bool ``(N,)``; ``None`` (the default):
+            all. The env freezes a car that finished or retired, and nothing collides with
+            it any more. In the game such a car is a ghost: no collision cost to or from
+            it, and its progress is not in the others' terminal costs. It keeps its own
+            dynamics and costs, so the game keeps its N players and a planner its compiled
+            solver when a car drops out. Set it with :meth:`with_racing`.
 
     Arrays: joint state ``x (N, 6)``, joint input ``u (N, 2)``, input sequences
     ``U (K, N, 2)``, state trajectories ``xs (K + 1, N, 6)``. All functions are pure JAX.
@@ -36,6 +42,7 @@ class RaceGame:
     weights: CostWeights
     dt: float = 0.1
     horizon: int = 50
+    racing: jax.Array | None = None
 
     @staticmethod
     def create(
@@ -88,6 +95,18 @@ class RaceGame:
     def replace(self, **changes) -> "RaceGame":
         return dataclasses.replace(self, **changes)
 
+    def with_racing(self, racing: Sequence[bool] | np.ndarray | None) -> "RaceGame":
+        """The game with the cars out of the race marked: ``racing (N,)`` bool, ``None``: all
+        cars race (see the ``racing`` attribute)."""
+        if racing is None:
+            return self.replace(racing=None)
+        flags = np.asarray(racing)
+        if flags.shape != (self.num_players,) or flags.dtype != bool:
+            raise ValueError(
+                f"racing must be {self.num_players} booleans (one per car), got {racing!r}"
+            )
+        return self.replace(racing=flags)
+
     # --- dynamics ---------------------------------------------------------------------
     def step(self, x: jax.Array, u: jax.Array) -> jax.Array:
         """Joint RK4 step: ``x (N, 6)``, ``u (N, 2)`` [m/s^3] -> ``(N, 6)``."""
@@ -106,7 +125,7 @@ class RaceGame:
     # --- costs ------------------------------------------------------------------------
     def stage_costs(self, x: jax.Array, u: jax.Array) -> jax.Array:
         """Stage cost of every player, ``(N,)``."""
-        return _costs.stage_costs(x, u, self.vehicles, self.weights, self.track)
+        return _costs.stage_costs(x, u, self.vehicles, self.weights, self.track, self.racing)
 
     def stage_cost(self, i: int, x: jax.Array, u_i: jax.Array) -> jax.Array:
         """Stage cost g^i of player ``i`` at joint state ``x (N, 6)`` with its input ``u_i (2,)``.
@@ -114,13 +133,13 @@ class RaceGame:
         Player i's stage cost depends on its own input only (the paper's structure), so the
         other players' inputs are not arguments.
         """
-        state_terms = _costs.state_cost_terms(x, self.vehicles, self.weights, self.track)
+        state_terms = _costs.state_cost_terms(x, self.vehicles, self.weights, self.track, self.racing)
         r_i = self.weights.jerk_weights[i]
         return sum(t[i] for t in state_terms.values()) + jnp.sum(r_i * u_i**2)
 
     def terminal_costs(self, x: jax.Array) -> jax.Array:
         """Terminal cost of every player, ``(N,)``."""
-        return _costs.terminal_costs(x, self.weights)
+        return _costs.terminal_costs(x, self.weights, self.racing)
 
     def terminal_cost(self, i: int, x: jax.Array) -> jax.Array:
         """Terminal cost g_K^i of player ``i``."""
@@ -134,6 +153,6 @@ class RaceGame:
 
 jax.tree_util.register_dataclass(
     RaceGame,
-    data_fields=["track", "vehicles", "weights"],
+    data_fields=["track", "vehicles", "weights", "racing"],
     meta_fields=["dt", "horizon"],
 )

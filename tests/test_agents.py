@@ -203,6 +203,53 @@ def test_a_car_stopped_at_the_edge_facing_out_rejoins_in_recovery(spec):
     assert speeds[1e-3] > 5.0  # measured 10.4 m/s after 2 s (12 re-plans in recovery) for all three
 
 
+@pytest.mark.parametrize("spec", GAME_SPECS)
+def test_a_planner_drives_through_cars_out_of_the_race_as_the_env_does(spec):
+    """Two cars collide at the first step and retire (``on_collision="terminate"``); the env
+    freezes them 55 m ahead on the planner's line, and nothing collides with them any more.
+    The planner treats them as ghosts once its observation flags them and drives straight
+    through at speed, without recompiling. Planning against them as live cars instead, all
+    three swerved (by 1.9, 0.8 and 2.7 m for ilqgame-fb, -ol and ilqr) and the feedback
+    planner slowed to 14.7 m/s."""
+    env = racing_env.parallel_env(track="straight", num_agents=3, race_distance=120.0, max_steps=100,
+                                  on_collision="terminate",
+                                  weights=CostWeights(r_jx=0.01, r_jy=0.01))
+    agent = make_agent(spec)
+    wreck = [make_agent("lane-keeping"), make_agent("lane-keeping")]
+    reset_agents([agent, *wreck], env, 0)
+    x0 = np.zeros((3, 6))
+    x0[:, :3] = [[5.0, 15.0, 0.0], [60.0, 15.0, 0.5], [61.0, 15.0, -0.5]]  # cars 1 and 2 overlap
+    obs, _ = env.reset(seed=0, options={"x0": x0})
+    compiles = []
+
+    def listener(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    xs, last_info = [], {}
+    try:
+        while "car_0" in env.agents:
+            if len(xs) == 1:
+                jax.monitoring.register_event_duration_secs_listener(listener)
+            state = env.state()
+            actions = {"car_0": agent(obs["car_0"], state)}
+            actions.update({name: wreck[int(name[-1]) - 1](obs[name], state) for name in env.agents if name != "car_0"})
+            obs, _, _, _, infos = env.step(actions)
+            last_info.update(infos)
+            xs.append(env.state()[0])
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    xs = np.array(xs)
+    assert last_info["car_1"]["out"] and last_info["car_2"]["out"] and last_info["car_0"]["finished"]
+    assert np.all(np.abs(env.state()[1:, 0] - [60.0, 61.0]) < 2.0)  # frozen where they met
+    passing = (xs[:, 0] > 20.0) & (xs[:, 0] < 70.0)
+    assert passing.sum() > 10
+    # The planner keeps its line (n = 0: the optimum alone) and its speed
+    assert np.abs(xs[passing, 2]).max() < 0.05
+    assert xs[passing, 1].min() > 15.0
+    assert compiles == [], f"{len(compiles)} compilations after the first step ({sum(compiles):.1f} s)"
+
+
 @pytest.mark.parametrize("spec", ["ilqr:max_iterations=2", "ilqr:max_iterations=2,leading.c_collision=10"])
 def test_a_joint_state_of_the_wrong_shape_brakes_with_or_without_place_weights(spec):
     env = racing_env.parallel_env(track="trefoil", num_agents=2)

@@ -299,6 +299,65 @@ def test_total_costs_are_stage_plus_terminal_sums(game3, varying_track):
     np.testing.assert_allclose(total, expected, rtol=1e-11, atol=1e-9)
 
 
+def _close_scene() -> np.ndarray:
+    """Three cars within a car length or two of each other: every pair's collision term is large."""
+    return np.array([[100.0, 18.0, 0.0, 0.0, 0.0, 0.0],
+                     [102.0, 19.0, 0.8, 0.02, 1.0, 0.0],
+                     [98.5, 17.0, -0.7, -0.01, 0.0, 1.0]])
+
+
+def test_cars_out_of_the_race_are_ghosts(game3):
+    """A car out of the race neither causes nor feels collision cost, and its progress leaves
+    the others' terminal costs; every other term is unchanged. All cars racing is the
+    unmasked game, bit for bit."""
+    x = jnp.asarray(_close_scene())
+    full = {k: np.asarray(v) for k, v in state_cost_terms(x, game3.vehicles, game3.weights, game3.track).items()}
+    assert np.all(full["collision"] > 1.0)  # every car feels the others: the masks below have work to do
+    ghost = game3.with_racing([True, False, True])
+    masked = {k: np.asarray(v) for k, v in
+              state_cost_terms(x, ghost.vehicles, ghost.weights, ghost.track, ghost.racing).items()}
+    # The collision term of the racing cars equals the unmasked one with car 1 far away.
+    far = x.at[1, 0].set(x[1, 0] + 0.5 * game3.track.length)
+    alone = np.asarray(state_cost_terms(far, game3.vehicles, game3.weights, game3.track)["collision"])
+    np.testing.assert_array_equal(masked["collision"][[0, 2]], alone[[0, 2]])
+    assert masked["collision"][1] == 0.0
+    for name in full:
+        if name != "collision":
+            np.testing.assert_array_equal(masked[name], full[name], err_msg=name)
+    s = np.asarray(x[:, 0])
+    c_gap = np.array([w.c_gap for w in WEIGHTS])
+    expected = -s + c_gap * np.array([s[2], s[0] + s[2], s[0]])  # no one counts car 1's progress
+    np.testing.assert_allclose(np.asarray(ghost.terminal_costs(x)), expected, rtol=1e-14)
+    everyone = game3.with_racing([True, True, True])
+    u = jnp.asarray(np.random.default_rng(4).uniform(-5.0, 5.0, (3, 2)))
+    assert np.array_equal(np.asarray(everyone.stage_costs(x, u)), np.asarray(game3.stage_costs(x, u)))
+    assert np.array_equal(np.asarray(everyone.terminal_costs(x)), np.asarray(game3.terminal_costs(x)))
+    assert game3.with_racing(None).racing is None
+
+
+def test_a_ghost_does_not_couple_the_players(game3):
+    """With car 1 out of the race, the racing cars' total costs do not depend on car 1's start
+    state or inputs, nor car 1's on theirs (exactly: the cars interact through costs only)."""
+    ghost = game3.with_racing(np.array([True, False, True]))
+    U = jnp.asarray(np.random.default_rng(5).uniform(-10.0, 10.0, (game3.horizon, 3, 2)))
+    x0 = jnp.asarray(_close_scene())
+
+    def total(x0, U):
+        return ghost.costs(ghost.rollout(x0, U), U)
+
+    dx0, dU = jax.jacrev(total, argnums=(0, 1))(x0, U)  # (3, 3, 6), (3, K, 3, 2)
+    assert np.all(np.asarray(dx0)[[0, 2]][:, 1] == 0.0) and np.all(np.asarray(dU)[[0, 2]][:, :, 1] == 0.0)
+    assert np.all(np.asarray(dx0)[1][[0, 2]] == 0.0) and np.all(np.asarray(dU)[1][:, [0, 2]] == 0.0)
+    # ...while the racing cars 0 and 2 still interact (else the zeros above prove nothing)
+    assert np.abs(np.asarray(dU)[0][:, 2]).max() > 1e-3
+
+
+def test_with_racing_refuses_malformed_flags(game3):
+    for bad in ([True, False], [1, 0, 1], np.ones((3, 1), dtype=bool), "all"):
+        with pytest.raises(ValueError, match="racing must be 3 booleans"):
+            game3.with_racing(bad)
+
+
 def test_rollout_shapes_and_consistency_with_step(game3):
     """rollout(x0, U) has shape (K+1, N, 6), starts at x0 and follows game.step."""
     rng = np.random.default_rng(3)

@@ -224,6 +224,35 @@ def test_feedback_solution_has_vanishing_feedforward_and_is_not_open_loop_nash(
     np.testing.assert_allclose(feedback.xs, game.rollout(jnp.asarray(X0), feedback.us))
 
 
+@pytest.mark.parametrize("mode", ["feedback", "open_loop"])
+def test_with_the_opponent_out_of_the_race_each_car_plans_as_if_alone(game, mode, request):
+    """The paper scene with car 1 out of the race decouples into two one-car problems: the
+    game's solution is each car's own optimum. Checked against one-car solves of the same
+    track and cars, and by the first-order condition of each car's one-car problem."""
+    ghost = game.with_racing((True, False))
+    tight = dict(tolerance=1e-10, max_iterations=200)
+    res = ilq.solve(ghost, X0, mode=mode, **tight)
+    assert bool(res.converged), ilq.status_message(res.status)
+    for i in range(2):
+        alone = RaceGame.create(game.track, [game.vehicles.car(i)], WEIGHTS, dt=game.dt, horizon=game.horizon)
+        own = ilq.solve(alone, X0[i : i + 1], mode=mode, **tight)
+        assert bool(own.converged), ilq.status_message(own.status)
+        # Both stop once a full step moves the states by <= 1e-10; near a fixed point the
+        # iterates contract, so they are within a few 1e-10 of it. 1e-7 leaves a wide margin.
+        np.testing.assert_allclose(res.xs[:, i], own.xs[:, 0], atol=1e-7)
+        np.testing.assert_allclose(res.us[:, i], own.us[:, 0], atol=1e-6)
+        # independently of the solver: the game's inputs are a stationary point of the car's own cost
+        grad = jax.grad(lambda u: alone.costs(alone.rollout(jnp.asarray(X0[i : i + 1]), u), u)[0])
+        start = float(jnp.max(jnp.abs(grad(jnp.zeros_like(own.us)))))
+        assert float(jnp.max(jnp.abs(grad(res.us[:, i : i + 1])))) <= 1e-8 * start
+    if mode == "feedback":  # neither car's law reacts to the other car's state
+        K = np.asarray(res.K)  # (T, N, 2, 2 * 6)
+        assert np.abs(K[:, 0, :, 6:]).max() <= 1e-12 and np.abs(K[:, 1, :, :6]).max() <= 1e-12
+    # with both cars racing, the ego swerves for the opponent: the mask changed the game
+    both = request.getfixturevalue(mode)  # the paper scene's solution, both racing
+    assert float(jnp.max(jnp.abs(both.xs[:, 0, 2] - res.xs[:, 0, 2]))) > 0.1
+
+
 def test_single_car_feedback_and_open_loop_coincide():
     track = straight(length=300.0, width_left=6.0, width_right=6.0, ds=1.0)
     game1 = RaceGame.create(track, [VehicleParams(v_max=20.0)], WEIGHTS, dt=0.1, horizon=50)
@@ -597,7 +626,9 @@ def _random_states(game, rng, count):
     return states
 
 
-def test_gauss_newton_hooks_give_exact_gradients_and_psd_hessians(game):
+@pytest.mark.parametrize("racing", [None, (True, False)], ids=["all_racing", "car_1_out"])
+def test_gauss_newton_hooks_give_exact_gradients_and_psd_hessians(game, racing):
+    game = game.with_racing(racing)
     problem = ilq.problem_from_race_game(game)
     n = problem.state_dim
     rng = np.random.default_rng(3)
