@@ -19,8 +19,9 @@ raises or returns non-finite values falls back to the previous plan (shifted) or
 one, to a braking action with a lateral correction toward the centre line; actions are never
 NaN. Cars that the observation flags as no longer racing (finished or retired: frozen by
 the env, which no car collides with) are ghosts in the plan (``RaceGame.with_racing``): no
-collision cost with them, and their progress does not count. The state's ``s`` is cumulative on closed tracks; the game wraps it itself (curvature,
-widths and gaps), so the agents pass the joint state through unchanged.
+collision cost with them, and their progress does not count. The state's ``s`` is
+cumulative on closed tracks; the game wraps it itself (curvature, widths and gaps), so the
+agents pass the joint state through unchanged.
 """
 
 from __future__ import annotations
