@@ -10,6 +10,7 @@ from pathlib import Path
 
 
 DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping")
+INCIDENT_CHOICES = ("penalty", "terminate", "both", "ignore")  # racing_env.config.INCIDENT_MODES (not imported: JAX)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -41,6 +42,7 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
         agents=tuple(split_spec_list(args.agents)),
         track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
         cars=args.cars, seed=args.seed, versus=args.versus, max_steps=args.max_steps, step_budget_s=args.step_budget,
+        on_collision=args.collision, on_off_track=args.off_track,
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
     )
     _check_ray(args.backend)
@@ -252,6 +254,11 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--jerk-weight", type=float, default=None,
                       help="planners' jerk weight r in the race game (default: racing_env.costs.RACING_JERK_WEIGHT, "
                       "measured to race well)")
+    tour.add_argument("--collision", default="penalty", choices=INCIDENT_CHOICES,
+                      help="what contact does: penalty (only counted, the default), terminate or both (the cars in "
+                      "contact retire and place behind every finisher, by distance), ignore")
+    tour.add_argument("--off-track", default="penalty", choices=INCIDENT_CHOICES,
+                      help="what leaving the track does, as for --collision (default: penalty)")
     tour.add_argument("--out", default="runs/tournament", help="output folder (default: runs/tournament)")
     tour.add_argument("--no-gif", action="store_true", help="do not render a GIF of the first race")
     tour.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")
@@ -334,10 +341,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "opponents their solves then use every core (same results as in one process)")
     train.add_argument("--no-normalize", dest="normalize", action="store_false",
                        help="do not normalise observations and rewards (VecNormalize)")
-    train.add_argument("--off-track", default="terminate", choices=["penalty", "terminate", "both", "ignore"],
+    train.add_argument("--off-track", default="terminate", choices=INCIDENT_CHOICES,
                        help="what leaving the track does in training (default: terminate the episode; evaluations "
                        "use tournament rules, a penalty)")
-    train.add_argument("--collision", default="penalty", choices=["penalty", "terminate", "both", "ignore"],
+    train.add_argument("--collision", default="penalty", choices=INCIDENT_CHOICES,
                        help="what contact does in training (default: penalty)")
     train.add_argument("--jerk-weight", type=float, default=None,
                        help="planner opponents' jerk weight r (default: the tournaments' RACING_JERK_WEIGHT)")

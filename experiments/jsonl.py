@@ -3,6 +3,7 @@ episodes, evaluations), so that an interrupted run keeps them and can resume."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any, Callable
@@ -49,6 +50,18 @@ def append_jsonl(path: Path, record: dict[str, Any]) -> None:
     """Append one record as a line and flush it."""
     with open(path, "a") as sink:
         sink.write(json.dumps(record) + "\n")
+
+
+def settings_json(config: Any, added_later: tuple[str, ...] = ()) -> str:
+    """A dataclass configuration as the JSON :func:`open_run_log` compares. The fields named
+    in ``added_later`` are left out while at their defaults, so that a run written before
+    they existed still resumes under the same settings."""
+    settings = dataclasses.asdict(config)
+    defaults = {field.name: field.default for field in dataclasses.fields(config)}
+    for name in added_later:
+        if settings[name] == defaults[name]:
+            del settings[name]
+    return json.dumps(settings, sort_keys=True)
 
 
 def open_run_log(out: Path, log: str, settings_file: str, settings_json: str, fresh: bool,

@@ -21,8 +21,8 @@ class RaceRecord:
 
     Attributes:
         xs: joint states ``(T+1, N, 6)``, the start included.
-        summary: per car: ``agent``, ``position``, ``finished``, ``finish_time`` [s] (None
-            if not finished), ``distance`` [m], ``mean_speed`` [m/s], ``collision_steps``,
+        summary: per car: ``agent``, ``position``, ``finished``, ``retired`` (by an incident
+            rule), ``finish_time`` [s] (None if not finished), ``distance`` [m], ``mean_speed`` [m/s], ``collision_steps``,
             ``time_off_track`` [s].
         frames: rendered RGB frames (empty unless ``render_every``).
         steps: env steps taken.
@@ -112,6 +112,7 @@ def run_race(
                 "agent": agent,
                 "position": info["position"],
                 "finished": info["finished"],
+                "retired": info["out"],
                 "finish_time": info["finish_time"],
                 "distance": float(xs[-1, i, 0] - xs[0, i, 0]),
                 "mean_speed": float(np.mean(xs[:, i, 1])),

@@ -2,7 +2,7 @@
 
 A sweep is a TOML file: a ``lineup`` of agent specs (agent 0 is the one the sweep is
 about), the race (``track``, ``laps`` or ``race_distance``, ``grids``, ``seed``,
-``max_steps``, ``jerk_weight``) and a ``[parameters]`` table whose values are lists; every
+``max_steps``, ``jerk_weight``, the incident rules ``on_collision`` and ``on_off_track``) and a ``[parameters]`` table whose values are lists; every
 combination of them (a point) is raced on ``grids`` seeded rolling grids, once per rotation
 of the starting slots::
 
@@ -14,7 +14,7 @@ of the starting slots::
     jerk_weight = [0.01, 0.03]                 # every car's jerk weight r
 
 Parameter names: the race's ``track``, ``laps``, ``race_distance``, ``max_steps``,
-``jerk_weight``; ``weights.<field>`` (a :class:`racing_env.costs.CostWeights` field, for
+``jerk_weight``, ``on_collision``, ``on_off_track``; ``weights.<field>`` (a :class:`racing_env.costs.CostWeights` field, for
 every car), ``vehicles.<field>`` (a :class:`racing_env.vehicle.VehicleParams` field, for
 every car) and ``agent<i>.<field>`` (that field for agent ``i`` of the lineup: a cost
 weight or a car parameter of its car, known to every planner in the race, or an option of
@@ -43,7 +43,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from experiments.backends import check_backend, run_jobs
-from experiments.jsonl import append_jsonl, open_run_log, read_jsonl
+from experiments.jsonl import append_jsonl, open_run_log, read_jsonl, settings_json
 from planners.agent_specs import with_options
 from racing_env.config import RaceConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
@@ -56,7 +56,8 @@ else:  # pragma: no cover - Python 3.10
 
 RESULTS = "results.jsonl"
 CONFIG = "sweep.json"
-RACE_PARAMETERS = ("track", "laps", "race_distance", "max_steps", "jerk_weight")
+RACE_PARAMETERS = ("track", "laps", "race_distance", "max_steps", "jerk_weight", "on_collision", "on_off_track")
+ADDED_LATER = ("on_collision", "on_off_track")  # left out of sweep.json at their defaults
 NUMBER_PARAMETERS = ("laps", "race_distance", "max_steps", "jerk_weight")
 WEIGHT_FIELDS = tuple(f.name for f in dataclasses.fields(CostWeights))
 VEHICLE_FIELDS = tuple(f.name for f in dataclasses.fields(VehicleParams))
@@ -71,8 +72,8 @@ class SweepConfig:
         lineup: agent specs by agent index (:func:`planners.agents.make_agent`); agent 0 is
             the subject of the summary, which reports every agent.
         parameters: ``(name, values)`` pairs; every combination is a point.
-        track, laps, race_distance, max_steps, jerk_weight: the race (as in tournaments)
-            where a parameter does not set them.
+        track, laps, race_distance, max_steps, jerk_weight, on_collision, on_off_track: the
+            race (as in tournaments) where a parameter does not set them.
         grids: seeded start grids per point, each raced once per rotation of the slots.
         seed: seeds the grids.
         step_budget_s: an action slower than this loses the race (None: no budget).
@@ -88,6 +89,8 @@ class SweepConfig:
     grids: int = 2
     seed: int = 0
     step_budget_s: float | None = None
+    on_collision: str = "penalty"
+    on_off_track: str = "penalty"
 
     def __post_init__(self) -> None:
         if len(self.lineup) < 2:
@@ -158,6 +161,7 @@ class SweepConfig:
         any_car = any(k.split(".", 1)[-1] in VEHICLE_FIELDS for k in point if "." in k)
         return RaceConfig(track=race["track"], num_agents=cars, scenario="grid", laps=race["laps"],
                           race_distance=race["race_distance"], max_steps=race["max_steps"], weights=weights,
+                          on_collision=race["on_collision"], on_off_track=race["on_off_track"],
                           vehicles=vehicles if any_car else None)  # None: the scenario's cars, as before
 
 
@@ -277,8 +281,8 @@ def run_job(config: SweepConfig, job: dict[str, Any]) -> dict[str, Any]:
 
 def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per point and agent: races, wins (and of those started in front, how many were
-    won), races finished, mean place, mean finish-time margin over the other cars (races all finished),
-    overtakes per race, contact steps, time off track, errors, and for planners the mean
+    won), races finished, races retired by an incident rule, mean place, mean finish-time
+    margin over the other cars (races all finished), overtakes per race, contact steps, time off track, errors, and for planners the mean
     share of re-plans that converged (results where it is low are the solver's, not the
     weights': see the README's sweep of the gap weight)."""
     position = {job["id"]: k for k, job in enumerate(schedule(config))}
@@ -302,6 +306,7 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
                 "races_from_front": sum(car["start_place"] == 1 for car in mine),
                 "wins_from_front": sum(car["start_place"] == 1 and car["place"] == 1 for car in mine),
                 "finished": sum(car["finish_time"] is not None for car in mine),
+                "retired": sum(bool(car.get("retired", False)) for car in mine),  # none in older records
                 "mean_place": float(np.mean([car["place"] for car in mine])) if mine else None,
                 "mean_margin_s": float(np.mean(margins)) if margins else None,
                 "overtakes_per_race": float(np.mean([r["overtakes"] for r in races])) if races else None,
@@ -338,8 +343,7 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
     for track in dict.fromkeys(point.get("track", config.track) for point in config.points()):
         get_track(track)  # so does a track that is not built in and not a readable file
     console = Console(stderr=True, width=160)
-    done = open_run_log(out, RESULTS, CONFIG, json.dumps(dataclasses.asdict(config), sort_keys=True), fresh,
-                        "sweep")
+    done = open_run_log(out, RESULTS, CONFIG, settings_json(config, ADDED_LATER), fresh, "sweep")
     jobs = schedule(config)
     todo = [job for job in jobs if job["id"] not in done]
     if done:
@@ -375,7 +379,7 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         writer.writerows(rows)
     names = [name for name, _ in config.parameters]
     table = Table(title=f"sweep: {' vs '.join(config.lineup)}")
-    for column in (*names, "agent", "races", "wins", "from the front", "finished", "mean place", "margin [s]",
+    for column in (*names, "agent", "races", "wins", "from the front", "finished", "retired", "mean place", "margin [s]",
                    "overtakes/race", "contact steps", "off track [s]", "errors", "converged"):
         table.add_column(column, overflow="fold")  # long specs and parameter names wrap instead of being cut
     for row in rows:
@@ -385,7 +389,7 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         converged = "-" if row["converged_fraction"] is None else f"{row['converged_fraction']:.0%}"
         table.add_row(*(str(row[n]) for n in names), f"{row['agent']}: {row['spec']}", str(row["races"]),
                       str(row["wins"]), f"{row['wins_from_front']}/{row['races_from_front']}",
-                      f"{row['finished']}/{row['races']}", place, margin,
+                      f"{row['finished']}/{row['races']}", str(row["retired"]), place, margin,
                       overtakes, str(row["contact_steps"]),
                       f"{row['time_off_track_s']:.1f}", str(row["errors"]), converged)
     console.print(table)

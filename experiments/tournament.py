@@ -25,14 +25,15 @@ from typing import Any
 import numpy as np
 
 from experiments.backends import check_backend, run_jobs
-from experiments.jsonl import append_jsonl, open_run_log, read_jsonl
-from racing_env.config import RaceConfig
+from experiments.jsonl import append_jsonl, open_run_log, read_jsonl, settings_json
+from racing_env.config import RETIRING_MODES, RaceConfig, check_incident_rules
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
 from racing_env.env import RacingParallelEnv
 
 RESULTS = "results.jsonl"
 CONFIG = "tournament.json"
 GIF = "race.gif"
+ADDED_LATER = ("on_collision", "on_off_track")  # left out of tournament.json at their defaults
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +47,11 @@ class TournamentConfig:
     it small (see :data:`racing_env.costs.RACING_JERK_WEIGHT`, the default, for the
     measurements behind it): with r = 1, the solver default tuned for single solves, a 5 s
     horizon buys so little progress per unit of jerk that the planners barely accelerate.
+
+    ``on_collision`` / ``on_off_track``: what contact and leaving the track do
+    (:data:`racing_env.config.INCIDENT_MODES`). By default only the env's reward counts them,
+    which no race result uses; ``terminate`` (or ``both``) retires the car, which then places
+    behind every finisher by distance covered.
     """
 
     agents: tuple[str, ...]
@@ -59,8 +65,11 @@ class TournamentConfig:
     step_budget_s: float = 1.0
     jerk_weight: float = RACING_JERK_WEIGHT
     versus: str | None = None
+    on_collision: str = "penalty"
+    on_off_track: str = "penalty"
 
     def __post_init__(self) -> None:
+        check_incident_rules(on_collision=self.on_collision, on_off_track=self.on_off_track)
         if len(self.agents) < 2:
             raise ValueError(f"a tournament needs at least 2 agent specs, got {list(self.agents)}")
         if len({normal_spec(spec) for spec in self.agents}) != len(self.agents):
@@ -135,6 +144,7 @@ def race_config(config: TournamentConfig, render: bool = False) -> RaceConfig:
     return RaceConfig(track=config.track, num_agents=config.cars, scenario="grid", laps=config.laps,
                       race_distance=config.race_distance, max_steps=config.max_steps,
                       weights=CostWeights(r_jx=config.jerk_weight, r_jy=config.jerk_weight),
+                      on_collision=config.on_collision, on_off_track=config.on_off_track,
                       render_mode="rgb_array" if render else None)
 
 
@@ -192,6 +202,7 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             "finish_time": finish[i],
             "distance": car["distance"], "mean_speed": car["mean_speed"],
             "collision_steps": car["collision_steps"], "time_off_track": car["time_off_track"],
+            "retired": car["retired"],
             "act_time_mean_s": float(np.mean(times)) if times else float("nan"),
             "act_time_max_s": float(np.max(times)) if times else float("nan"),
             "solver_failures": int(summary.get("fallbacks", 0)),
@@ -231,7 +242,7 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
     model = PlackettLuce()
     ratings = {n: model.rating(name=n) for n in names}
     h2h = np.zeros((len(names), len(names)), dtype=int)
-    stats = {n: {"races": 0, "wins": 0, "finished": 0, "errors": 0, "collision_steps": 0, "act_times": [],
+    stats = {n: {"races": 0, "wins": 0, "finished": 0, "retired": 0, "errors": 0, "collision_steps": 0, "act_times": [],
                  "margins": [], "converged": []} for n in names}
     for record in records:
         order = record["order"]
@@ -245,6 +256,7 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
             st["races"] += 1
             st["wins"] += car["place"] == 1
             st["finished"] += car["finish_time"] is not None
+            st["retired"] += bool(car.get("retired", False))  # records from before incident rules: none
             st["errors"] += car["error"] is not None
             st["collision_steps"] += car["collision_steps"]
             if np.isfinite(car["act_time_mean_s"]):  # NaN: the car faulted before a timed action
@@ -262,7 +274,7 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
         rows.append({"agent": n, "races": st["races"], "wins": st["wins"],
                      "win_rate": st["wins"] / st["races"] if st["races"] else float("nan"),
                      "win_rate_ci95": [lo, hi], "rating_mu": r.mu, "rating_sigma": r.sigma,
-                     "rating": r.mu - 3 * r.sigma, "finished": st["finished"], "errors": st["errors"], "collision_steps": st["collision_steps"],
+                     "rating": r.mu - 3 * r.sigma, "finished": st["finished"], "retired": st["retired"], "errors": st["errors"], "collision_steps": st["collision_steps"],
                      # finish-time lead over the mean of the other cars, in races where all finished
                      "mean_margin_s": float(np.mean(st["margins"])) if st["margins"] else None,
                      "mean_act_time_s": float(np.mean(st["act_times"])) if st["act_times"] else float("nan"),
@@ -326,7 +338,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     console = Console(width=140)
     check_backend(backend, workers)
     check_specs(config.agents)
-    done = open_run_log(out, RESULTS, CONFIG, json.dumps(dataclasses.asdict(config), sort_keys=True), fresh,
+    done = open_run_log(out, RESULTS, CONFIG, settings_json(config, ADDED_LATER), fresh,
                         "tournament configuration", outputs=(GIF,))
     races = schedule(config)
     todo = [r for r in races if r["id"] not in done]
@@ -361,13 +373,15 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     plot_head_to_head(board["head_to_head"], out / "head_to_head.png")
     (out / "leaderboard.json").write_text(json.dumps(board, indent=2))
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
-    for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "finished", "margin [s]",
-                "errors", "contact steps", "act [ms]", "converged"):
+    retire = config.on_collision in RETIRING_MODES or config.on_off_track in RETIRING_MODES
+    for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "finished",
+                *(("retired",) if retire else ()), "margin [s]", "errors", "contact steps", "act [ms]", "converged"):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
         lo, hi = row["win_rate_ci95"]
         table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
                       f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", f"{row['finished']}/{row['races']}",
+                      *((str(row["retired"]),) if retire else ()),
                       "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}", str(row["errors"]),
                       str(row["collision_steps"]),
                       f"{1e3 * row['mean_act_time_s']:.1f}",

@@ -13,6 +13,15 @@ from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
 
 INCIDENT_MODES = ("penalty", "terminate", "both", "ignore")
+RETIRING_MODES = ("terminate", "both")  # the incident modes that retire the car
+
+
+def check_incident_rules(**rules: str) -> None:
+    """Refuse an incident rule (``on_collision=...``, ``on_off_track=...``) that is not one
+    of :data:`INCIDENT_MODES`."""
+    for name, mode in rules.items():
+        if mode not in INCIDENT_MODES:
+            raise ValueError(f"{name} must be one of {INCIDENT_MODES}, got {mode!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,9 +103,7 @@ class RaceConfig:
             raise ValueError(f"max_steps must be an integer >= 1, got {self.max_steps!r}")
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"dt must be a positive number of seconds, got {self.dt!r}")
-        for name in ("on_collision", "on_off_track"):
-            if getattr(self, name) not in INCIDENT_MODES:
-                raise ValueError(f"{name} must be one of {INCIDENT_MODES}, got {getattr(self, name)!r}")
+        check_incident_rules(on_collision=self.on_collision, on_off_track=self.on_off_track)
         if self.render_mode not in (None, "rgb_array", "human"):
             raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {self.render_mode!r}")
         if self.camera not in ("auto", "track", "follow"):

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from racing_env.config import RaceConfig
+from racing_env.config import RETIRING_MODES, RaceConfig
 from racing_env.dynamics import STATE_DIM, S
 from racing_env.game import RaceGame
 from racing_env.observation import observation_size, observe
@@ -112,8 +112,8 @@ def _race_rules(config: RaceConfig) -> RaceRules:
         reward.finish,
     ]
     return RaceRules(
-        retire_on_collision=np.asarray(config.on_collision in ("terminate", "both")),
-        retire_off_track=np.asarray(config.on_off_track in ("terminate", "both")),
+        retire_on_collision=np.asarray(config.on_collision in RETIRING_MODES),
+        retire_off_track=np.asarray(config.on_off_track in RETIRING_MODES),
         weights=np.asarray(weights, dtype=np.float64),
         spread=np.asarray(max(config.num_agents - 1, 1), dtype=np.float64),
     )

@@ -70,6 +70,25 @@ def test_tournament_cli_runs_and_resumes(tmp_path, capsys):
     assert "resuming: 2 of 2 races" in capsys.readouterr().out
 
 
+def test_tournament_incident_rules_from_the_command_line(tmp_path, capsys):
+    """--off-track terminate retires the car that leaves the track, and the leaderboard
+    gets a retired column; the choices are the env's own incident modes."""
+    from experiments.cli import INCIDENT_CHOICES
+    from racing_env.config import INCIDENT_MODES
+
+    assert INCIDENT_CHOICES == INCIDENT_MODES
+    args = ["tournament", "--agents", "lane-keeping:target_n=8", "lane-keeping", "--track", "straight",
+            "--race-distance", "120", "--grids", "1", "--no-gif", "--off-track", "terminate", "--out", str(tmp_path)]
+    assert main(args) == 0
+    assert "retired" in capsys.readouterr().out
+    retired = [car["retired"] for line in (tmp_path / "results.jsonl").read_text().splitlines()
+               for car in json.loads(line)["cars"] if car["agent"] == "lane-keeping:target_n=8"]
+    assert retired == [True, True]
+    with pytest.raises(SystemExit):
+        main(["tournament", "--collision", "crash"])
+    assert "invalid choice: 'crash'" in capsys.readouterr().err
+
+
 def test_bad_track_is_a_clear_error(tmp_path, capsys):
     """An unknown track name exits with status 2 and names the built-in tracks."""
     assert main(["demo", "--scripted", "--out", str(tmp_path), "--track", "nowhere"]) == 2

@@ -154,27 +154,42 @@ def test_agent_options_are_swept_through_the_agent_specs(tmp_path):
     assert slow < 8.5 < 15.0 < fast  # a point's option really drives the car
 
 
+def test_incident_rules_are_swept(tmp_path):
+    """A car steering for a line beyond the track's edge retires under on_off_track =
+    "terminate" and finishes under "penalty"; the summary counts the retirements."""
+    path = tmp_path / "rules.toml"
+    path.write_text('lineup = ["lane-keeping:target_n=8", "lane-keeping"]\ntrack = "straight"\nrace_distance = 120.0\n'
+                    'grids = 1\n[parameters]\non_off_track = ["penalty", "terminate"]\n')
+    config = load_sweep(path)
+    records = [sweep.run_job(config, job) for job in sweep.schedule(config)]
+    rows = {(row["on_off_track"], row["agent"]): row for row in sweep.summarize(config, records)}
+    assert (rows["penalty", 0]["retired"], rows["penalty", 0]["finished"]) == (0, 2)
+    assert (rows["terminate", 0]["retired"], rows["terminate", 0]["finished"]) == (2, 0)
+    assert rows["penalty", 1]["retired"] == rows["terminate", 1]["retired"] == 0
+
+
 def test_summary_of_hand_made_records():
     """The summary's arithmetic on two races of one point, by hand."""
     config = SweepConfig(lineup=("ilqgame-fb", "lane-keeping"), parameters=(("laps", (1,)),), grids=1)
     jobs = sweep.schedule(config)
 
-    def car(start, place, finish, contact=0, off=0.0, converged=None):
+    def car(start, place, finish, contact=0, off=0.0, converged=None, **retired):
         return {"start_place": start, "place": place, "finish_time": finish, "collision_steps": contact,
-                "time_off_track": off, "error": None, "solver_converged_fraction": converged}
+                "time_off_track": off, "error": None, "solver_converged_fraction": converged, **retired}
 
     records = [  # the second race first: the summary must not depend on the order records came in
         {**jobs[1], "overtakes": 0, "agents": [car(2, 2, 61.0, converged=0.5), car(1, 1, 60.0, off=0.4)]},
-        {**jobs[0], "overtakes": 1, "agents": [car(1, 1, 59.0, contact=3, converged=0.9), car(2, 2, None, 3)]},
+        {**jobs[0], "overtakes": 1, "agents": [car(1, 1, 59.0, contact=3, converged=0.9),
+                                               car(2, 2, None, 3, retired=True)]},  # others: older records
     ]
     planner, keeper = sweep.summarize(config, records)
     assert planner == {"point": 0, "laps": 1, "agent": 0, "spec": "ilqgame-fb", "races": 2, "wins": 1,
-                       "races_from_front": 1, "wins_from_front": 1, "finished": 2, "mean_place": 1.5,
+                       "races_from_front": 1, "wins_from_front": 1, "finished": 2, "retired": 0, "mean_place": 1.5,
                        "mean_margin_s": -1.0,  # only the race both finished counts
                        "overtakes_per_race": 0.5, "contact_steps": 3, "time_off_track_s": 0.0, "errors": 0,
                        "converged_fraction": 0.7}
     assert keeper["wins"] == 1 and keeper["mean_margin_s"] == 1.0 and keeper["time_off_track_s"] == 0.4
-    assert keeper["finished"] == 1  # it did not finish the second race
+    assert keeper["finished"] == 1 and keeper["retired"] == 1  # it retired in the second race
     assert keeper["converged_fraction"] is None  # not a planner
 
 
@@ -207,6 +222,8 @@ def test_summary_of_hand_made_records():
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\ntrack = ["straight", 5]', "track values"),
     ('lineup = ["lane-keeping", "constant-speed"]\ntrack = 5\n[parameters]\nlaps = [1]', "track values"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\njerk_weight = ["x"]', "jerk_weight must be a number"),
+    ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\non_off_track = ["crash"]', "on_off_track must be one of"),
+    ('lineup = ["lane-keeping", "constant-speed"]\non_collision = "stop"\n[parameters]\nlaps = [1]', "on_collision must be one of"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nrace_distance = ["x"]', "race_distance must be a number"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"weights.c_gap" = ["x"]', "weights.c_gap must be"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent1.v_max" = [true]', "agent1.v_max must be"),

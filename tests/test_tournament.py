@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import signal
 import subprocess
@@ -255,6 +256,53 @@ def test_leaderboard_of_hand_made_records_counts_wins_finishes_and_margins():
     assert (rows["lane-keeping"]["wins"], rows["lane-keeping"]["finished"]) == (1, 2)
     assert rows["ilqr"]["mean_margin_s"] == 1.5 and rows["lane-keeping"]["mean_margin_s"] == -1.5
     assert rows["ilqr"]["converged_fraction"] == pytest.approx(0.5, abs=1e-15)
+
+
+WANDERER, KEEPER = "lane-keeping:target_n=8", "lane-keeping"  # 8 m left: beyond the 6 m half-width
+
+
+def test_leaving_the_track_retires_the_car_under_terminate_rules_and_only_then(tmp_path):
+    """A car steering for a line beyond the track's edge retires there under
+    ``on_off_track="terminate"``: unfinished, placed behind the finisher. By default the
+    time off track is counted and it finishes. The incident rules reach the race."""
+    boards, records = {}, {}
+    for rule in ("penalty", "terminate"):
+        config = tour.TournamentConfig(agents=(WANDERER, KEEPER), on_off_track=rule, **SHORT)
+        assert tour.race_config(config).on_off_track == rule
+        boards[rule] = {row["agent"]: row for row in
+                        tour.run_tournament(config, tmp_path / rule, gif=False, progress=False)["rows"]}
+        records[rule] = tour.load_results(tmp_path / rule)
+    for rule, retires in (("penalty", False), ("terminate", True)):
+        assert len(records[rule]) == 2  # one grid, both slots
+        for record in records[rule]:
+            wanderer, keeper = (next(c for c in record["cars"] if c["agent"] == a) for a in (WANDERER, KEEPER))
+            assert wanderer["time_off_track"] > 0 and keeper["time_off_track"] == 0
+            assert wanderer["retired"] == retires and (wanderer["finish_time"] is None) == retires
+            assert not keeper["retired"] and keeper["finish_time"] is not None
+            if retires:
+                assert keeper["place"] == 1 and wanderer["place"] == 2
+        assert (boards[rule][WANDERER]["retired"], boards[rule][KEEPER]["retired"]) == (2 * retires, 0)
+    # the settings file names the rules only where they differ from the default
+    assert "on_off_track" not in json.loads((tmp_path / "penalty" / tour.CONFIG).read_text())
+    assert json.loads((tmp_path / "terminate" / tour.CONFIG).read_text())["on_off_track"] == "terminate"
+    with pytest.raises(ValueError, match="different tournament configuration"):
+        tour.run_tournament(tour.TournamentConfig(agents=(WANDERER, KEEPER), **SHORT), tmp_path / "terminate",
+                            gif=False, progress=False)
+
+
+def test_a_tournament_written_before_the_incident_rules_resumes(tmp_path):
+    """A run whose settings file predates the incident-rule fields resumes under the default
+    rules instead of being refused as another configuration."""
+    config = tour.TournamentConfig(agents=(WANDERER, KEEPER), **SHORT)
+    older = {k: v for k, v in json.loads(json.dumps(dataclasses.asdict(config))).items() if k not in tour.ADDED_LATER}
+    (tmp_path / tour.CONFIG).write_text(json.dumps(older, sort_keys=True))
+    (tmp_path / tour.RESULTS).write_text("")
+    tour.run_tournament(config, tmp_path, gif=False, progress=False)
+    assert len(tour.load_results(tmp_path)) == len(tour.schedule(config))
+    both = tour.TournamentConfig(agents=(WANDERER, KEEPER), on_collision="both", **SHORT)
+    assert tour.race_config(both).on_collision == "both"
+    with pytest.raises(ValueError, match="on_off_track must be one of"):
+        tour.TournamentConfig(agents=(WANDERER, KEEPER), on_off_track="crash")
 
 
 def test_overtakes_count_sign_changes():
