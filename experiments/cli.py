@@ -10,7 +10,9 @@ from pathlib import Path
 
 
 DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping")
-INCIDENT_CHOICES = ("penalty", "terminate", "both", "ignore")  # racing_env.config.INCIDENT_MODES (not imported: JAX)
+# racing_env.config.INCIDENT_MODES and racing_env.scenarios.SCENARIOS (not imported here: JAX)
+INCIDENT_CHOICES = ("penalty", "terminate", "both", "ignore")
+SCENARIO_CHOICES = ("grid", "paper", "side_by_side")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -42,7 +44,7 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
         agents=tuple(split_spec_list(args.agents)),
         track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
         cars=args.cars, seed=args.seed, versus=args.versus, max_steps=args.max_steps, step_budget_s=args.step_budget,
-        on_collision=args.collision, on_off_track=args.off_track,
+        on_collision=args.collision, on_off_track=args.off_track, scenario=args.scenario,
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
     )
     _check_ray(args.backend)
@@ -254,6 +256,11 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--jerk-weight", type=float, default=None,
                       help="planners' jerk weight r in the race game (default: racing_env.costs.RACING_JERK_WEIGHT, "
                       "measured to race well)")
+    tour.add_argument("--scenario", default="grid", choices=SCENARIO_CHOICES,
+                      help="the start: grid (a seeded rolling grid per --grids, the default), paper (the paper's "
+                      "overtaking scene: the first slot's car, v_max 20 m/s, 10 m ahead of the second, v_max 25 m/s, "
+                      "2 m to its left; each pair races once each way round) or side_by_side; the last two need "
+                      "--cars 2 --grids 1")
     tour.add_argument("--collision", default="penalty", choices=INCIDENT_CHOICES,
                       help="what contact does: penalty (only counted, the default), terminate or both (the cars in "
                       "contact retire and place behind every finisher, by distance), ignore")

@@ -29,11 +29,12 @@ from experiments.jsonl import append_jsonl, open_run_log, read_jsonl, settings_j
 from racing_env.config import RETIRING_MODES, RaceConfig, check_incident_rules
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
 from racing_env.env import RacingParallelEnv
+from racing_env.scenarios import FIXED_STARTS, SCENARIOS
 
 RESULTS = "results.jsonl"
 CONFIG = "tournament.json"
 GIF = "race.gif"
-ADDED_LATER = ("on_collision", "on_off_track")  # left out of tournament.json at their defaults
+ADDED_LATER = ("on_collision", "on_off_track", "scenario")  # left out of tournament.json at their defaults
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,6 +48,13 @@ class TournamentConfig:
     it small (see :data:`racing_env.costs.RACING_JERK_WEIGHT`, the default, for the
     measurements behind it): with r = 1, the solver default tuned for single solves, a 5 s
     horizon buys so little progress per unit of jerk that the planners barely accelerate.
+
+    ``scenario``: the start (:data:`racing_env.scenarios.SCENARIOS`). ``"grid"``: a seeded
+    rolling grid per grid seed. ``"paper"``: the paper's overtaking scene, one start: the
+    car in the first slot (v_max 20 m/s) 10 m ahead on the centre line, the second (v_max
+    25 m/s) behind and 2 m to the left, so every pair races once with each agent defending
+    and once attacking. ``"side_by_side"``: two cars abreast. The fixed starts take 2 cars
+    and one grid.
 
     ``on_collision`` / ``on_off_track``: what contact and leaving the track do
     (:data:`racing_env.config.INCIDENT_MODES`). By default only the env's reward counts them,
@@ -67,9 +75,15 @@ class TournamentConfig:
     versus: str | None = None
     on_collision: str = "penalty"
     on_off_track: str = "penalty"
+    scenario: str = "grid"
 
     def __post_init__(self) -> None:
         check_incident_rules(on_collision=self.on_collision, on_off_track=self.on_off_track)
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {sorted(SCENARIOS)}")
+        if self.scenario in FIXED_STARTS and (self.cars != 2 or self.grids != 1):
+            raise ValueError(f"scenario {self.scenario!r} has one start of 2 cars: race it with cars=2 and grids=1 "
+                             f"(--cars 2 --grids 1), got cars={self.cars}, grids={self.grids}")
         if len(self.agents) < 2:
             raise ValueError(f"a tournament needs at least 2 agent specs, got {list(self.agents)}")
         if len({normal_spec(spec) for spec in self.agents}) != len(self.agents):
@@ -139,9 +153,10 @@ def _failed_setup(message: str):
 
 
 def race_config(config: TournamentConfig, render: bool = False) -> RaceConfig:
-    """The race a tournament's lineups run: a seeded rolling grid on its track, its length
-    and step cap, and the planners' jerk weight in the game."""
-    return RaceConfig(track=config.track, num_agents=config.cars, scenario="grid", laps=config.laps,
+    """The race a tournament's lineups run: its start (a seeded rolling grid by default) on
+    its track, its length, step cap and incident rules, and the planners' jerk weight in
+    the game."""
+    return RaceConfig(track=config.track, num_agents=config.cars, scenario=config.scenario, laps=config.laps,
                       race_distance=config.race_distance, max_steps=config.max_steps,
                       weights=CostWeights(r_jx=config.jerk_weight, r_jy=config.jerk_weight),
                       on_collision=config.on_collision, on_off_track=config.on_off_track,

@@ -178,6 +178,8 @@ SCENARIOS: dict[str, Callable[..., Scenario]] = {
     "grid": grid,
     "side_by_side": side_by_side,
 }
+FIXED_STARTS = ("paper", "side_by_side")
+"""The scenarios with a single start whatever the seed, both of exactly 2 cars."""
 
 
 def make_scenario(

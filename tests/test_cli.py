@@ -73,10 +73,11 @@ def test_tournament_cli_runs_and_resumes(tmp_path, capsys):
 def test_tournament_incident_rules_from_the_command_line(tmp_path, capsys):
     """--off-track terminate retires the car that leaves the track, and the leaderboard
     gets a retired column; the choices are the env's own incident modes."""
-    from experiments.cli import INCIDENT_CHOICES
+    from experiments.cli import INCIDENT_CHOICES, SCENARIO_CHOICES
     from racing_env.config import INCIDENT_MODES
+    from racing_env.scenarios import SCENARIOS
 
-    assert INCIDENT_CHOICES == INCIDENT_MODES
+    assert INCIDENT_CHOICES == INCIDENT_MODES and set(SCENARIO_CHOICES) == set(SCENARIOS)
     args = ["tournament", "--agents", "lane-keeping:target_n=8", "lane-keeping", "--track", "straight",
             "--race-distance", "120", "--grids", "1", "--no-gif", "--off-track", "terminate", "--out", str(tmp_path)]
     assert main(args) == 0

@@ -290,6 +290,27 @@ def test_leaving_the_track_retires_the_car_under_terminate_rules_and_only_then(t
                             gif=False, progress=False)
 
 
+def test_the_paper_scene_as_a_start(tmp_path):
+    """--scenario paper: every race starts from the paper's overtaking scene, the first slot's
+    car (v_max 20 m/s) ahead, so each pair races once each way round; one start of 2 cars."""
+    from racing_env.scenarios import paper_overtake
+
+    config = tour.TournamentConfig(agents=("lane-keeping", "constant-speed"), scenario="paper", **SHORT)
+    env = RacingParallelEnv(tour.race_config(config))
+    env.reset(seed=123)
+    expected = paper_overtake(env.game.track)
+    np.testing.assert_array_equal(env.state(), expected.x0)
+    np.testing.assert_array_equal(np.asarray(env.game.vehicles.v_max), [20.0, 25.0])
+    tour.run_tournament(config, tmp_path, gif=False, progress=False)
+    for record in tour.load_results(tmp_path):
+        first = record["id"].split("|")[0]
+        assert next(c for c in record["cars"] if c["agent"] == first)["start_place"] == 1
+    for bad, message in ((dict(grids=2), "one start of 2 cars"), (dict(cars=3), "one start of 2 cars"),
+                         (dict(scenario="pit_lane"), "unknown scenario")):
+        with pytest.raises(ValueError, match=message):
+            tour.TournamentConfig(agents=("a", "b", "c"), **{"scenario": "paper", "grids": 1, **bad})
+
+
 def test_a_tournament_written_before_the_incident_rules_resumes(tmp_path):
     """A run whose settings file predates the incident-rule fields resumes under the default
     rules instead of being refused as another configuration."""
