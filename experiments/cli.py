@@ -262,8 +262,9 @@ def build_parser() -> argparse.ArgumentParser:
                       "2 m to its left; each pair races once each way round) or side_by_side; the last two need "
                       "--cars 2 --grids 1")
     tour.add_argument("--collision", default="penalty", choices=INCIDENT_CHOICES,
-                      help="what contact does: penalty (only counted, the default), terminate or both (the cars in "
-                      "contact retire and place behind every finisher, by distance), ignore")
+                      help="what contact does: penalty (counted, the default) or ignore (counted too: the two "
+                      "differ only in the env's reward, which tournaments do not use), terminate or both (the cars "
+                      "in contact retire and place behind every finisher, by distance)")
     tour.add_argument("--off-track", default="penalty", choices=INCIDENT_CHOICES,
                       help="what leaving the track does, as for --collision (default: penalty)")
     tour.add_argument("--out", default="runs/tournament", help="output folder (default: runs/tournament)")
@@ -350,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="do not normalise observations and rewards (VecNormalize)")
     train.add_argument("--off-track", default="terminate", choices=INCIDENT_CHOICES,
                        help="what leaving the track does in training (default: terminate the episode; evaluations "
-                       "use tournament rules, a penalty)")
+                       "use the tournaments' default rules, a penalty)")
     train.add_argument("--collision", default="penalty", choices=INCIDENT_CHOICES,
                        help="what contact does in training (default: penalty)")
     train.add_argument("--jerk-weight", type=float, default=None,

@@ -121,6 +121,7 @@ class SweepConfig:
             raise ValueError(f"track values must be strings, built-in track names or TUMFTM CSV paths, got {bad[0]!r}")
         from planners.agents import check_specs
 
+        self.race_config({}, rotation=0)  # the top-level race settings, also those every point overrides
         for point in self.points():  # every value is checked where it is used, before any race
             self.race_config(point, rotation=0)
             # the specs a point's options change (the lineup's own, which may load models, run_sweep checks)

@@ -169,8 +169,8 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
 
     The record holds the finishing ``order`` (specs), the ``gap`` to the second car, the
     ``overtakes`` and, per car, its place on the grid (``start_place``, 1 = in front), place,
-    finish time, distance, mean speed, contact steps, time off track, action times, solver
-    failures and the ``error`` of a car that faulted.
+    finish time, distance, mean speed, contact steps, time off track, whether an incident
+    rule ``retired`` it, action times, solver failures and the ``error`` of a car that faulted.
     Faults are recorded, never raised: a car that raises or blows ``step_budget_s`` is last.
     """
     from experiments.race import run_race

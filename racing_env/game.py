@@ -100,7 +100,7 @@ class RaceGame:
         cars race (see the ``racing`` attribute)."""
         if racing is None:
             return self.replace(racing=None)
-        flags = np.asarray(racing)
+        flags = np.array(racing)  # a copy: the game is immutable, the caller's array is not
         if flags.shape != (self.num_players,) or flags.dtype != bool:
             raise ValueError(
                 f"racing must be {self.num_players} booleans (one per car), got {racing!r}"

@@ -661,6 +661,44 @@ def test_gauss_newton_hooks_give_exact_gradients_and_psd_hessians(game, racing):
             assert np.all(np.asarray(HT) == 0.0)  # the terminal cost is linear
 
 
+@pytest.mark.parametrize("racing", [(True, False, True), (False, True, True), (False, False, True)])
+def test_gauss_newton_hooks_mask_a_ghost_among_three_cars(racing):
+    """With three cars the mask keeps some pairs and drops others (with two, one ghost drops
+    the only pair): the hooks' gradients equal autodiff of the masked costs for every player."""
+    game, base = _three_cars_on_the_trefoil()
+    game = game.with_racing(racing)
+    problem = ilq.problem_from_race_game(game)
+    n = problem.state_dim
+
+    @jax.jit
+    def gradients(z, i):
+        fun = lambda z: ilq._race_stage_gauss_newton(game, 0, i, z[:n], z[n:])
+        _, g = ilq._gauss_newton_terms(fun, z)
+        exact = jax.grad(lambda z: problem.stage_cost(game, 0, i, z[:n], z[n:]))(z)
+        _, gT = ilq._gauss_newton_terms(lambda x: ilq._race_terminal_gauss_newton(game, i, x), z[:n])
+        exact_T = jax.grad(lambda x: problem.terminal_cost(game, i, x))(z[:n])
+        return g, exact, gT, exact_T
+
+    rng = np.random.default_rng(11)
+    collision_gradients = 0
+    for _ in range(4):
+        X = base + rng.normal(size=base.shape) * np.array([1.5, 2.0, 1.0, 0.1, 2.0, 2.0])
+        X[2, 0] = X[1, 0] + 3.0  # all three within a few metres: every pair's collision term is alive
+        for i in range(3):
+            z = jnp.concatenate([jnp.asarray(X).reshape(-1), jnp.asarray(rng.normal(size=2))])
+            g, exact, gT, exact_T = gradients(z, i)
+            np.testing.assert_allclose(g, exact, rtol=1e-12, atol=1e-12)
+            np.testing.assert_array_equal(gT, exact_T)  # linear: the same few products
+            others = [j for j in range(3) if j != i]
+            # the collision term moves the other cars' arc lengths only for racing pairs
+            s_grad = np.abs(np.asarray(exact)[[6 * j for j in others]])
+            paired = [racing[i] and racing[j] for j in others]
+            assert np.all(s_grad[~np.array(paired)] == 0.0)
+            collision_gradients += int(np.sum(s_grad[np.array(paired)] > 1e-6))
+    if sum(racing) >= 2:  # some pair races: its terms were exercised, not only the zeros
+        assert collision_gradients > 0
+
+
 def test_gauss_newton_hessian_is_exact_for_the_track_term(game):
     # Cars far apart (no collision curvature), ax = ay = 0 (limits inactive), the ego over
     # the left boundary: the only curvature is the track term's, which Gauss-Newton keeps.

@@ -224,6 +224,10 @@ def test_summary_of_hand_made_records():
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\njerk_weight = ["x"]', "jerk_weight must be a number"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\non_off_track = ["crash"]', "on_off_track must be one of"),
     ('lineup = ["lane-keeping", "constant-speed"]\non_collision = "stop"\n[parameters]\nlaps = [1]', "on_collision must be one of"),
+    # a top-level setting that every point overrides is still checked (review finding)
+    ('lineup = ["lane-keeping", "constant-speed"]\non_collision = "stop"\n[parameters]\n'
+     'on_collision = ["penalty", "terminate"]', "on_collision must be one of"),
+    ('lineup = ["lane-keeping", "constant-speed"]\nlaps = 0\n[parameters]\nlaps = [1]', "laps must be"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nrace_distance = ["x"]', "race_distance must be a number"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"weights.c_gap" = ["x"]', "weights.c_gap must be"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent1.v_max" = [true]', "agent1.v_max must be"),
