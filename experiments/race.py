@@ -22,8 +22,8 @@ class RaceRecord:
     Attributes:
         xs: joint states ``(T+1, N, 6)``, the start included.
         summary: per car: ``agent``, ``position``, ``finished``, ``retired`` (by an incident
-            rule), ``finish_time`` [s] (None if not finished), ``distance`` [m], ``mean_speed`` [m/s], ``collision_steps``,
-            ``time_off_track`` [s].
+            rule), ``finish_time`` [s] (None if not finished), ``distance`` [m],
+            ``mean_speed`` [m/s], ``collision_steps``, ``time_off_track`` [s].
         frames: rendered RGB frames (empty unless ``render_every``).
         steps: env steps taken.
         act_times: per car, the wall time [s] of every action after the first (which may

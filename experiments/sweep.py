@@ -2,9 +2,9 @@
 
 A sweep is a TOML file: a ``lineup`` of agent specs (agent 0 is the one the sweep is
 about), the race (``track``, ``laps`` or ``race_distance``, ``grids``, ``seed``,
-``max_steps``, ``jerk_weight``, the incident rules ``on_collision`` and ``on_off_track``) and a ``[parameters]`` table whose values are lists; every
-combination of them (a point) is raced on ``grids`` seeded rolling grids, once per rotation
-of the starting slots::
+``max_steps``, ``jerk_weight``, the incident rules ``on_collision`` and ``on_off_track``)
+and a ``[parameters]`` table whose values are lists; every combination of them (a point)
+is raced on ``grids`` seeded rolling grids, once per rotation of the starting slots::
 
     lineup = ["ilqgame-fb", "ilqgame-ol"]
     grids = 2
@@ -14,9 +14,9 @@ of the starting slots::
     jerk_weight = [0.01, 0.03]                 # every car's jerk weight r
 
 Parameter names: the race's ``track``, ``laps``, ``race_distance``, ``max_steps``,
-``jerk_weight``, ``on_collision``, ``on_off_track``; ``weights.<field>`` (a :class:`racing_env.costs.CostWeights` field, for
-every car), ``vehicles.<field>`` (a :class:`racing_env.vehicle.VehicleParams` field, for
-every car) and ``agent<i>.<field>`` (that field for agent ``i`` of the lineup: a cost
+``jerk_weight``, ``on_collision``, ``on_off_track``; ``weights.<field>`` (a
+:class:`racing_env.costs.CostWeights` field, for every car), ``vehicles.<field>`` (a
+:class:`racing_env.vehicle.VehicleParams` field, for every car) and ``agent<i>.<field>`` (that field for agent ``i`` of the lineup: a cost
 weight or a car parameter of its car, known to every planner in the race, or an option of
 its agent spec such as ``max_iterations`` or ``trailing.c_collision``, see
 :mod:`planners.agent_specs`).
@@ -283,9 +283,10 @@ def run_job(config: SweepConfig, job: dict[str, Any]) -> dict[str, Any]:
 def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per point and agent: races, wins (and of those started in front, how many were
     won), races finished, races retired by an incident rule, mean place, mean finish-time
-    margin over the other cars (races all finished), overtakes per race, contact steps, time off track, errors, and for planners the mean
-    share of re-plans that converged (results where it is low are the solver's, not the
-    weights': see the README's sweep of the gap weight)."""
+    margin over the other cars (races all finished), overtakes per race, contact steps,
+    time off track, errors, and for planners the mean share of re-plans that converged
+    (results where it is low are the solver's, not the weights': see the README's sweep of
+    the gap weight)."""
     position = {job["id"]: k for k, job in enumerate(schedule(config))}
     by_point: dict[int, list[dict[str, Any]]] = {}
     for record in sorted(records, key=lambda r: position[r["id"]]):  # sums in one order, however they came

@@ -335,14 +335,13 @@ def _race_stage_gauss_newton(game, t, i, x, u_i):
 
 def _race_terminal_gauss_newton(game, i, x):
     """``-s_i + c_g sum_{j != i, j racing} s_j``: linear in the cars' arc lengths (zero curvature)."""
+    from racing_env.costs import racing_flags
     from racing_env.dynamics import S
 
     N = game.num_players
     s = x.reshape(N, -1)[:, S]
     own = jnp.arange(N) == i
-    rival = jnp.asarray(game.weights.c_gap)[i]
-    if game.racing is not None:
-        rival = rival * jnp.asarray(game.racing).astype(x.dtype)
+    rival = jnp.asarray(game.weights.c_gap)[i] * racing_flags(game.racing, N, x.dtype)
     g = jnp.where(own, -1.0, rival).astype(x.dtype)
     return s, g, jnp.zeros_like(s)
 

@@ -114,13 +114,17 @@ def stack_weights(weights: Sequence[CostWeights]) -> CostWeights:
     return CostWeights(**{k: np.array([float(getattr(w, k)) for w in weights]) for k in names})
 
 
+def racing_flags(racing: jax.Array | None, num_cars: int, dtype) -> jax.Array:
+    """``(N,)`` weights of the cars: 1 racing, 0 out of the race (``None``: all race)."""
+    if racing is None:
+        return jnp.ones(num_cars, dtype=dtype)
+    return jnp.asarray(racing).astype(dtype)
+
+
 def racing_pairs(racing: jax.Array | None, num_cars: int, dtype) -> jax.Array:
     """``(N, N)`` weights of the pairs of distinct cars that are both racing (1), else 0."""
-    pairs = 1.0 - jnp.eye(num_cars, dtype=dtype)
-    if racing is None:
-        return pairs
-    flags = jnp.asarray(racing).astype(dtype)
-    return pairs * flags[:, None] * flags[None, :]
+    flags = racing_flags(racing, num_cars, dtype)
+    return (1.0 - jnp.eye(num_cars, dtype=dtype)) * flags[:, None] * flags[None, :]
 
 
 def collision_proximity(
@@ -183,5 +187,5 @@ def stage_costs(
 def terminal_costs(x: jax.Array, weights: CostWeights, racing: jax.Array | None = None) -> jax.Array:
     """Terminal cost ``-s^i + c_g^i sum_{j != i, j racing} s^j`` of every player, ``(N,)``."""
     s = x[:, S]
-    rivals = s if racing is None else s * jnp.asarray(racing).astype(s.dtype)
+    rivals = s * racing_flags(racing, s.shape[0], s.dtype)
     return -s + weights.c_gap * (jnp.sum(rivals) - rivals)
