@@ -499,6 +499,8 @@ class RecedingHorizonAgent(BaseAgent):
                                            "equilibria"),
             "regularization_factor": "factor of each change of the adaptive regularization, > 1",
             "convexify": "auto, gauss_newton, eig, diag or none: how the cost Hessians are made convex",
+            "dynamics_curvature": ("give each car's local game the curvature of its progress in its "
+                                   "heading, which linearising the dynamics drops (false: the plain iLQ model)"),
         }
         weights = {"r_jx": "longitudinal jerk weight", "r_jy": "lateral jerk weight",
                    "c_collision": "collision weight c_c", "c_track": "track-boundary weight c_w",

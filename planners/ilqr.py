@@ -112,6 +112,12 @@ def _ego_stage_gauss_newton(params: _EgoParams, t, i, x, u_i):
     return ilq._race_stage_gauss_newton(params.game, t, params.ego, joint, u_i)
 
 
+def _ego_stage_curvature(params: _EgoParams, t, i, x):
+    del i
+    joint = _ego_joint(params, t, x).reshape(-1)
+    return ilq._race_stage_curvature(params.game, t, params.ego, joint).reshape(-1, STATE_DIM)[params.ego]
+
+
 def _ego_terminal_gauss_newton(params: _EgoParams, i, x):
     del i
     joint = _ego_joint(params, params.predicted.shape[0] - 1, x).reshape(-1)
@@ -163,6 +169,7 @@ def ego_problem(game, x0, ego: int = 0, predicted=None) -> ilq.GameProblem:
         # the game's Gauss-Newton form of the ego's costs, opponents fixed at the prediction
         stage_gauss_newton=_ego_stage_gauss_newton,
         terminal_gauss_newton=_ego_terminal_gauss_newton,
+        stage_curvature=_ego_stage_curvature,
     )
 
 

@@ -265,10 +265,16 @@ def test_single_car_feedback_and_open_loop_coincide():
     assert float(fb.xs[-1, 0, 1]) > 17.0 and float(fb.xs[-1, 0, 2]) < 5.0  # sped up, back in
 
 
+# The step rules are compared where the iteration is hard: at small jerk weights without the
+# progress curvature (dynamics_curvature=False), under which the scenes below cycle. With it,
+# the plain iterations converge there too (test_dynamics_curvature_*).
+PLAIN = dict(dynamics_curvature=False)
+
+
 def test_step_control_converges_where_the_fixed_full_step_cycles():
     game = paper_game(CostWeights(r_jx=0.1, r_jy=0.1))
-    fixed = ilq.solve(game, X0, mode="feedback", step_control="none")
-    controlled = ilq.solve(game, X0, mode="feedback")
+    fixed = ilq.solve(game, X0, mode="feedback", step_control="none", **PLAIN)
+    controlled = ilq.solve(game, X0, mode="feedback", **PLAIN)
     assert not bool(fixed.converged) and int(fixed.status) == ilq.MAX_ITERATIONS
     assert np.nanmin(np.asarray(fixed.history[-20:])) > 1e-2  # still jumping around
     assert bool(controlled.converged), ilq.status_message(controlled.status)
@@ -316,8 +322,8 @@ def test_residual_step_control_decreases_the_open_loop_residual(game, open_loop)
 
 def test_residual_step_control_converges_where_the_trust_region_cycles():
     game = paper_game(CostWeights(r_jx=0.01, r_jy=0.01))  # the tournaments' jerk weight
-    trust_region = ilq.solve(game, X0, mode="open_loop")
-    residual = ilq.solve(game, X0, mode="open_loop", step_control="residual")
+    trust_region = ilq.solve(game, X0, mode="open_loop", **PLAIN)
+    residual = ilq.solve(game, X0, mode="open_loop", step_control="residual", **PLAIN)
     assert int(trust_region.status) == ilq.MAX_ITERATIONS
     assert np.nanmin(np.asarray(trust_region.history[-20:])) > 1e-3  # still moving by millimetres
     assert bool(residual.converged), ilq.status_message(residual.status)
@@ -330,8 +336,8 @@ ADAPTIVE = dict(control_regularization=0.3, adaptive_regularization=True, regula
 
 def test_adaptive_regularization_ends_near_the_equilibrium_where_the_trust_region_cycles():
     game = paper_game(CostWeights(r_jx=0.01, r_jy=0.01))  # the tournaments' jerk weight
-    trust_region = ilq.solve(game, X0, mode="open_loop")
-    adaptive = ilq.solve(game, X0, mode="open_loop", **ADAPTIVE)
+    trust_region = ilq.solve(game, X0, mode="open_loop", **PLAIN)
+    adaptive = ilq.solve(game, X0, mode="open_loop", **ADAPTIVE, **PLAIN)
     zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
     cycling = np.asarray(ilq.nash_residual(game, X0, trust_region.us))
     near = np.asarray(ilq.nash_residual(game, X0, adaptive.us))
@@ -438,7 +444,8 @@ def test_feedforward_regularization_is_for_feedback_games_with_a_lambda(game):
         ilq.SolverOptions(mode="open_loop", control_regularization=0.3, feedforward_regularization=True)
     with pytest.raises(ValueError, match="feedforward_regularization needs control_regularization > 0"):
         ilq.SolverOptions(feedforward_regularization=True)
-    for name in ("oscillation_damping", "adaptive_regularization", "feedforward_regularization"):
+    for name in ("oscillation_damping", "adaptive_regularization", "feedforward_regularization",
+                 "dynamics_curvature"):
         with pytest.raises(ValueError, match=f"SolverOptions.{name} must be True or False"):
             ilq.SolverOptions(control_regularization=0.3, **{name: "false"})
 
@@ -834,6 +841,118 @@ def test_ilqr_gauss_newton_hooks_match_the_ego_costs(game):
     assert bool(gauss_newton.converged) and bool(eig.converged)
     # one player: both are stationary points of the same cost; here they are the same one
     np.testing.assert_allclose(gauss_newton.xs, eig.xs, atol=1e-4)
+
+
+# --------------------------------------------------------------------------------------
+# The progress curvature the local games would otherwise miss (SolverOptions.dynamics_curvature).
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
+def test_stage_curvature_is_the_heading_curvature_of_each_cars_progress(game, scene):
+    """Player i's entry is ``-d^2/dchi_i^2`` of its progress ``dt * ds/dt`` over the stage
+    (autodiff of the car model), on its own heading only; the paper's scene is a straight and
+    the trefoil is curved, so ``1 / (1 - n kappa)`` is exercised too."""
+    from racing_env.dynamics import CHI, car_derivative
+
+    base = X0
+    if scene == "three_cars_trefoil":
+        game, base = _three_cars_on_the_trefoil()
+    N = game.num_players
+    curvature = jax.jit(lambda x, i: ilq._race_stage_curvature(game, 0, i, x))
+
+    @jax.jit
+    def exact(car):
+        progress = lambda chi: game.dt * car_derivative(car.at[CHI].set(chi), jnp.zeros(2), game.track.kappa_at)[0]
+        return -jax.grad(jax.grad(progress))(car[CHI])
+
+    rng = np.random.default_rng(12)
+    curved = 0
+    for _ in range(4):
+        X = base + rng.normal(size=base.shape) * np.array([30.0, 3.0, 2.0, 0.2, 2.0, 2.0])
+        x = jnp.asarray(X).reshape(-1)
+        for i in range(N):
+            d = np.asarray(curvature(x, i))
+            h = float(exact(jnp.asarray(X[i])))
+            assert h > 0  # forward at |chi| < pi / 2: progress is concave in the heading
+            np.testing.assert_allclose(d[6 * i + CHI], h, rtol=1e-12)
+            assert np.count_nonzero(d) == 1
+            curved += abs(float(game.track.kappa_at(X[i, 0]) * X[i, 2])) > 1e-3
+    assert (curved > 0) == (scene == "three_cars_trefoil")
+
+
+def test_stage_curvature_is_the_progress_curvature_of_the_rk4_step_on_a_straight(game):
+    """On a straight at constant speed and heading the RK4 step's progress is exactly
+    ``dt V cos(chi)``, so the hook's curvature is the model's own, by central differences
+    (step 1e-4 rad: truncation ~1e-9 relative, rounding ~1e-8)."""
+    from racing_env.dynamics import CHI, S, rk4_step
+
+    car = np.array([20.0, 17.0, 1.5, 0.3, 0.0, 0.0])
+    step = lambda chi: float(rk4_step(jnp.asarray(car).at[CHI].set(chi), jnp.zeros(2), game.dt,
+                                      game.track.kappa_at)[S])
+    e = 1e-4
+    finite_difference = -(step(car[CHI] + e) - 2 * step(car[CHI]) + step(car[CHI] - e)) / e**2
+    X = X0.copy()
+    X[0] = car
+    d = ilq._race_stage_curvature(game, 0, 0, jnp.asarray(X).reshape(-1))
+    np.testing.assert_allclose(float(d[CHI]), finite_difference, rtol=1e-6)
+
+
+@pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
+def test_dynamics_curvature_adds_only_the_heading_diagonal_and_keeps_the_gradients(game, scene):
+    base = X0
+    if scene == "three_cars_trefoil":
+        game, base = _three_cars_on_the_trefoil()
+    problem = ilq.problem_from_race_game(game)
+    n, N, T = problem.state_dim, game.num_players, game.horizon
+    rng = np.random.default_rng(9)
+    xs = jnp.asarray(np.stack([(base + rng.normal(size=base.shape) * np.array([3.0, 2.0, 1.0, 0.1, 1.0, 1.0]))
+                               .reshape(-1) for _ in range(T + 1)]))
+    us = jnp.asarray(rng.normal(size=(T, N, 2)))
+    quadratize = jax.jit(lambda xs, us, on: ilq._quadratize(problem, xs, us, True, on), static_argnums=2)
+    plain, curved = quadratize(xs, us, False), quadratize(xs, us, True)
+    for a, b in zip(plain[1:], curved[1:]):  # q, Rii, rii: bit for bit
+        np.testing.assert_array_equal(a, b)
+    added = np.asarray(curved[0] - plain[0])
+    h = jax.vmap(lambda x: jax.vmap(lambda i: ilq._race_stage_curvature(game, 0, i, x))(jnp.arange(N)))(xs[:-1])
+    expected = np.zeros_like(added)
+    for i in range(N):
+        expected[:T, i, 6 * i + 3, 6 * i + 3] = np.asarray(h)[:, i, 6 * i + 3]
+    assert np.all(expected[:T, np.arange(N), 6 * np.arange(N) + 3, 6 * np.arange(N) + 3] > 0)
+    np.testing.assert_allclose(added, expected, rtol=0, atol=1e-12 * float(np.abs(plain[0]).max()))
+
+
+def test_dynamics_curvature_converges_the_straight_at_the_racing_jerk_weight():
+    """One car on a straight at r = 0.01 with a small lateral acceleration: without the
+    progress curvature only the jerk weight curves the lateral states of the local LQ
+    games, and the iterations cycle laterally to the cap (README, "Progress curvature")."""
+    track = straight(length=2000.0, width_left=6.0, width_right=6.0, ds=1.0)
+    game = RaceGame.create(track, [VehicleParams(v_max=25.0)], CostWeights(r_jx=0.01, r_jy=0.01),
+                           dt=0.1, horizon=50)
+    x0 = np.array([[100.0, 24.965, 0.0, 0.0, 0.0, 0.02]])
+    for mode in ("feedback", "open_loop"):
+        kwargs = dict(mode=mode, tolerance=1e-3, max_iterations=60)
+        with_curvature = ilq.solve(game, x0, **kwargs)
+        without = ilq.solve(game, x0, dynamics_curvature=False, **kwargs)
+        assert bool(with_curvature.converged) and int(with_curvature.iterations) <= 10, mode
+        assert int(without.status) == ilq.MAX_ITERATIONS, mode
+
+
+def test_dynamics_curvature_keeps_the_open_loop_fixed_point(game, open_loop):
+    without = ilq.solve(game, X0, mode="open_loop", dynamics_curvature=False)
+    assert bool(without.converged) and bool(open_loop.converged)
+    np.testing.assert_allclose(open_loop.xs, without.xs, atol=1e-5)
+    zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
+    assert np.all(np.asarray(ilq.nash_residual(game, X0, without.us)) <= 1e-4 * zero)
+
+
+def test_ilqr_ego_curvature_is_the_games_own_heading_entry(game):
+    problem = ego_problem(game, X0, ego=1)
+    x_ego = jnp.asarray(X0[1] + np.array([0.0, 0.0, 0.5, 0.1, 0.0, 0.0]))
+    t = 7
+    joint = problem.params.predicted[t].at[1].set(x_ego).reshape(-1)
+    np.testing.assert_array_equal(problem.stage_curvature(problem.params, t, 0, x_ego),
+                                  ilq._race_stage_curvature(game, t, 1, joint)[6:])
 
 
 def test_cpu_device_count_is_fixed_once_jax_runs():
