@@ -57,7 +57,8 @@ class CostWeights:
     """
 
     # 1.0 keeps the iLQ games well scaled: with jerk almost free (0.01) the solvers'
-    # local models change too fast between iterations and feedback iLQGame stops converging.
+    # local models change fast between iterations, and cold solves take 2-5x the
+    # iterations (README, Convergence away from the paper's scene).
     r_jx: ArrayLike = 1.0
     r_jy: ArrayLike = 1.0
     c_collision: ArrayLike = 10.0

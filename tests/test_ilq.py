@@ -5,9 +5,10 @@ horizon 50; ego car 0 (v_max 20 m/s) at s = 10 m, V = 20 m/s on the centre line;
 car 1 (v_max 25 m/s) at s = 0, V = 23 m/s, 2 m to the left.
 
 Weights: ``WEIGHTS`` pins the jerk weights r_jx = r_jy = 1 (today's defaults) so the tests
-do not move if the defaults change: with r = 0.01 the jerk is almost free, the problem is
-so flat laterally that neither iLQGame variant converges within 100 iterations. The
-step-size test uses r = 0.1.
+do not move if the defaults change. With r = 0.01 the jerk is almost free and, without the
+progress curvature (``dynamics_curvature=False``), the problem is so flat laterally that
+neither iLQGame variant converges within 100 iterations; the step-rule tests use that
+(and r = 0.1) as their hard case.
 """
 
 from __future__ import annotations
