@@ -146,12 +146,13 @@ def _component_times(game, x0) -> dict[str, float]:
     res = ilq.solve(game, x0, mode="feedback", max_iterations=5, tolerance=0.0)
     xs, us = res.xs.reshape(res.xs.shape[0], -1), res.us
     A, B = ilq._linearize(problem, xs, us)
-    Q, q, Rii, rii = ilq._quadratize(problem, xs, us, True)
+    curvature = ilq.SolverOptions().dynamics_curvature  # as the solver quadratises by default
+    Q, q, Rii, rii = ilq._quadratize(problem, xs, us, True, curvature)
     parts = {
         "linearize": lambda xs: ilq._linearize(problem, xs, us),
-        "quadratize_gauss_newton": lambda xs: ilq._quadratize(problem, xs, us, True),
+        "quadratize_gauss_newton": lambda xs: ilq._quadratize(problem, xs, us, True, curvature),
         "quadratize_exact_eig": lambda xs: ilq._regularize(
-            *ilq._quadratize(problem, xs, us)[::2], ilq.SolverOptions(), "eig"),
+            *ilq._quadratize(problem, xs, us, False, curvature)[::2], ilq.SolverOptions(), "eig"),
         "lq_feedback": lambda xs: lq_game.solve_feedback_own(A + 0.0 * xs[0, 0], B, Q, q, Rii, rii),
         "forward_pass": lambda xs: ilq._forward(problem, xs, us, res.K, res.k, 0.5),
     }

@@ -899,8 +899,9 @@ def test_stage_curvature_is_the_progress_curvature_of_the_rk4_step_on_a_straight
     np.testing.assert_allclose(float(d[CHI]), finite_difference, rtol=1e-6)
 
 
+@pytest.mark.parametrize("gauss_newton", [True, False], ids=["gauss_newton", "exact_hessians"])
 @pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
-def test_dynamics_curvature_adds_only_the_heading_diagonal_and_keeps_the_gradients(game, scene):
+def test_dynamics_curvature_adds_only_the_heading_diagonal_and_keeps_the_gradients(game, scene, gauss_newton):
     base = X0
     if scene == "three_cars_trefoil":
         game, base = _three_cars_on_the_trefoil()
@@ -910,7 +911,7 @@ def test_dynamics_curvature_adds_only_the_heading_diagonal_and_keeps_the_gradien
     xs = jnp.asarray(np.stack([(base + rng.normal(size=base.shape) * np.array([3.0, 2.0, 1.0, 0.1, 1.0, 1.0]))
                                .reshape(-1) for _ in range(T + 1)]))
     us = jnp.asarray(rng.normal(size=(T, N, 2)))
-    quadratize = jax.jit(lambda xs, us, on: ilq._quadratize(problem, xs, us, True, on), static_argnums=2)
+    quadratize = jax.jit(lambda xs, us, on: ilq._quadratize(problem, xs, us, gauss_newton, on), static_argnums=2)
     plain, curved = quadratize(xs, us, False), quadratize(xs, us, True)
     for a, b in zip(plain[1:], curved[1:]):  # q, Rii, rii: bit for bit
         np.testing.assert_array_equal(a, b)
@@ -947,13 +948,27 @@ def test_dynamics_curvature_keeps_the_open_loop_fixed_point(game, open_loop):
     assert np.all(np.asarray(ilq.nash_residual(game, X0, without.us)) <= 1e-4 * zero)
 
 
-def test_ilqr_ego_curvature_is_the_games_own_heading_entry(game):
-    problem = ego_problem(game, X0, ego=1)
-    x_ego = jnp.asarray(X0[1] + np.array([0.0, 0.0, 0.5, 0.1, 0.0, 0.0]))
-    t = 7
-    joint = problem.params.predicted[t].at[1].set(x_ego).reshape(-1)
-    np.testing.assert_array_equal(problem.stage_curvature(problem.params, t, 0, x_ego),
-                                  ilq._race_stage_curvature(game, t, 1, joint)[6:])
+@pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
+def test_ilqr_ego_problem_has_the_games_own_heading_curvature(game, scene):
+    """Every ego's curvature is its block of the game's, at the joint state with the
+    others at their prediction, and iLQR's local problem gets it."""
+    base = X0
+    if scene == "three_cars_trefoil":
+        game, base = _three_cars_on_the_trefoil()
+    for ego in range(game.num_players):
+        problem = ego_problem(game, base, ego=ego)
+        x_ego = jnp.asarray(base[ego] + np.array([0.0, 0.0, 0.5, 0.1, 0.0, 0.0]))
+        t = 3
+        joint = problem.params.predicted[t].at[ego].set(x_ego).reshape(-1)
+        d = problem.stage_curvature(problem.params, t, 0, x_ego)
+        np.testing.assert_array_equal(d, ilq._race_stage_curvature(game, t, ego, joint)[6 * ego:6 * ego + 6])
+        assert float(d[3]) > 0
+        xs = jnp.tile(x_ego, (game.horizon + 1, 1))
+        us = jnp.zeros((game.horizon, 1, 2))
+        Q_on = ilq._quadratize(problem, xs, us, True, True)[0]
+        Q_off = ilq._quadratize(problem, xs, us, True, False)[0]
+        added = np.asarray(Q_on - Q_off)[:, 0]
+        assert np.count_nonzero(added[:-1, 3, 3]) == game.horizon and np.count_nonzero(added) == game.horizon
 
 
 def test_cpu_device_count_is_fixed_once_jax_runs():

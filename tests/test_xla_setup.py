@@ -127,7 +127,8 @@ def test_gauss_newton_quadratization_holds_no_library_call(cars):
     problem = ilq.problem_from_race_game(game)
     xs = jnp.tile(jnp.asarray(x0).reshape(1, -1), (game.horizon + 1, 1))
     us = jnp.zeros((game.horizon, cars, 2))
-    text = jax.jit(lambda xs, us: ilq._quadratize(problem, xs, us, gauss_newton=True)).lower(xs, us).compile().as_text()
+    quadratize = lambda xs, us: ilq._quadratize(problem, xs, us, gauss_newton=True, dynamics_curvature=True)
+    text = jax.jit(quadratize).lower(xs, us).compile().as_text()
     assert "__ynn_fusion" not in text
     assert "xla_cpu_small_call" in text  # the loop over the stages is one kernel
 
