@@ -728,15 +728,8 @@ def test_gauss_newton_hessian_is_exact_for_the_track_term(game):
 def test_quadratization_matches_the_gauss_newton_products_of_each_stage(game, scene):
     """The stage-wise products inside ``_quadratize`` (fused code for two cars, XLA dots for
     three) equal ``J' diag(h) J`` and ``J' g`` formed in NumPy from each stage's factors."""
-    base = X0
-    if scene == "three_cars_trefoil":
-        game, base = _three_cars_on_the_trefoil()
-    problem = ilq.problem_from_race_game(game)
+    game, problem, xs, us = _random_trajectory(game, scene, 8, np.array([3.0, 4.0, 5.0, 0.2, 8.0, 12.0]))
     n, N, T = problem.state_dim, game.num_players, game.horizon
-    rng = np.random.default_rng(8)
-    scale = np.array([3.0, 4.0, 5.0, 0.2, 8.0, 12.0])
-    xs = jnp.asarray(np.stack([(base + rng.normal(size=base.shape) * scale).reshape(-1) for _ in range(T + 1)]))
-    us = jnp.asarray(rng.normal(size=(T, N, 2)))
     Q, q, Rii, rii = jax.jit(lambda xs, us: ilq._quadratize(problem, xs, us, gauss_newton=True))(xs, us)
 
     def factors(t, i):
@@ -755,6 +748,19 @@ def test_quadratization_matches_the_gauss_newton_products_of_each_stage(game, sc
             np.testing.assert_allclose(Rii[t, i], H[n:, n:], rtol=0, atol=1e-12 * scale_H)
             np.testing.assert_allclose(q[t, i], grad[:n], rtol=0, atol=1e-12 * max(1.0, np.abs(grad).max()))
             np.testing.assert_allclose(rii[t, i], grad[n:], rtol=0, atol=1e-12 * max(1.0, np.abs(grad).max()))
+
+
+def _random_trajectory(game, scene: str, seed: int, scale: np.ndarray):
+    """The scene's game (``"paper"``: ``game``; ``"three_cars_trefoil"``), its problem, and
+    random states ``xs (T+1, 6 N)`` around its start (``scale`` per state entry) with
+    random inputs ``us (T, N, 2)``."""
+    base = X0
+    if scene == "three_cars_trefoil":
+        game, base = _three_cars_on_the_trefoil()
+    rng = np.random.default_rng(seed)
+    xs = np.stack([(base + rng.normal(size=base.shape) * scale).reshape(-1) for _ in range(game.horizon + 1)])
+    us = rng.normal(size=(game.horizon, game.num_players, 2))
+    return game, ilq.problem_from_race_game(game), jnp.asarray(xs), jnp.asarray(us)
 
 
 def _three_cars_on_the_trefoil() -> tuple[RaceGame, np.ndarray]:
@@ -902,15 +908,8 @@ def test_stage_curvature_is_the_progress_curvature_of_the_rk4_step_on_a_straight
 @pytest.mark.parametrize("gauss_newton", [True, False], ids=["gauss_newton", "exact_hessians"])
 @pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
 def test_dynamics_curvature_adds_only_the_heading_diagonal_and_keeps_the_gradients(game, scene, gauss_newton):
-    base = X0
-    if scene == "three_cars_trefoil":
-        game, base = _three_cars_on_the_trefoil()
-    problem = ilq.problem_from_race_game(game)
+    game, problem, xs, us = _random_trajectory(game, scene, 9, np.array([3.0, 2.0, 1.0, 0.1, 1.0, 1.0]))
     n, N, T = problem.state_dim, game.num_players, game.horizon
-    rng = np.random.default_rng(9)
-    xs = jnp.asarray(np.stack([(base + rng.normal(size=base.shape) * np.array([3.0, 2.0, 1.0, 0.1, 1.0, 1.0]))
-                               .reshape(-1) for _ in range(T + 1)]))
-    us = jnp.asarray(rng.normal(size=(T, N, 2)))
     quadratize = jax.jit(lambda xs, us, on: ilq._quadratize(problem, xs, us, gauss_newton, on), static_argnums=2)
     plain, curved = quadratize(xs, us, False), quadratize(xs, us, True)
     for a, b in zip(plain[1:], curved[1:]):  # q, Rii, rii: bit for bit
