@@ -375,7 +375,10 @@ class RecedingHorizonAgent(BaseAgent):
             :data:`STOPPED_SPEED` until one at which it is at least :data:`RECOVERED_SPEED`.
             A car that has stopped at the edge facing out (it cannot reverse or turn on the
             spot) can only rejoin across the boundary; over a 5 s horizon standing still is
-            cheaper at full weight, so without this it stands for good. ``1`` turns it off.
+            cheaper at full weight, so without this it stands for good. ``0`` (the default)
+            drops the track term while recovering: a car stopped across the track in a
+            tight corner may need several metres of run-off to turn, which 1e-3 (the
+            earlier default) still priced above standing still. ``1`` turns it off.
         own_weights: :class:`racing_env.CostWeights` fields ``{name: value}`` that replace
             the agent's own weights in its plans. They are private: the other cars plan
             with the race's weights for this car, as they would against an unknown driver.
@@ -405,7 +408,7 @@ class RecedingHorizonAgent(BaseAgent):
         pad: str = "repeat",
         warm_start: bool = True,
         require_converged: bool = False,
-        recovery_track_scale: float = 1e-3,
+        recovery_track_scale: float = 0.0,
         own_weights: dict[str, float] | None = None,
         leading_weights: dict[str, float] | None = None,
         trailing_weights: dict[str, float] | None = None,
@@ -477,7 +480,7 @@ class RecedingHorizonAgent(BaseAgent):
             "warm_start": "start each re-plan from the previous plan (false: from zero inputs)",
             "require_converged": "treat a re-plan that did not converge as a failure (previous plan, else brake)",
             "recovery_track_scale": f"factor on own c_track from a standstill (< {STOPPED_SPEED} m/s) until "
-                                    f"{RECOVERED_SPEED} m/s, to rejoin across the edge (1: off)",
+                                    f"{RECOVERED_SPEED} m/s, to rejoin across the edge (0: no track term then; 1: off)",
             "tolerance": "convergence: largest state change of a full step [m, m/s, ...]",
             "step_control": ("trust_region (shrink the step to stay inside trust_radius), residual (ilqgame-ol "
                              "only: also until the open-loop Nash residual decreases) or none (fixed step)"),

@@ -18,7 +18,9 @@ from planners.agents import (
     ILQRAgent,
     LaneKeepingAgent,
     OpenLoopGameAgent,
+    RECOVERED_SPEED,
     SB3Agent,
+    STOPPED_SPEED,
     make_agent,
     reset_agents,
 )
@@ -181,9 +183,10 @@ def test_a_car_stopped_at_the_edge_facing_out_rejoins_in_recovery(spec):
     own c_track scaled by recovery_track_scale until 5 m/s) it drives off. Racing jerk
     weights (r = 0.01) as in races."""
     speeds = {}
-    for scale in (1e-3, 1.0):
+    for scale in (None, 1e-3, 1.0):  # None: the default (0)
         env = racing_env.parallel_env(track="straight", num_agents=2, max_steps=30)
-        agent = make_agent(f"{spec}:r_jx=0.01,r_jy=0.01,recovery_track_scale={scale}")
+        option = "" if scale is None else f",recovery_track_scale={scale}"
+        agent = make_agent(f"{spec}:r_jx=0.01,r_jy=0.01{option}")
         rival = make_agent("constant-speed", target_speed=10.0)
         reset_agents([agent, rival], env, 0)
         x0 = np.zeros((2, 6))
@@ -195,12 +198,37 @@ def test_a_car_stopped_at_the_edge_facing_out_rejoins_in_recovery(spec):
             obs, *_ = env.step({"car_0": agent(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
         speeds[scale] = env.state()[0, 1]
         recovering = [h.get("recovering") for h in agent.history]
-        if scale < 1.0:
+        if scale is None or scale < 1.0:
             assert recovering[0] and agent.summary()["recovery_replans"] == sum(recovering)
         else:
             assert "recovering" not in agent.history[0] and "recovery_replans" not in agent.summary()
     assert speeds[1.0] == 0.0  # at full track weight it never moves
     assert speeds[1e-3] > 5.0  # measured 10.4 m/s after 2 s (12 re-plans in recovery) for all three
+    assert speeds[None] > 5.0
+
+
+def test_a_car_stopped_across_monzas_first_chicane_rejoins_in_recovery(shared_tracks):
+    """The standstill of a Monza race (iLQR after a spin in the first chicane, 2026-11-24):
+    at rest 3.5 m right of the centre line, heading 1.43 rad to the right of it, in the
+    chicane's 12 m left-hand bend. Turning round needs metres of run-off: with the track
+    term at 1e-3 of its weight standing still is still the best 5 s plan and the car
+    stands; without it (the default) the car drives off and rejoins."""
+    speeds = {}
+    for option in ("", ",recovery_track_scale=0.001"):
+        env = racing_env.parallel_env(track=str(shared_tracks / "Monza.csv"), num_agents=2, max_steps=60)
+        agent = make_agent(f"ilqr:r_jx=0.01,r_jy=0.01{option}")
+        rival = make_agent("constant-speed", target_speed=20.0)
+        reset_agents([agent, rival], env, 0)
+        x0 = np.zeros((2, 6))
+        x0[0, :4] = [964.5, 0.0, -3.47, -1.428]
+        x0[1, :3] = [1100.0, 20.0, 0.0]
+        obs, _ = env.reset(seed=0, options={"x0": x0})
+        for _ in range(40):
+            state = env.state()
+            obs, *_ = env.step({"car_0": agent(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
+        speeds[option] = env.state()[0, 1]
+    assert speeds[",recovery_track_scale=0.001"] < STOPPED_SPEED
+    assert speeds[""] > RECOVERED_SPEED
 
 
 @pytest.mark.parametrize("spec", GAME_SPECS)
