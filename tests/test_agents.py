@@ -175,6 +175,22 @@ def test_replan_every_follows_the_plan_in_between():
     assert all(h["solve_time"] is None and not h["fallback"] for h in between)
 
 
+def _drive_from_rest(agent, track: str, start, rival_speed: float, rival_s: float, steps: int) -> float:
+    """Race ``agent`` from ``start`` (its ``[s, V, n, chi]``) for ``steps`` steps against a
+    constant-speed car ahead on the centre line; the agent's speed at the end [m/s]."""
+    env = racing_env.parallel_env(track=track, num_agents=2, max_steps=steps + 10)
+    rival = make_agent("constant-speed", target_speed=rival_speed)
+    reset_agents([agent, rival], env, 0)
+    x0 = np.zeros((2, 6))
+    x0[0, :4] = start
+    x0[1, :2] = [rival_s, rival_speed]
+    obs, _ = env.reset(seed=0, options={"x0": x0})
+    for _ in range(steps):
+        state = env.state()
+        obs, *_ = env.step({"car_0": agent(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
+    return float(env.state()[0, 1])
+
+
 @pytest.mark.parametrize("spec", GAME_SPECS)
 def test_a_car_stopped_at_the_edge_facing_out_rejoins_in_recovery(spec):
     """A car at rest on the right edge of the straight, heading 0.6 rad into it, can only
@@ -184,19 +200,10 @@ def test_a_car_stopped_at_the_edge_facing_out_rejoins_in_recovery(spec):
     weights (r = 0.01) as in races."""
     speeds = {}
     for scale in (None, 1e-3, 1.0):  # None: the default (0)
-        env = racing_env.parallel_env(track="straight", num_agents=2, max_steps=30)
         option = "" if scale is None else f",recovery_track_scale={scale}"
         agent = make_agent(f"{spec}:r_jx=0.01,r_jy=0.01{option}")
-        rival = make_agent("constant-speed", target_speed=10.0)
-        reset_agents([agent, rival], env, 0)
-        x0 = np.zeros((2, 6))
-        x0[0, :4] = [100.0, 0.0, -5.0, -0.6]  # usable half-width: 6 m - 1 m (half the car)
-        x0[1, :3] = [200.0, 10.0, 3.0]
-        obs, _ = env.reset(seed=0, options={"x0": x0})
-        for _ in range(20):
-            state = env.state()
-            obs, *_ = env.step({"car_0": agent(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
-        speeds[scale] = env.state()[0, 1]
+        # usable half-width: 6 m - 1 m (half the car)
+        speeds[scale] = _drive_from_rest(agent, "straight", [100.0, 0.0, -5.0, -0.6], 10.0, 200.0, 20)
         recovering = [h.get("recovering") for h in agent.history]
         if scale is None or scale < 1.0:
             assert recovering[0] and agent.summary()["recovery_replans"] == sum(recovering)
@@ -215,18 +222,9 @@ def test_a_car_stopped_across_monzas_first_chicane_rejoins_in_recovery(shared_tr
     stands; without it (the default) the car drives off and rejoins."""
     speeds = {}
     for option in ("", ",recovery_track_scale=0.001"):
-        env = racing_env.parallel_env(track=str(shared_tracks / "Monza.csv"), num_agents=2, max_steps=60)
         agent = make_agent(f"ilqr:r_jx=0.01,r_jy=0.01{option}")
-        rival = make_agent("constant-speed", target_speed=20.0)
-        reset_agents([agent, rival], env, 0)
-        x0 = np.zeros((2, 6))
-        x0[0, :4] = [964.5, 0.0, -3.47, -1.428]
-        x0[1, :3] = [1100.0, 20.0, 0.0]
-        obs, _ = env.reset(seed=0, options={"x0": x0})
-        for _ in range(40):
-            state = env.state()
-            obs, *_ = env.step({"car_0": agent(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
-        speeds[option] = env.state()[0, 1]
+        speeds[option] = _drive_from_rest(agent, str(shared_tracks / "Monza.csv"), [964.5, 0.0, -3.47, -1.428],
+                                          20.0, 1100.0, 40)
     assert speeds[",recovery_track_scale=0.001"] < STOPPED_SPEED
     assert speeds[""] > RECOVERED_SPEED
 
