@@ -750,13 +750,19 @@ def test_quadratization_matches_the_gauss_newton_products_of_each_stage(game, sc
             np.testing.assert_allclose(rii[t, i], grad[n:], rtol=0, atol=1e-12 * max(1.0, np.abs(grad).max()))
 
 
+def _scene(game, scene: str) -> tuple[RaceGame, np.ndarray]:
+    """The scene's game and joint start state: ``"paper"`` (the fixture ``game``, ``X0``) or
+    ``"three_cars_trefoil"``."""
+    if scene == "three_cars_trefoil":
+        return _three_cars_on_the_trefoil()
+    return game, X0
+
+
 def _random_trajectory(game, scene: str, seed: int, scale: np.ndarray):
     """The scene's game (``"paper"``: ``game``; ``"three_cars_trefoil"``), its problem, and
     random states ``xs (T+1, 6 N)`` around its start (``scale`` per state entry) with
     random inputs ``us (T, N, 2)``."""
-    base = X0
-    if scene == "three_cars_trefoil":
-        game, base = _three_cars_on_the_trefoil()
+    game, base = _scene(game, scene)
     rng = np.random.default_rng(seed)
     xs = np.stack([(base + rng.normal(size=base.shape) * scale).reshape(-1) for _ in range(game.horizon + 1)])
     us = rng.normal(size=(game.horizon, game.num_players, 2))
@@ -776,9 +782,7 @@ def _three_cars_on_the_trefoil() -> tuple[RaceGame, np.ndarray]:
 @pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
 def test_race_dynamics_jacobians_match_jacfwd(game, scene):
     """The per-car hook assembles the joint block-diagonal A and per-player B exactly."""
-    base = X0
-    if scene == "three_cars_trefoil":
-        game, base = _three_cars_on_the_trefoil()
+    game, base = _scene(game, scene)
     problem = ilq.problem_from_race_game(game)
     rng = np.random.default_rng(4)
     scale = np.array([3.0, 4.0, 1.0, 0.2, 8.0, 12.0])
@@ -862,9 +866,7 @@ def test_stage_curvature_is_the_heading_curvature_of_each_cars_progress(game, sc
     the trefoil is curved, so ``1 / (1 - n kappa)`` is exercised too."""
     from racing_env.dynamics import CHI, car_derivative
 
-    base = X0
-    if scene == "three_cars_trefoil":
-        game, base = _three_cars_on_the_trefoil()
+    game, base = _scene(game, scene)
     N = game.num_players
     curvature = jax.jit(lambda x, i: ilq._race_stage_curvature(game, 0, i, x))
 
@@ -951,9 +953,7 @@ def test_dynamics_curvature_keeps_the_open_loop_fixed_point(game, open_loop):
 def test_ilqr_ego_problem_has_the_games_own_heading_curvature(game, scene):
     """Every ego's curvature is its block of the game's, at the joint state with the
     others at their prediction, and iLQR's local problem gets it."""
-    base = X0
-    if scene == "three_cars_trefoil":
-        game, base = _three_cars_on_the_trefoil()
+    game, base = _scene(game, scene)
     for ego in range(game.num_players):
         problem = ego_problem(game, base, ego=ego)
         x_ego = jnp.asarray(base[ego] + np.array([0.0, 0.0, 0.5, 0.1, 0.0, 0.0]))
