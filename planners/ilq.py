@@ -1237,7 +1237,9 @@ def check_adaptive_regularization(options: SolverOptions, num_players: int) -> N
         )
 
 
-def _make_options(options: SolverOptions | None, overrides: dict) -> SolverOptions:
+def resolve_options(options: SolverOptions | None, overrides: dict) -> SolverOptions:
+    """``options`` (the defaults for None) with ``overrides`` (field name -> value) applied,
+    as :func:`solve` resolves its keyword overrides. Raises TypeError for unknown names."""
     if options is None:
         options = SolverOptions()
     if overrides:
@@ -1295,7 +1297,7 @@ def solve(
 
     Works under ``jax.vmap``/``jax.jit`` (validation then only happens on concrete inputs).
     """
-    options = _make_options(options, overrides)
+    options = resolve_options(options, overrides)
     problem, is_game = _as_problem(problem_or_game)
     _convexify(problem, options)  # a clear error for an unusable convexification
     check_adaptive_regularization(options, problem.num_players)
@@ -1376,7 +1378,7 @@ def solve_batch(
     """
     if batching not in _BATCHING:
         raise ValueError(f"batching must be one of {_BATCHING}, got {batching!r}")
-    options = _make_options(options, overrides)
+    options = resolve_options(options, overrides)
     problem, is_game = _as_problem(problem_or_game)
     check_adaptive_regularization(options, problem.num_players)
     x0s = jnp.asarray(x0s)

@@ -202,12 +202,10 @@ def solve_ilqr(game, x0, ego: int = 0, U0=None, *, predicted=None, options=None,
         if U0.shape == (T, game.num_players, game.input_dim) and game.num_players > 1:
             U0 = U0[:, ego]
         U0 = U0.reshape(T, 1, game.input_dim)
-    if options is None:
-        options = ilq.SolverOptions()
     overrides.setdefault("mode", "feedback")
-    ilq.validate_problem(game, control_regularization=ilq._make_options(
-        options, overrides).guaranteed_control_regularization)
-    plan = ilq.solve(problem, x0[ego], U0, options=options, validate=False, **overrides)
+    options = ilq.resolve_options(options, overrides)
+    ilq.validate_problem(game, control_regularization=options.guaranteed_control_regularization)
+    plan = ilq.solve(problem, x0[ego], U0, options=options, validate=False)
     pred = problem.params.predicted
     xs = pred.at[:, ego].set(plan.xs)
     us = jnp.zeros((T, game.num_players, game.input_dim), plan.us.dtype).at[:, ego].set(
