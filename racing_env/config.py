@@ -35,6 +35,12 @@ class RewardConfig:
         off_track: per step with the car's centre beyond a track boundary.
         finish: on crossing the finish line, times ``(N - place) / (N - 1)`` (winner gets it all;
             a lone car, N = 1, too).
+        lead: per metre gained this step on the car's lead over its best placed rival
+            (negative while behind). A finished rival counts as carrying on at its speed at
+            the line, so over a race the term sums to the weight times the final lead minus
+            the lead at the start: about the winning margin in metres (metres lost: the
+            time lost times the winner's speed). Rivals retired by an incident rule no
+            longer count.
     """
 
     progress: float = 0.1
@@ -42,6 +48,7 @@ class RewardConfig:
     collision: float = -5.0
     off_track: float = -1.0
     finish: float = 10.0
+    lead: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -28,7 +28,7 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from racing_env.config import RETIRING_MODES, RaceConfig
-from racing_env.dynamics import STATE_DIM, S
+from racing_env.dynamics import STATE_DIM, S, V
 from racing_env.game import RaceGame
 from racing_env.observation import observation_size, observe
 from racing_env.packing import Layout, pack, unpack
@@ -41,7 +41,7 @@ from racing_env.track import Track, get_track
 def _per_car_rows(game: RaceGame, x, status: RaceStatus, race_positions, collided, outside, contact, reward, terms):
     """Per-car results packed into two arrays (two to read back instead of a dozen).
 
-    Returns floats ``(N, 7)``: finish_time, reward, the reward terms (``REWARD_TERMS``);
+    Returns floats ``(N, 8)``: finish_time, reward, the reward terms (``REWARD_TERMS``);
     and int32 ``(N, 8 + N)``: active, finished, out, place, position, collided, off_track,
     lap, then which cars each one touches.
     """
@@ -79,9 +79,10 @@ def _race_step(constants: jax.Array, layout: Layout, x, status: RaceStatus, acti
     contact = contact & active[:, None] & active[None, :]
     outside = off_track(x_next, game.track) & active
     collided = contact.any(axis=1)
-    verdict = judge(x[:, S], x_next[:, S], status, collided, outside, step, game.dt, finish_s, rules)
-    # observed with the cars active at the start of the step (as before the rules moved here)
-    obs = observe(x_next, active, game.track, finish_s, preview).astype(jnp.float32)
+    verdict = judge(x[:, S], x_next[:, S], status, collided, outside, step, game.dt, finish_s, rules,
+                    speed=x_next[:, V])
+    # observed with the cars still racing after this step's verdict
+    obs = observe(x_next, verdict.status.active, game.track, finish_s, preview).astype(jnp.float32)
     packed = _per_car_rows(game, x_next, verdict.status, verdict.positions, collided, outside, contact,
                    verdict.reward, verdict.terms)
     return (x_next, obs) + packed
@@ -110,6 +111,7 @@ def _race_rules(config: RaceConfig) -> RaceRules:
         reward.collision if penalise(config.on_collision) else 0.0,
         reward.off_track if penalise(config.on_off_track) else 0.0,
         reward.finish,
+        reward.lead,
     ]
     return RaceRules(
         retire_on_collision=np.asarray(config.on_collision in RETIRING_MODES),

@@ -31,9 +31,9 @@ def observation_size(num_cars: int, num_preview: int) -> int:
 
 def cars_racing(observation: np.ndarray | None, index: int, num_cars: int) -> np.ndarray:
     """Which cars are still racing, ``(num_cars,)`` bool, as car ``index``'s observation says
-    (its own entry True). The observation's flags describe the start of the step just
-    taken. All True when ``observation`` is None or not of this layout (e.g. a wrapper's
-    transformed observation)."""
+    (its own entry True). The env's flags describe the cars after the step just taken
+    (a car that finished or retired in it is already out). All True when ``observation``
+    is None or not of this layout (e.g. a wrapper's transformed observation)."""
     racing = np.ones(num_cars, dtype=bool)
     if observation is None:
         return racing

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 
 
 #: Names of the reward terms, in the order of :attr:`Judgement.terms`' columns.
-REWARD_TERMS = ("progress", "position", "collision", "off_track", "finish")
+REWARD_TERMS = ("progress", "position", "collision", "off_track", "finish", "lead")
 
 
 class RaceStatus(NamedTuple):
@@ -46,7 +46,7 @@ class RaceRules(NamedTuple):
 
     Attributes:
         retire_on_collision, retire_off_track: whether an incident retires the car (bool).
-        weights: ``(5,)`` reward weights in the order of :data:`REWARD_TERMS`; an incident
+        weights: ``(6,)`` reward weights in the order of :data:`REWARD_TERMS`; an incident
             term whose mode gives no penalty has weight 0.
         spread: ``max(N - 1, 1)`` as a float64 scalar, the divisor of the position and
             finish terms. An argument rather than a constant: XLA turns a division by a
@@ -66,7 +66,7 @@ class Judgement(NamedTuple):
         status: the :class:`RaceStatus` after the step.
         positions: race positions, 1 = leading, ``(N,)`` int32.
         crossed: crossed the finish line in this step, ``(N,)`` bool.
-        terms: reward terms ``(N, 5)``, columns as :data:`REWARD_TERMS`.
+        terms: reward terms ``(N, 6)``, columns as :data:`REWARD_TERMS`.
         reward: their sum, ``(N,)``.
     """
 
@@ -90,6 +90,23 @@ def positions(s: jax.Array, finished: jax.Array, place: jax.Array) -> jax.Array:
     return 1 + jnp.sum(_precedes(key), axis=1, dtype=jnp.int32)
 
 
+def _standing(s: jax.Array, finished: jax.Array, finish_time: jax.Array, speed: jax.Array, time: jax.Array,
+              finish_s: jax.Array) -> jax.Array:
+    """Where each car stands at ``time`` [s] for the lead term, ``(N,)`` [m]: its arc length
+    while racing; a finished car as if it had carried on at its speed at the line
+    (``finish_s + V (time - finish_time)``), so that a loser's final lead is the time it lost
+    times the winner's speed rather than zero."""
+    return jnp.where(finished, finish_s + speed * (time - jnp.nan_to_num(finish_time)), s)
+
+
+def _leads(standing: jax.Array, rivals: jax.Array) -> jax.Array:
+    """Each car's lead [m] over the best placed of its rivals (``rivals (N,)`` bool: the cars
+    that count), ``(N,)``; 0 without a rival."""
+    others = rivals[None, :] & ~jnp.eye(standing.shape[0], dtype=bool)
+    best = jnp.max(jnp.where(others, standing[None, :], -jnp.inf), axis=1)
+    return jnp.where(others.any(axis=1), standing - best, 0.0)
+
+
 def judge(
     s_prev: jax.Array,
     s: jax.Array,
@@ -100,6 +117,7 @@ def judge(
     dt: float,
     finish_s: jax.Array,
     rules: RaceRules,
+    speed: jax.Array | None = None,
 ) -> Judgement:
     """Apply the rules to one step of the cars that were active at its start.
 
@@ -111,6 +129,8 @@ def judge(
         dt: the step length [s].
         finish_s: the finish line's arc length [m].
         rules: incident rules and reward weights.
+        speed: speeds ``V`` [m/s] after the step, ``(N,)``; the lead term extrapolates
+            finished cars with them. None: as if finished cars stood at the line.
     """
     num = s.shape[0]
     acting = status.active
@@ -132,6 +152,15 @@ def judge(
     active = acting & ~finished & ~out
     pos = positions(s, finished, place)
 
+    # lead over the best rival still in the race (finished or racing), before and after
+    # the step, with the same rivals both times: its sum over a car's race telescopes to
+    # the change of its lead
+    speed = jnp.zeros_like(s) if speed is None else speed
+    rivals = ~out
+    lead_before = _leads(_standing(s_prev, status.finished, status.finish_time, speed, (step - 1) * dt, finish_s),
+                         rivals)
+    lead_after = _leads(_standing(s, finished, finish_time, speed, step * dt, finish_s), rivals)
+
     spread, w = rules.spread, rules.weights
     # N = 1: the lone car wins (the race's formula would give it (1 - 1) / 1 = 0)
     finish = w[4] * crossed * (num - place) / spread if num > 1 else w[4] * crossed
@@ -143,10 +172,11 @@ def judge(
             jnp.where(collided, w[2], 0.0),
             jnp.where(outside, w[3], 0.0),
             finish,
+            jnp.where(acting & (w[5] != 0.0), w[5] * (lead_after - lead_before), 0.0),  # 0.0, not -0.0, when off
         ],
         axis=1,
     )
     # summed in the terms' order
-    reward = (((terms[:, 0] + terms[:, 1]) + terms[:, 2]) + terms[:, 3]) + terms[:, 4]
+    reward = ((((terms[:, 0] + terms[:, 1]) + terms[:, 2]) + terms[:, 3]) + terms[:, 4]) + terms[:, 5]
     new_status = RaceStatus(active, finished, out, place, finish_time)
     return Judgement(new_status, pos, crossed, terms, reward)

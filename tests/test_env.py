@@ -12,6 +12,7 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 import racing_env
 from racing_env import track as tr
 from racing_env.config import RaceConfig
+from racing_env.observation import cars_racing
 from racing_env.render import plot_race, save_gif
 from racing_env.vehicle import VehicleParams
 
@@ -231,8 +232,11 @@ def test_terminate_on_collision_retires_the_colliding_cars(trefoil):
     """With on_collision='terminate' the two colliding cars terminate and leave env.agents."""
     env = racing_env.parallel_env(track=trefoil, num_agents=3, on_collision="terminate")
     env.reset(seed=0, options={"x0": _x0((100.0, 10.0, 0.0), (101.0, 10.0, 0.5), (300.0, 10.0, 0.0))})
-    _, rewards, terms, truncs, infos = env.step({a: COAST for a in env.agents})
+    observations, rewards, terms, truncs, infos = env.step({a: COAST for a in env.agents})
     assert terms == {"car_0": True, "car_1": True, "car_2": False}
+    # the observations of this very step already flag the retired cars as out of the race
+    np.testing.assert_array_equal(cars_racing(observations["car_2"], 2, 3), [False, False, True])
+    np.testing.assert_array_equal(cars_racing(observations["car_0"], 0, 3), [True, False, True])
     assert not any(truncs.values())
     assert env.agents == ["car_2"]
     assert infos["car_0"]["out"] and infos["car_1"]["out"] and not infos["car_2"]["out"]
@@ -274,6 +278,28 @@ def test_faster_car_finishes_first(long_straight):
     assert (k1 - 1) * 0.1 < fast["finish_time"] <= k1 * 0.1
     assert fast["reward_terms"]["finish"] == env.config.reward.finish
     assert slow["reward_terms"]["finish"] == 0.0
+
+
+def test_the_lead_reward_sums_to_the_margin_at_the_finish(long_straight):
+    """Only the lead term (weight 1): coasting on a straight, s(t) = s0 + V t, so its sum over
+    each car's race is known. The fast car (20 m/s from 101.0 m) finishes at 2.45 s, in step
+    25, 151.0 - 126.5 = 24.5 m ahead of the slow one (10 m/s from 101.5 m), having started
+    0.5 m behind: +25.0. The slow car finishes at 4.85 s, in step 49, at 150.5 m, when the
+    fast one, carried on at 20 m/s from the line, stands at 150 + 20 (4.9 - 2.45) = 199.0 m:
+    a lead of -48.5 m from +0.5 m, -49.0 (the 2.4 s it lost times the winner's speed, less
+    the start)."""
+    from racing_env import RewardConfig
+
+    reward = RewardConfig(progress=0.0, position=0.0, collision=0.0, off_track=0.0, finish=0.0, lead=1.0)
+    env = racing_env.parallel_env(track=long_straight, num_agents=2, race_distance=150.0, reward=reward)
+    env.reset(seed=0, options={"x0": _x0((101.5, 10.0, 2.0), (101.0, 20.0, -2.0))})
+    returns = {"car_0": 0.0, "car_1": 0.0}
+    while env.agents:
+        _, rewards, _, _, _ = env.step({a: COAST for a in env.agents})
+        for agent, r in rewards.items():
+            returns[agent] += r
+    assert returns["car_1"] == pytest.approx(25.0, abs=1e-9)
+    assert returns["car_0"] == pytest.approx(-49.0, abs=1e-9)
 
 
 # --- bad input ---------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, posit
 
 DT = 0.1
 FINISH = 100.0
-WEIGHTS = {"progress": 0.1, "position": 0.5, "collision": -5.0, "off_track": -1.0, "finish": 10.0}
+WEIGHTS = {"progress": 0.1, "position": 0.5, "collision": -5.0, "off_track": -1.0, "finish": 10.0, "lead": 0.2}
 
 
 def _rules(num, retire_on_collision=False, retire_off_track=False):
@@ -125,3 +125,36 @@ def test_incident_terms_without_an_incident_are_positive_zero():
     collision, off_track = terms[:, REWARD_TERMS.index("collision")], terms[:, REWARD_TERMS.index("off_track")]
     assert collision.tolist() == [-5.0, 0.0] and off_track.tolist() == [0.0, -1.0]
     assert not np.signbit(collision[1]) and not np.signbit(off_track[0])
+
+
+def test_lead_is_gained_on_the_best_rival_still_in_the_race():
+    """Car 0 finished at t = 0.35 s at 20 m/s; car 3 retired earlier beyond the line. In step 7
+    (t 0.6 -> 0.7 s) car 0 stands at 100 + 20 (t - 0.35) = 105 -> 107 m, car 1 drives
+    90 -> 92 m and car 2 80 -> 81 m. Car 1's lead over car 0 stays -15 m, car 2's falls from
+    -25 to -26 m; car 3 counts for nobody, and the cars not racing get no term."""
+    s_prev, s = jnp.asarray([131.0, 90.0, 80.0, 150.0]), jnp.asarray([131.0, 92.0, 81.0, 150.0])
+    status = _status([False, True, True, False], finished=[True, False, False, False],
+                     out=[False, False, False, True], place=[1, 0, 0, 0],
+                     finish_time=[0.35, np.nan, np.nan, np.nan])
+    none = jnp.zeros(4, bool)
+    v = judge(s_prev, s, status, none, none, jnp.asarray(7), DT, jnp.asarray(FINISH), _rules(4),
+              speed=jnp.asarray([20.0, 20.0, 10.0, 0.0]))
+    lead = np.asarray(v.terms)[:, REWARD_TERMS.index("lead")]
+    np.testing.assert_allclose(lead, WEIGHTS["lead"] * np.array([0.0, 0.0, -1.0, 0.0]), atol=1e-12)
+    # without speeds the finished car stands at the line: car 1 gains 2 m, car 2 1 m
+    v = judge(s_prev, s, status, none, none, jnp.asarray(7), DT, jnp.asarray(FINISH), _rules(4))
+    lead = np.asarray(v.terms)[:, REWARD_TERMS.index("lead")]
+    np.testing.assert_allclose(lead, WEIGHTS["lead"] * np.array([0.0, 2.0, 1.0, 0.0]), atol=1e-12)
+
+
+def test_the_leader_gains_its_gap_to_the_second_and_a_lone_car_nothing():
+    # three racing cars at 50, 40, 30 m drive 2, 3 and 1 m: the leader's lead over car 1
+    # shrinks from 10 to 9 m; car 1 gains 1 m on the leader, car 2 loses 1 m
+    v = judge(jnp.asarray([50.0, 40.0, 30.0]), jnp.asarray([52.0, 43.0, 31.0]), _status([True] * 3),
+              jnp.zeros(3, bool), jnp.zeros(3, bool), jnp.asarray(2), DT, jnp.asarray(FINISH), _rules(3),
+              speed=jnp.asarray([20.0, 30.0, 10.0]))
+    lead = np.asarray(v.terms)[:, REWARD_TERMS.index("lead")]
+    np.testing.assert_allclose(lead, WEIGHTS["lead"] * np.array([-1.0, 1.0, -1.0]), atol=1e-12)
+    v = judge(jnp.asarray([50.0]), jnp.asarray([52.0]), _status([True]), jnp.zeros(1, bool),
+              jnp.zeros(1, bool), jnp.asarray(2), DT, jnp.asarray(FINISH), _rules(1), speed=jnp.asarray([20.0]))
+    assert np.asarray(v.terms)[0, REWARD_TERMS.index("lead")] == 0.0
