@@ -365,7 +365,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="a reward weight of the training race (repeatable): progress (per metre, default 0.1), "
                        "position (per step, times (cars behind - cars ahead)/(N-1), default 0), collision (per step "
                        "in contact, -5), off_track (per step, -1), finish (times (N - place)/(N - 1), 10), lead (per "
-                       "metre gained on the lead over the best rival, 0; sums to the margin at the finish in metres)")
+                       "metre gained on the lead over the furthest rival, 0; sums to the lead at the line minus the "
+                       "lead at the start)")
     train.add_argument("--hyperparameter", action="append", metavar="NAME=VALUE",
                        help="a keyword argument of the algorithm, e.g. n_steps=1024 or learning_rate=1e-4 "
                        "(repeatable; values are Python literals)")

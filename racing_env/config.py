@@ -35,12 +35,13 @@ class RewardConfig:
         off_track: per step with the car's centre beyond a track boundary.
         finish: on crossing the finish line, times ``(N - place) / (N - 1)`` (winner gets it all;
             a lone car, N = 1, too).
-        lead: per metre gained this step on the car's lead over its best placed rival
-            (negative while behind). A finished rival counts as carrying on at its speed at
-            the line, so over a race the term sums to the weight times the final lead minus
-            the lead at the start: about the winning margin in metres (metres lost: the
-            time lost times the winner's speed). Rivals retired by an incident rule no
-            longer count.
+        lead: per metre gained this step on the car's lead over the furthest of its rivals
+            (negative while behind). A finished rival counts as carrying on from the line
+            at its speed; a car that finishes takes its last lead at its own crossing time.
+            Over a race the term sums to the weight times (the lead at the line minus the
+            lead at the start): the margin in metres, or minus the time lost times the
+            winner's speed. Rivals retired by an incident rule no longer count (from the
+            step they retire in, so the sum then differs by their part).
     """
 
     progress: float = 0.1

@@ -90,21 +90,39 @@ def positions(s: jax.Array, finished: jax.Array, place: jax.Array) -> jax.Array:
     return 1 + jnp.sum(_precedes(key), axis=1, dtype=jnp.int32)
 
 
-def _standing(s: jax.Array, finished: jax.Array, finish_time: jax.Array, speed: jax.Array, time: jax.Array,
-              finish_s: jax.Array) -> jax.Array:
-    """Where each car stands at ``time`` [s] for the lead term, ``(N,)`` [m]: its arc length
-    while racing; a finished car as if it had carried on at its speed at the line
-    (``finish_s + V (time - finish_time)``), so that a loser's final lead is the time it lost
-    times the winner's speed rather than zero."""
-    return jnp.where(finished, finish_s + speed * (time - jnp.nan_to_num(finish_time)), s)
+def _standings(
+    s_prev: jax.Array,
+    s: jax.Array,
+    acting: jax.Array,
+    finished: jax.Array,
+    finish_time: jax.Array,
+    speed: jax.Array,
+    time: jax.Array,
+    t_prev: jax.Array,
+    dt: float,
+    finish_s: jax.Array,
+) -> jax.Array:
+    """Where every car stands at each of the times ``time (M,)`` [s] inside the step from
+    ``t_prev`` to ``t_prev + dt``, ``(M, N)`` [m], for the lead term.
+
+    A car that has finished by then counts as carrying on from the line at its speed after
+    the step (``finish_s + V (time - finish_time)``; it is frozen from then on, so every
+    later step sees the same speed). Before that, a car racing in this step moves linearly
+    from ``s_prev`` to ``s`` (as its crossing time is interpolated), and any other car
+    stands at ``s``."""
+    time = time[:, None]
+    carried_on = finish_s + speed * (time - jnp.nan_to_num(finish_time))
+    moving = s_prev + (s - s_prev) * ((time - t_prev) / dt)
+    return jnp.where(finished & (time >= finish_time), carried_on, jnp.where(acting, moving, s))
 
 
-def _leads(standing: jax.Array, rivals: jax.Array) -> jax.Array:
-    """Each car's lead [m] over the best placed of its rivals (``rivals (N,)`` bool: the cars
-    that count), ``(N,)``; 0 without a rival."""
-    others = rivals[None, :] & ~jnp.eye(standing.shape[0], dtype=bool)
-    best = jnp.max(jnp.where(others, standing[None, :], -jnp.inf), axis=1)
-    return jnp.where(others.any(axis=1), standing - best, 0.0)
+def _leads(standings: jax.Array, rivals: jax.Array) -> jax.Array:
+    """Car i's lead [m] over the furthest of its rivals, from row i of ``standings (N, N)``
+    (where every car stands when car i's lead is taken); ``rivals (N,)`` bool: the cars that
+    count. ``(N,)``; 0 without a rival."""
+    others = rivals[None, :] & ~jnp.eye(standings.shape[0], dtype=bool)
+    best = jnp.max(jnp.where(others, standings, -jnp.inf), axis=1)
+    return jnp.where(others.any(axis=1), jnp.diagonal(standings) - best, 0.0)
 
 
 def judge(
@@ -152,14 +170,18 @@ def judge(
     active = acting & ~finished & ~out
     pos = positions(s, finished, place)
 
-    # lead over the best rival still in the race (finished or racing), before and after
-    # the step, with the same rivals both times: its sum over a car's race telescopes to
-    # the change of its lead
+    # Lead over the furthest rival still in the race (finished or racing), with the same
+    # rivals before and after the step, so that a car's terms telescope. Before: at the
+    # step's start. After: at its end, or at the car's own crossing time if it finishes in
+    # this step (its last term), so its final lead is its margin at the line.
     speed = jnp.zeros_like(s) if speed is None else speed
     rivals = ~out
-    lead_before = _leads(_standing(s_prev, status.finished, status.finish_time, speed, (step - 1) * dt, finish_s),
-                         rivals)
-    lead_after = _leads(_standing(s, finished, finish_time, speed, step * dt, finish_s), rivals)
+    t_prev = (step - 1) * dt
+    lead_before = _leads(_standings(s_prev, s_prev, acting, status.finished, status.finish_time, speed,
+                                    jnp.full(num, t_prev), t_prev, dt, finish_s), rivals)
+    lead_time = jnp.where(crossed, t_cross, step * dt)
+    lead_after = _leads(_standings(s_prev, s, acting, finished, finish_time, speed, lead_time, t_prev, dt,
+                                   finish_s), rivals)
 
     spread, w = rules.spread, rules.weights
     # N = 1: the lone car wins (the race's formula would give it (1 - 1) / 1 = 0)

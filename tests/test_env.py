@@ -282,12 +282,11 @@ def test_faster_car_finishes_first(long_straight):
 
 def test_the_lead_reward_sums_to_the_margin_at_the_finish(long_straight):
     """Only the lead term (weight 1): coasting on a straight, s(t) = s0 + V t, so its sum over
-    each car's race is known. The fast car (20 m/s from 101.0 m) finishes at 2.45 s, in step
-    25, 151.0 - 126.5 = 24.5 m ahead of the slow one (10 m/s from 101.5 m), having started
-    0.5 m behind: +25.0. The slow car finishes at 4.85 s, in step 49, at 150.5 m, when the
-    fast one, carried on at 20 m/s from the line, stands at 150 + 20 (4.9 - 2.45) = 199.0 m:
-    a lead of -48.5 m from +0.5 m, -49.0 (the 2.4 s it lost times the winner's speed, less
-    the start)."""
+    each car's race is known. The fast car (20 m/s from 101.0 m) crosses the line at 2.45 s,
+    when the slow one (10 m/s from 101.5 m) is at 126.0 m: a lead of 24.0 m, from 0.5 m
+    behind at the start, +24.5. The slow car crosses at 4.85 s, when the fast one, carried on
+    at 20 m/s from the line, stands at 150 + 20 (4.85 - 2.45) = 198.0 m: a lead of -48.0 m
+    (the 2.4 s it lost times the winner's speed), from +0.5 m, -48.5."""
     from racing_env import RewardConfig
 
     reward = RewardConfig(progress=0.0, position=0.0, collision=0.0, off_track=0.0, finish=0.0, lead=1.0)
@@ -298,8 +297,8 @@ def test_the_lead_reward_sums_to_the_margin_at_the_finish(long_straight):
         _, rewards, _, _, _ = env.step({a: COAST for a in env.agents})
         for agent, r in rewards.items():
             returns[agent] += r
-    assert returns["car_1"] == pytest.approx(25.0, abs=1e-9)
-    assert returns["car_0"] == pytest.approx(-49.0, abs=1e-9)
+    assert returns["car_1"] == pytest.approx(24.5, abs=1e-9)
+    assert returns["car_0"] == pytest.approx(-48.5, abs=1e-9)
 
 
 # --- bad input ---------------------------------------------------------------------------------

@@ -158,3 +158,16 @@ def test_the_leader_gains_its_gap_to_the_second_and_a_lone_car_nothing():
     v = judge(jnp.asarray([50.0]), jnp.asarray([52.0]), _status([True]), jnp.zeros(1, bool),
               jnp.zeros(1, bool), jnp.asarray(2), DT, jnp.asarray(FINISH), _rules(1), speed=jnp.asarray([20.0]))
     assert np.asarray(v.terms)[0, REWARD_TERMS.index("lead")] == 0.0
+
+
+def test_a_car_finishing_in_the_step_takes_its_lead_at_the_line():
+    """Both cars cross in step 1 (dt 0.1 s): car 0 from 149 to 151 m (20 m/s) at 0.05 s, when
+    car 1 (148.4 -> 151.4 m, 30 m/s) is at 149.9 m: car 0 wins by 0.1 m, from a lead of 0.6 m.
+    Car 1 crosses at 0.0533 s, when car 0, carried on at 20 m/s, is 20 / 300 m past the line.
+    Taken at the step's end instead, the faster loser would lead the winner."""
+    v = judge(jnp.asarray([149.0, 148.4]), jnp.asarray([151.0, 151.4]), _status([True, True]),
+              jnp.zeros(2, bool), jnp.zeros(2, bool), jnp.asarray(1), DT, jnp.asarray(150.0), _rules(2),
+              speed=jnp.asarray([20.0, 30.0]))
+    assert np.asarray(v.status.place).tolist() == [1, 2]
+    lead = np.asarray(v.terms)[:, REWARD_TERMS.index("lead")]
+    np.testing.assert_allclose(lead, WEIGHTS["lead"] * np.array([0.1 - 0.6, -20.0 / 300.0 + 0.6]), atol=1e-12)
