@@ -128,7 +128,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         timesteps=args.timesteps, track=args.track, laps=args.laps, race_distance=args.race_distance,
         max_steps=args.max_steps, seed=args.seed, envs=args.envs, subprocesses=args.subprocesses,
         normalize=args.normalize,
-        on_off_track=args.off_track, on_collision=args.collision, checkpoint_every=args.checkpoint_every,
+        on_off_track=args.off_track, on_collision=args.collision, eval_off_track=args.eval_off_track,
+        checkpoint_every=args.checkpoint_every,
         eval_every=args.eval_every, eval_grids=args.eval_grids,
         reward=tuple(parse_reward_weight(text) for text in args.reward or ()), init_model=args.init_model,
         hyperparameters=tuple(parse_hyperparameter(text) for text in args.hyperparameter or ()),
@@ -350,8 +351,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--no-normalize", dest="normalize", action="store_false",
                        help="do not normalise observations and rewards (VecNormalize)")
     train.add_argument("--off-track", default="terminate", choices=INCIDENT_CHOICES,
-                       help="what leaving the track does in training (default: terminate the episode; evaluations "
-                       "use the tournaments' default rules, a penalty)")
+                       help="what leaving the track does in training (default: terminate the episode)")
+    train.add_argument("--eval-off-track", default=None, choices=INCIDENT_CHOICES,
+                       help="what leaving the track does in the evaluations (default: the tournaments' rule, "
+                       "counted but not ending the race; terminate retires a learner that leaves the track)")
     train.add_argument("--collision", default="penalty", choices=INCIDENT_CHOICES,
                        help="what contact does in training (default: penalty)")
     train.add_argument("--jerk-weight", type=float, default=None,

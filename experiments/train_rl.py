@@ -86,7 +86,11 @@ class TrainConfig:
         on_off_track / on_collision: the training race's incident rules
             (:data:`racing_env.config.INCIDENT_MODES`). ``terminate`` off track (the default)
             ends an episode that leaves the track, which teaches staying on it far faster
-            than a penalty per step; evaluations always race under tournament rules.
+            than a penalty per step.
+        eval_off_track: what leaving the track does in the evaluations: None (the
+            default) the tournaments' rule, counted but not ending the race; or an
+            incident mode, e.g. ``terminate`` to retire a learner that leaves the track there
+            too (a policy that wins by running wide past the edge then loses).
         jerk_weight: the planners' jerk weight r in the race's game (as in tournaments).
         checkpoint_every / eval_every: steps between checkpoints / evaluations (0: only at
             the end).
@@ -115,6 +119,7 @@ class TrainConfig:
     normalize: bool = True
     on_off_track: str = "terminate"
     on_collision: str = "penalty"
+    eval_off_track: str | None = None
     jerk_weight: float = RACING_JERK_WEIGHT
     checkpoint_every: int = 20_000
     eval_every: int = 50_000
@@ -140,7 +145,9 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 0:
                 raise ValueError(f"{name} must be an integer >= 0 (0: only at the end), got {value!r}")
-        for name in ("on_off_track", "on_collision"):
+        for name in ("on_off_track", "on_collision", "eval_off_track"):
+            if name == "eval_off_track" and self.eval_off_track is None:
+                continue
             if getattr(self, name) not in INCIDENT_MODES:
                 raise ValueError(f"{name} must be one of {INCIDENT_MODES}, got {getattr(self, name)!r}")
         if not self.jerk_weight > 0:
@@ -173,9 +180,13 @@ class TrainConfig:
         return [(spec, [spec] * (self.cars - 1)) for spec in dict.fromkeys(self.opponents)]
 
     def race_config(self, training: bool = True) -> RaceConfig:
-        """The race the learner trains in (``training``) or is evaluated in (tournament rules)."""
-        rules = dict(on_off_track=self.on_off_track, on_collision=self.on_collision,
-                     reward=RewardConfig(**dict(self.reward))) if training else {}
+        """The race the learner trains in (``training``) or is evaluated in (tournament rules,
+        with ``eval_off_track`` if set)."""
+        if training:
+            rules = dict(on_off_track=self.on_off_track, on_collision=self.on_collision,
+                         reward=RewardConfig(**dict(self.reward)))
+        else:
+            rules = {} if self.eval_off_track is None else dict(on_off_track=self.eval_off_track)
         return RaceConfig(track=self.track, num_agents=self.cars, scenario="grid", laps=self.laps,
                           race_distance=self.race_distance, max_steps=self.max_steps,
                           weights=CostWeights(r_jx=self.jerk_weight, r_jy=self.jerk_weight), **rules)

@@ -14,6 +14,7 @@ from experiments import train_rl
 from experiments.cli import main
 from experiments.jsonl import read_jsonl
 from experiments.train_rl import TrainConfig, run_training
+from racing_env.config import RewardConfig
 from interrupting import ctrl_c_when, start_racing
 from planners.agents import SB3Agent, make_agent, vecnormalize_path
 
@@ -144,6 +145,7 @@ def test_interrupted_training_process_resumes(tmp_path, subprocesses):
     (dict(envs=0), "envs"),
     (dict(eval_every=-1), "eval_every"),
     (dict(on_off_track="bounce"), "on_off_track"),
+    (dict(eval_off_track="bounce"), "eval_off_track"),
     (dict(jerk_weight=0.0), "jerk_weight"),
     (dict(laps=0), "laps"),
     (dict(hyperparameters=(("nsteps", 64),)), "no hyperparameter 'nsteps'"),
@@ -253,3 +255,14 @@ def test_init_model_is_trained_further(tmp_path):
     with pytest.raises(ValueError, match="sac cannot train .* further"):
         train_rl._build_model(TrainConfig(**{**TINY, "hyperparameters": (), "algo": "sac",
                                              "init_model": str(saved)}), tmp_path, None)
+
+
+def test_evaluations_race_under_tournament_rules_unless_told_otherwise():
+    """Training terminates off track by default; the evaluations count it only, unless
+    eval_off_track sets their rule (e.g. terminate, to retire a learner that runs wide)."""
+    default = TrainConfig(**TINY)
+    assert default.race_config().on_off_track == "terminate"
+    assert default.race_config(training=False).on_off_track == "penalty"
+    strict = TrainConfig(**TINY, eval_off_track="terminate").race_config(training=False)
+    assert strict.on_off_track == "terminate"
+    assert strict.reward == RewardConfig()  # the training's reward weights stay out of evaluations
