@@ -127,7 +127,7 @@ def test_incident_terms_without_an_incident_are_positive_zero():
     assert not np.signbit(collision[1]) and not np.signbit(off_track[0])
 
 
-def test_lead_is_gained_on_the_best_rival_still_in_the_race():
+def test_lead_is_gained_on_the_furthest_rival_still_in_the_race():
     """Car 0 finished at t = 0.35 s at 20 m/s; car 3 retired earlier beyond the line. In step 7
     (t 0.6 -> 0.7 s) car 0 stands at 100 + 20 (t - 0.35) = 105 -> 107 m, car 1 drives
     90 -> 92 m and car 2 80 -> 81 m. Car 1's lead over car 0 stays -15 m, car 2's falls from
