@@ -33,7 +33,9 @@ def cars_racing(observation: np.ndarray | None, index: int, num_cars: int) -> np
     """Which cars are still racing, ``(num_cars,)`` bool, as car ``index``'s observation says
     (its own entry True). The env's flags describe the cars after the step just taken
     (a car that finished or retired in it is already out). All True when ``observation``
-    is None or not of this layout (e.g. a wrapper's transformed observation)."""
+    is None or not of this layout's size. A transformed observation of the same size (e.g.
+    normalised by a wrapper) cannot be told apart and is read as if raw: planners must be
+    given the env's own observations."""
     racing = np.ones(num_cars, dtype=bool)
     if observation is None:
         return racing
