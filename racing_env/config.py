@@ -42,6 +42,13 @@ class RewardConfig:
             lead at the start): the margin in metres, or minus the time lost times the
             winner's speed. Rivals retired by an incident rule no longer count (from the
             step they retire in, so the sum then differs by their part).
+        time: per second the car races (negative charges for time): every step from the
+            start until it finishes or retires, the finishing step up to the crossing, so
+            over a race that it finishes the term sums to the weight times its finish time.
+            Progress alone is paid per metre, so a lap's return hardly depends on its pace;
+            with ``time`` it does. Charging time rewards ending the episode early, so pair
+            it with ``off_track`` (and ``collision``) penalties, or with ``progress``
+            paying more per step at racing speed than ``time`` charges.
     """
 
     progress: float = 0.1
@@ -50,6 +57,7 @@ class RewardConfig:
     off_track: float = -1.0
     finish: float = 10.0
     lead: float = 0.0
+    time: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

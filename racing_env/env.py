@@ -41,7 +41,7 @@ from racing_env.track import Track, get_track
 def _per_car_rows(game: RaceGame, x, status: RaceStatus, race_positions, collided, outside, contact, reward, terms):
     """Per-car results packed into two arrays (two to read back instead of a dozen).
 
-    Returns floats ``(N, 8)``: finish_time, reward, the reward terms (``REWARD_TERMS``);
+    Returns floats ``(N, 2 + len(REWARD_TERMS))``: finish_time, reward, the reward terms (``REWARD_TERMS``);
     and int32 ``(N, 8 + N)``: active, finished, out, place, position, collided, off_track,
     lap, then which cars each one touches.
     """
@@ -112,6 +112,7 @@ def _race_rules(config: RaceConfig) -> RaceRules:
         reward.off_track if penalise(config.on_off_track) else 0.0,
         reward.finish,
         reward.lead,
+        reward.time,
     ]
     return RaceRules(
         retire_on_collision=np.asarray(config.on_collision in RETIRING_MODES),

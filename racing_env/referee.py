@@ -18,7 +18,7 @@ import jax.numpy as jnp
 
 
 #: Names of the reward terms, in the order of :attr:`Judgement.terms`' columns.
-REWARD_TERMS = ("progress", "position", "collision", "off_track", "finish", "lead")
+REWARD_TERMS = ("progress", "position", "collision", "off_track", "finish", "lead", "time")
 
 
 class RaceStatus(NamedTuple):
@@ -46,7 +46,7 @@ class RaceRules(NamedTuple):
 
     Attributes:
         retire_on_collision, retire_off_track: whether an incident retires the car (bool).
-        weights: ``(6,)`` reward weights in the order of :data:`REWARD_TERMS`; an incident
+        weights: ``(7,)`` reward weights in the order of :data:`REWARD_TERMS`; an incident
             term whose mode gives no penalty has weight 0.
         spread: ``max(N - 1, 1)`` as a float64 scalar, the divisor of the position and
             finish terms. An argument rather than a constant: XLA turns a division by a
@@ -66,7 +66,7 @@ class Judgement(NamedTuple):
         status: the :class:`RaceStatus` after the step.
         positions: race positions, 1 = leading, ``(N,)`` int32.
         crossed: crossed the finish line in this step, ``(N,)`` bool.
-        terms: reward terms ``(N, 6)``, columns as :data:`REWARD_TERMS`.
+        terms: reward terms ``(N, 7)``, columns as :data:`REWARD_TERMS`.
         reward: their sum, ``(N,)``.
     """
 
@@ -195,10 +195,12 @@ def judge(
             jnp.where(outside, w[3], 0.0),
             finish,
             jnp.where(acting & (w[5] != 0.0), w[5] * (lead_after - lead_before), 0.0),  # 0.0, not -0.0, when off
+            # the time raced in this step: all of it, or up to the crossing (the sum is the finish time)
+            jnp.where(acting & (w[6] != 0.0), w[6] * (jnp.where(crossed, jnp.clip(frac, 0.0, 1.0), 1.0) * dt), 0.0),
         ],
         axis=1,
     )
     # summed in the terms' order
-    reward = ((((terms[:, 0] + terms[:, 1]) + terms[:, 2]) + terms[:, 3]) + terms[:, 4]) + terms[:, 5]
+    reward = (((((terms[:, 0] + terms[:, 1]) + terms[:, 2]) + terms[:, 3]) + terms[:, 4]) + terms[:, 5]) + terms[:, 6]
     new_status = RaceStatus(active, finished, out, place, finish_time)
     return Judgement(new_status, pos, crossed, terms, reward)

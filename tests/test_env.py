@@ -301,6 +301,26 @@ def test_the_lead_reward_sums_to_the_margin_at_the_finish(long_straight):
     assert returns["car_0"] == pytest.approx(-48.5, abs=1e-9)
 
 
+def test_the_time_reward_sums_to_the_finish_time(long_straight):
+    """Only the time term (weight -1 per second), the race of the lead test above: the fast
+    car crosses the line at 2.45 s and the slow one at 4.85 s, and each is charged exactly
+    its time, though neither crosses at the end of a step."""
+    from racing_env import RewardConfig
+
+    reward = RewardConfig(progress=0.0, position=0.0, collision=0.0, off_track=0.0, finish=0.0, time=-1.0)
+    env = racing_env.parallel_env(track=long_straight, num_agents=2, race_distance=150.0, reward=reward)
+    env.reset(seed=0, options={"x0": _x0((101.5, 10.0, 2.0), (101.0, 20.0, -2.0))})
+    returns, finish_times = {"car_0": 0.0, "car_1": 0.0}, {}
+    while env.agents:
+        _, rewards, _, _, infos = env.step({a: COAST for a in env.agents})
+        for agent, r in rewards.items():
+            returns[agent] += r
+            finish_times[agent] = infos[agent]["finish_time"]
+    assert finish_times == pytest.approx({"car_1": 2.45, "car_0": 4.85}, abs=1e-12)
+    assert returns["car_1"] == pytest.approx(-2.45, abs=1e-9)
+    assert returns["car_0"] == pytest.approx(-4.85, abs=1e-9)
+
+
 # --- bad input ---------------------------------------------------------------------------------
 BAD_ACTIONS = [
     ({"car_0": np.array([np.nan, 0.0]), "car_1": COAST}, ValueError, "car_0 must be finite"),

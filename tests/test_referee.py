@@ -13,7 +13,8 @@ from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, posit
 
 DT = 0.1
 FINISH = 100.0
-WEIGHTS = {"progress": 0.1, "position": 0.5, "collision": -5.0, "off_track": -1.0, "finish": 10.0, "lead": 0.2}
+WEIGHTS = {"progress": 0.1, "position": 0.5, "collision": -5.0, "off_track": -1.0, "finish": 10.0, "lead": 0.2,
+           "time": -2.0}
 
 
 def _rules(num, retire_on_collision=False, retire_off_track=False):
@@ -114,6 +115,23 @@ def test_a_lone_car_gets_the_whole_finish_reward():
     v = judge(jnp.asarray([90.0]), jnp.asarray([92.0]), _status([True]), jnp.zeros(1, bool),
               jnp.zeros(1, bool), jnp.asarray(4), DT, jnp.asarray(FINISH), _rules(1))
     assert np.asarray(v.terms)[0, REWARD_TERMS.index("finish")] == 0.0
+
+
+def test_time_is_charged_per_second_raced_up_to_the_crossing():
+    """Weight -2 per second, step 0.1 s: car 0 races the whole step (-0.2), car 1 crosses
+    the line a quarter of the way through it (-0.05), car 2 retires off the track in it and
+    is charged the whole step (-0.2), car 3 finished before and is charged nothing."""
+    s_prev, s = jnp.asarray([50.0, 99.0, 60.0, 120.0]), jnp.asarray([52.0, 103.0, 61.0, 120.0])
+    status = _status([True, True, True, False], finished=[False, False, False, True], place=[0, 0, 0, 1],
+                     finish_time=[np.nan, np.nan, np.nan, 0.25])
+    outside = jnp.asarray([False, False, True, False])
+    v = judge(s_prev, s, status, jnp.zeros(4, bool), outside, jnp.asarray(6), DT, jnp.asarray(FINISH),
+              _rules(4, retire_off_track=True))
+    np.testing.assert_array_equal(np.asarray(v.status.out), [False, False, True, False])
+    np.testing.assert_allclose(np.asarray(v.status.finish_time)[1], 0.525, rtol=1e-15)
+    time = np.asarray(v.terms)[:, REWARD_TERMS.index("time")]
+    np.testing.assert_allclose(time, [-0.2, -0.05, -0.2, 0.0], rtol=1e-15)
+    assert not np.signbit(time[3])
 
 
 def test_incident_terms_without_an_incident_are_positive_zero():
