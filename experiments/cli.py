@@ -123,8 +123,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from experiments.train_rl import TrainConfig, parse_hyperparameter, parse_reward_weight, run_training
     from planners.agent_specs import split_spec_list
 
+    if args.time_trial and args.opponents is not None:
+        raise ValueError("--time-trial races the learner alone: give no --opponents")
+    opponents = () if args.time_trial else tuple(split_spec_list(args.opponents or ["lane-keeping"]))
     config = TrainConfig(
-        opponents=tuple(split_spec_list(args.opponents)), pool=args.pool, pool_cars=args.pool_cars, algo=args.algo,
+        opponents=opponents, pool=args.pool, pool_cars=args.pool_cars, algo=args.algo,
         timesteps=args.timesteps, track=args.track, laps=args.laps, race_distance=args.race_distance,
         max_steps=args.max_steps, seed=args.seed, envs=args.envs, subprocesses=args.subprocesses,
         normalize=args.normalize,
@@ -320,7 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser(
         "train", parents=[cache],
         help="train a stable-baselines3 agent against planner or scripted opponents (resumable)",
-        description="Train an SB3 policy (MlpPolicy) to drive one car against --opponents on seeded rolling grids, "
+        description="Train an SB3 policy (MlpPolicy) to drive one car against --opponents (or alone: --time-trial) on seeded "
+        "rolling grids, "
         "--envs copies of the race side by side (the learner a different car in each). Every --eval-every "
         "steps the policy is raced against the opponents under tournament rules (each starting slot, --eval-grids "
         "grids). Writes OUT/model.zip (race it with: racing tournament --agents rl:OUT/model.zip ...), "
@@ -328,9 +332,12 @@ def build_parser() -> argparse.ArgumentParser:
         "checkpoint; the same command resumes, and a larger --timesteps trains further. Against the lane keeper "
         "PPO runs about 1,200 steps/s on a 2-core machine; against a planner about 110 (160 with --subprocesses).",
     )
-    train.add_argument("--opponents", nargs="+", default=["lane-keeping"],
+    train.add_argument("--opponents", nargs="+", default=None,
                        help="agent specs of the other cars (default: lane-keeping); e.g. ilqgame-fb, ilqr, "
                        "rl:PATH.zip; with --pool, the drivers to draw from")
+    train.add_argument("--time-trial", action="store_true",
+                       help="race the learner alone (no opponents; evaluations report its finish time); charge "
+                       "for time with --reward time=-1")
     train.add_argument("--pool", action="store_true",
                        help="every episode, draw each opponent car's driver at random from --opponents (a spec "
                        "given twice is drawn twice as often); evaluations race each of them in turn")
@@ -369,13 +376,16 @@ def build_parser() -> argparse.ArgumentParser:
                        "position (per step, times (cars behind - cars ahead)/(N-1), default 0), collision (per step "
                        "in contact, -5), off_track (per step, -1), finish (times (N - place)/(N - 1), 10), lead (per "
                        "metre gained on the lead over the furthest rival, 0; sums to the lead at the line minus the "
-                       "lead at the start)")
+                       "lead at the start), time (per second raced, 0; e.g. -1 charges for time: over a finished "
+                       "race it sums to the weight times the finish time)")
     train.add_argument("--hyperparameter", action="append", metavar="NAME=VALUE",
                        help="a keyword argument of the algorithm, e.g. n_steps=1024 or learning_rate=1e-4 "
                        "(repeatable; values are Python literals)")
     train.add_argument("--init-model", default=None, metavar="PATH.zip",
-                       help="train this saved model further (same --algo and number of cars; its VecNormalize "
-                       "statistics come along), e.g. one trained against the lane keeper before a planner")
+                       help="train this saved model further (same --algo; its VecNormalize statistics come along), e.g. one "
+                       "trained against the lane keeper before a planner. A model of fewer cars (a --time-trial "
+                       "one) gets zero weights on the new cars' features, so it starts out driving as it did; "
+                       "their normalisation statistics are measured over 2,048 steps of the new race first")
     train.add_argument("--out", default="runs/train", help="output folder (default: runs/train)")
     train.add_argument("--fresh", action="store_true", help="discard an earlier run in --out and start over")
     train.set_defaults(func=_cmd_train)

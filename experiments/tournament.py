@@ -167,10 +167,11 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
                 render_every: int = 0) -> tuple[dict[str, Any], list[np.ndarray]]:
     """Race agent specs (one per starting slot) on grid ``seed``; returns ``(record, frames)``.
 
-    The record holds the finishing ``order`` (specs), the ``gap`` to the second car, the
-    ``overtakes`` and, per car, its place on the grid (``start_place``, 1 = in front), place,
-    finish time, distance, mean speed, contact steps, time off track, whether an incident
-    rule ``retired`` it, action times, solver failures and the ``error`` of a car that faulted.
+    The record holds the finishing ``order`` (specs), the ``gap`` to the second car (None
+    for a lone car, a time trial), the ``overtakes`` and, per car, its place on the grid
+    (``start_place``, 1 = in front), place, finish time, distance, mean speed, contact
+    steps, time off track, whether an incident rule ``retired`` it, action times, solver
+    failures and the ``error`` of a car that faulted.
     Faults are recorded, never raised: a car that raises or blows ``step_budget_s`` is last.
     """
     from experiments.race import run_race
@@ -202,8 +203,10 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     places = {i: p + 1 for p, i in enumerate(order)}
     grid = sorted(range(len(lineup)), key=lambda i: -xs[0, i, 0])  # s is cumulative: behind the line < 0
     start_places = {i: p + 1 for p, i in enumerate(grid)}
-    winner, second = order[0], order[1]
-    if finish[winner] is not None and finish[second] is not None:
+    winner, second = order[0], order[1] if len(order) > 1 else None
+    if second is None:  # a lone car (a time trial) has no gap
+        gap = None
+    elif finish[winner] is not None and finish[second] is not None:
         gap = {"seconds": finish[second] - finish[winner]}
     else:
         gap = {"metres": float(final_s[winner] - final_s[second])}

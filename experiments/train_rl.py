@@ -2,10 +2,10 @@
 
 The learner drives one car of the Gymnasium view (:class:`racing_env.single_agent.RaceEnv`)
 against agent specs (``lane-keeping``, ``ilqgame-fb``, ``rl:path.zip``, ...) on seeded rolling
-grids. ``envs`` copies of the race run side by side, the learner driving car
-``copy % cars`` in each; every episode draws its own grid order, so the learner starts
-both in front and behind. Observations (and
-rewards) are normalised by SB3's ``VecNormalize`` unless ``normalize=False``; its statistics
+grids, or alone (a time trial, ``opponents=()``). ``envs`` copies of the race run side by
+side, the learner driving car ``copy % cars`` in each; every episode draws its own grid
+order, so the learner starts both in front and behind. Observations (and rewards) are
+normalised by SB3's ``VecNormalize`` unless ``normalize=False``; its statistics
 are saved beside every model, where :class:`planners.agents.SB3Agent` finds them.
 
 Every ``eval_every`` steps the current policy is saved and raced against the opponents
@@ -44,6 +44,8 @@ import numpy as np
 
 from experiments.bench import replace_atomically, write_json_atomically
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
+from experiments.widen_policy import (Widening, measure_new_features, observation_widening, widen_normalizer,
+                                      widen_saved_model)
 from planners.agents import SB3_ALGOS, check_specs, make_agent, vecnormalize_path
 from racing_env.config import INCIDENT_MODES, RaceConfig, RewardConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
@@ -56,6 +58,8 @@ MODEL = "model.zip"
 _CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
 # the fields of TrainConfig that may change between a run and its resumption
 _RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses")
+# steps (all copies) over which a widened init_model's new observation features are measured
+WIDENING_MEASURE_STEPS = 2048
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,7 +68,8 @@ class TrainConfig:
 
     Attributes:
         opponents: agent specs of the other cars (:func:`planners.agents.make_agent`); their
-            number fixes the race's N = len(opponents) + 1. With ``pool`` they are a pool
+            number fixes the race's N = len(opponents) + 1. None, ``()``: a time trial, the
+            learner alone on the track (N = 1). With ``pool`` they are a pool
             instead: every episode each opponent car is driven by one of them, drawn at
             random (a spec given twice is drawn twice as often).
         pool: draw the opponents from ``opponents`` every episode
@@ -99,9 +104,12 @@ class TrainConfig:
             :class:`racing_env.config.RewardConfig`'s defaults, e.g. ``(("position", 0.05),)``.
         hyperparameters: keyword arguments of the SB3 algorithm, e.g.
             ``(("n_steps", 1024), ("learning_rate", 1e-4))``.
-        init_model: a saved model of the same algorithm and race size to train further (its
-            VecNormalize statistics too), e.g. one trained against the fast lane keeper,
-            before a planner opponent; ``None`` starts from a fresh policy.
+        init_model: a saved model of the same algorithm to train further (its VecNormalize
+            statistics too), e.g. one trained against the fast lane keeper, before a planner
+            opponent; ``None`` starts from a fresh policy. A model of a race with fewer cars
+            (a time trial) is widened (:mod:`experiments.widen_policy`): zero weights on the
+            new cars' features, whose statistics are measured over
+            ``WIDENING_MEASURE_STEPS`` steps of this race before training.
     """
 
     opponents: tuple[str, ...] = ("lane-keeping",)
@@ -129,8 +137,8 @@ class TrainConfig:
     init_model: str | None = None
 
     def __post_init__(self) -> None:
-        if not self.opponents:
-            raise ValueError("training needs at least one opponent spec (e.g. lane-keeping)")
+        if self.pool and not self.opponents:
+            raise ValueError("a pool needs at least one opponent spec to draw from (e.g. lane-keeping)")
         if self.algo not in SB3_ALGOS:
             raise ValueError(f"algo must be one of {SB3_ALGOS}, got {self.algo!r}")
         if not isinstance(self.pool_cars, (int, np.integer)) or self.pool_cars < 2:
@@ -172,11 +180,22 @@ class TrainConfig:
     def cars(self) -> int:
         return self.pool_cars if self.pool else len(self.opponents) + 1
 
+    @property
+    def time_trial(self) -> bool:
+        """The learner races alone (no opponents)."""
+        return self.cars == 1
+
+    def description(self) -> str:
+        """What the learner races, for titles: ``vs ilqgame-fb``, ``vs a pool of ...``, ``time trial``."""
+        if self.time_trial:
+            return "time trial"
+        return f"vs {'a pool of ' if self.pool else ''}{', '.join(dict.fromkeys(self.opponents))}"
+
     def evaluation_lineups(self) -> list[tuple[str, list[str]]]:
         """``(label, opponent specs)`` the learner is evaluated against: the lineup, or with
         a pool every distinct spec of it driving every opponent car."""
         if not self.pool:
-            return [(", ".join(self.opponents), list(self.opponents))]
+            return [(", ".join(self.opponents) or "time trial", list(self.opponents))]
         return [(spec, [spec] * (self.cars - 1)) for spec in dict.fromkeys(self.opponents)]
 
     def race_config(self, training: bool = True) -> RaceConfig:
@@ -367,8 +386,11 @@ def _global_rngs_kept():
 
 
 def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int) -> dict[str, Any]:
-    """The learner's results over ``(slot, race record)`` pairs."""
-    places, margins, distances, contact, off_track, finished, errors = [], [], [], 0, 0.0, 0, []
+    """The learner's results over ``(slot, race record)`` pairs: wins (a lone car wins the
+    races it finishes), places, its mean finish time over the races it finished, its mean
+    margin over the races every car finished (the others' mean finish time minus its own),
+    distance and incidents."""
+    places, margins, times, distances, contact, off_track, finished, errors = [], [], [], [], 0, 0.0, 0, []
     for slot, record in races:
         me = record["cars"][slot]
         others = [c for k, c in enumerate(record["cars"]) if k != slot]
@@ -376,19 +398,25 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
         distances.append(me["distance"])
         contact += me["collision_steps"]
         off_track += me["time_off_track"]
-        finished += me["finish_time"] is not None
+        if me["finish_time"] is not None:
+            finished += 1
+            times.append(me["finish_time"])
         if me["error"]:
             errors.append(me["error"])
         if me["finish_time"] is not None and all(c["finish_time"] is not None for c in others):
             margins.append(float(np.mean([c["finish_time"] for c in others])) - me["finish_time"])
-    wins = sum(p == 1 for p in places)
+    # alone, a race is won by finishing it (a lone car is always first)
+    won = [p == 1 and (len(record["cars"]) > 1 or record["cars"][slot]["finish_time"] is not None)
+           for p, (slot, record) in zip(places, races)]
+    wins = sum(won)
     starts = [record["cars"][slot]["start_place"] for slot, record in races]
     cars = len(races[0][1]["cars"])
     races_from = [sum(s == k for s in starts) for k in range(1, cars + 1)]
-    wins_from = [sum(s == k and p == 1 for s, p in zip(starts, places)) for k in range(1, cars + 1)]
+    wins_from = [sum(s == k and w for s, w in zip(starts, won)) for k in range(1, cars + 1)]
     return {"timesteps": int(timesteps), "races": len(races), "wins": wins, "win_rate": wins / len(races),
             "races_by_start_place": races_from, "wins_by_start_place": wins_from,
             "mean_place": float(np.mean(places)), "finished": finished,
+            "mean_finish_time_s": float(np.mean(times)) if times else None,
             "mean_margin_s": float(np.mean(margins)) if margins else None,
             "mean_distance": float(np.mean(distances)), "contact_steps": contact,
             "time_off_track_s": off_track, "errors": errors}
@@ -457,6 +485,11 @@ def checkpoint(model, out: Path) -> Path:
 
 
 def _evaluation_line(record: dict[str, Any]) -> str:
+    if len(record["races_by_start_place"]) == 1:  # a time trial: no one to win against
+        lap = "-" if record["mean_finish_time_s"] is None else f"{record['mean_finish_time_s']:.2f} s"
+        return (f"[bold]evaluation at {record['timesteps']:,} steps[/]: finished {record['finished']}/"
+                f"{record['races']}, mean finish time {lap}, mean distance {record['mean_distance']:.0f} m, "
+                f"off track {record['time_off_track_s']:.1f} s")
     margin = "-" if record["mean_margin_s"] is None else f"{record['mean_margin_s']:+.2f} s"
     by_start = ", ".join(f"{w}/{n}" for w, n in zip(record["wins_by_start_place"], record["races_by_start_place"]))
     line = (f"[bold]evaluation at {record['timesteps']:,} steps[/]: won {record['wins']}/{record['races']} "
@@ -504,15 +537,31 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
                          f"VecNormalize (statistics {'found' if stats.exists() else 'not found'} at {stats}); "
                          f"train it further with{'' if stats.exists() else ' --no-normalize'}")
     try:
+        widening = _init_model_widening(config, algo, venv)
+        init_model = config.init_model
+        if widening is not None:  # trained with fewer cars (e.g. a time trial): zero weights on the new cars
+            init_model = widen_saved_model(algo, config.init_model, venv.observation_space, widening,
+                                           out / "init_model_widened.zip")
         if config.normalize:
-            venv = VecNormalize.load(str(stats), venv)
-        model = algo.load(config.init_model, env=venv, device="cpu", **hyperparameters)
+            venv = (VecNormalize.load(str(stats), venv) if widening is None
+                    else widen_normalizer(stats, venv, widening))
+        model = algo.load(init_model, env=venv, device="cpu", **hyperparameters)
     except (TypeError, ValueError, AssertionError, KeyError, AttributeError) as err:  # e.g. a PPO zip for SAC
         raise ValueError(f"{config.algo} cannot train {config.init_model} further in this race "
                          f"(hyperparameters {hyperparameters}): {err}") from err
+    if widening is not None and config.normalize:
+        measure_new_features(model, venv, widening, steps=WIDENING_MEASURE_STEPS)
     model.num_timesteps = 0  # this run's steps count from zero
     model.set_random_seed(config.seed)
     return model
+
+
+def _init_model_widening(config: TrainConfig, algo, venv) -> Widening | None:
+    """How ``config.init_model``'s observation fits this race (None: it fits as it is)."""
+    saved = algo.load(config.init_model, device="cpu").observation_space.shape
+    race = config.race_config()
+    return observation_widening(saved[0], venv.observation_space.shape[0], race.num_agents,
+                                len(race.preview_distances))
 
 
 def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: bool = True) -> dict[str, Any]:
@@ -577,13 +626,13 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     report["final_evaluation"] = evaluations[-1] if evaluations else None
     write_json_atomically(report, config_path)
     plot_learning_curve(read_jsonl(out / EPISODES), evaluations, out / "learning_curve.png",
-                        title=f"{config.algo.upper()} vs {'a pool of ' if config.pool else ''}"
-                              f"{', '.join(dict.fromkeys(config.opponents))} on {Path(config.track).stem}")
+                        title=f"{config.algo.upper()} {config.description()} on {Path(config.track).stem}",
+                        time_trial=config.time_trial)
     _close(model.get_env(), interrupted=report["status"] == "interrupted")
     if report["status"] == "completed":
-        console.print(f"wrote {out / MODEL} (race it: racing tournament --agents rl:{out / MODEL} "
-                      f"{' '.join(dict.fromkeys(config.opponents))}), {out / 'learning_curve.png'}, "
-                      f"{out / EVALUATIONS}")
+        rivals = " ".join(dict.fromkeys(config.opponents)) or "ilqr lane-keeping"
+        console.print(f"wrote {out / MODEL} (race it: racing tournament --agents rl:{out / MODEL} {rivals}), "
+                      f"{out / 'learning_curve.png'}, {out / EVALUATIONS}")
     return report
 
 
@@ -603,10 +652,12 @@ def _close(venv, interrupted: bool) -> None:
 
 
 def plot_learning_curve(episodes: list[dict[str, Any]], evaluations: list[dict[str, Any]], path: Path,
-                        title: str = "") -> None:
+                        title: str = "", time_trial: bool = False) -> None:
     """Three panels against timesteps: training episode returns (with a moving mean); the
     share of training episodes finished and the evaluations' win and finish rates; the
-    evaluations' mean finish-time margin over the opponents [s] (races all cars finished)."""
+    evaluations' mean finish-time margin over the opponents [s] (races all cars finished),
+    or with ``time_trial`` the evaluations' mean finish time [s] with the training
+    episodes' finish times."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -626,29 +677,43 @@ def plot_learning_curve(episodes: list[dict[str, Any]], evaluations: list[dict[s
                     label=f"training episodes finished (mean of {window})")
         top.legend(loc="lower right", fontsize=8)
     top.set_ylabel("return")
+    if time_trial and episodes:
+        laps = [(e["timesteps"], e["finish_time"]) for e in episodes if e["finish_time"] is not None]
+        if laps:
+            bottom.plot(*zip(*laps), ".", ms=2, alpha=0.3, color="tab:blue", label="training episode")
     if evaluations:
         steps = [e["timesteps"] for e in evaluations]
-        middle.plot(steps, [e["win_rate"] for e in evaluations], "o-", color="tab:red", label="evaluation: won")
+        if not time_trial:  # alone, a finished race is a won one
+            middle.plot(steps, [e["win_rate"] for e in evaluations], "o-", color="tab:red", label="evaluation: won")
         middle.plot(steps, [e["finished"] / e["races"] for e in evaluations], "s--", color="tab:green",
                     label="evaluation: finished")
-        timed = [(e["timesteps"], e["mean_margin_s"]) for e in evaluations if e["mean_margin_s"] is not None]
+        key = "mean_finish_time_s" if time_trial else "mean_margin_s"
+        timed = [(e["timesteps"], e.get(key)) for e in evaluations if e.get(key) is not None]
         if timed:
-            bottom.plot(*zip(*timed), "o-", color="tab:purple", label="evaluation: mean margin")
+            bottom.plot(*zip(*timed), "o-", color="tab:purple",
+                        label=f"evaluation: mean {'finish time' if time_trial else 'margin'}")
         labels = dict.fromkeys(label for e in evaluations for label in e.get("by_opponent", {}))
         for label in labels:  # a pool: the margin against each of its drivers
             part = [(e["timesteps"], e["by_opponent"][label]["mean_margin_s"]) for e in evaluations
                     if e.get("by_opponent", {}).get(label, {}).get("mean_margin_s") is not None]
             if part:
                 bottom.plot(*zip(*part), ".--", label=f"vs {label}")
-    bottom.axhline(0.0, color="black", lw=0.8)
-    bottom.set_ylabel("finish margin [s]\n(> 0: ahead)")
+    if time_trial:
+        bottom.set_ylabel("finish time [s]")
+        times = [y for line in bottom.lines for y in line.get_ydata()]
+        if times:  # the first laps can take minutes: show the range of the fast ones
+            best = min(times)
+            bottom.set_ylim(best - 0.5, min(max(times), 1.2 * best) + 0.5)
+    else:
+        bottom.axhline(0.0, color="black", lw=0.8)
+        bottom.set_ylabel("finish margin [s]\n(> 0: ahead)")
     bottom.set_xlabel("timesteps")
     middle.set_ylim(-0.05, 1.05)
     middle.set_ylabel("fraction")
     if middle.lines:
         middle.legend(loc="best", fontsize=8)
-    if len(bottom.lines) > 1:  # more than the zero line
-        bottom.legend(loc="lower right", fontsize=8)
+    if len(bottom.lines) > (0 if time_trial else 1):  # more than the zero line
+        bottom.legend(loc="upper right" if time_trial else "lower right", fontsize=8)
     top.set_title(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
