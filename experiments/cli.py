@@ -253,7 +253,9 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--versus", default=None, metavar="SPEC",
                       help="race every other agent against this one only (a gauntlet), not a full round robin; "
                            "one of --agents (name in any case, options in any order)")
-    tour.add_argument("--cars", type=int, default=2, help="cars per race (default: 2)")
+    tour.add_argument("--cars", type=int, default=2,
+                      help="cars per race (default: 2); 1: a time trial, each agent alone on every grid, ranked by "
+                      "mean finish time")
     tour.add_argument("--seed", type=int, default=0, help="tournament seed (default: 0)")
     tour.add_argument("--max-steps", type=int, default=3000, help="truncate races after this many steps")
     tour.add_argument("--step-budget", type=float, default=1.0, help="per-step time budget of an agent [s] (default: 1)")

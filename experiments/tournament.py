@@ -6,6 +6,9 @@ is appended to ``results.jsonl`` at once, so an interrupted tournament resumes w
 stopped; the leaderboard is recomputed from that file in schedule order, which makes it
 identical for the same configuration whether or not the run was interrupted.
 
+With ``cars = 1`` it is a time trial: each agent laps alone on every grid, and the
+leaderboard ranks them by mean finish time.
+
 An agent that raises, or whose action takes longer than ``step_budget_s`` (the first
 action of a race is exempt: it may compile), loses that race: it is placed last, the error
 is recorded, and the tournament goes on.
@@ -84,13 +87,16 @@ class TournamentConfig:
         if self.scenario in FIXED_STARTS and (self.cars != 2 or self.grids != 1):
             raise ValueError(f"scenario {self.scenario!r} has one start of 2 cars: race it with cars=2 and grids=1 "
                              f"(--cars 2 --grids 1), got cars={self.cars}, grids={self.grids}")
-        if len(self.agents) < 2:
-            raise ValueError(f"a tournament needs at least 2 agent specs, got {list(self.agents)}")
+        if len(self.agents) < (1 if self.cars == 1 else 2):
+            raise ValueError(f"a tournament needs at least 2 agent specs (1 for a time trial, cars=1), "
+                             f"got {list(self.agents)}")
         if len({normal_spec(spec) for spec in self.agents}) != len(self.agents):
             raise ValueError(f"agent specs must be distinct (names ignore case, options their order), "
                              f"got {list(self.agents)}")
-        if not 2 <= self.cars <= len(self.agents):
-            raise ValueError(f"cars per race must be in [2, {len(self.agents)}], got {self.cars}")
+        if not 1 <= self.cars <= len(self.agents):
+            raise ValueError(f"cars per race must be in [1, {len(self.agents)}] (1: a time trial), got {self.cars}")
+        if self.cars == 1 and self.versus is not None:
+            raise ValueError("a time trial (cars=1) races every agent alone: versus has no one to race")
         if self.grids < 1:
             raise ValueError(f"grids must be >= 1, got {self.grids}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
@@ -251,7 +257,9 @@ def wilson_interval(wins: int, n: int, z: float = 1.96) -> tuple[float, float]:
 
 
 def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict[str, Any]:
-    """Win rates with intervals, head-to-head matrix and Plackett-Luce ratings (openskill)."""
+    """Win rates with intervals, head-to-head matrix and Plackett-Luce ratings (openskill),
+    and finish times. A time trial (``cars = 1``) is ranked by races finished, then mean
+    finish time; its ratings stay at the prior and its head-to-head matrix is empty."""
     from openskill.models import PlackettLuce
 
     names = list(config.agents)
@@ -261,19 +269,24 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
     ratings = {n: model.rating(name=n) for n in names}
     h2h = np.zeros((len(names), len(names)), dtype=int)
     stats = {n: {"races": 0, "wins": 0, "finished": 0, "retired": 0, "errors": 0, "collision_steps": 0, "act_times": [],
-                 "margins": [], "converged": []} for n in names}
+                 "margins": [], "finish_times": [], "off_track_s": 0.0, "converged": []} for n in names}
     for record in records:
         order = record["order"]
-        teams = [[ratings[n]] for n in order]
-        for n, [new] in zip(order, model.rate(teams, ranks=list(range(1, len(order) + 1)))):
-            ratings[n] = new
+        if len(order) > 1:  # a time trial has no one to be rated against
+            teams = [[ratings[n]] for n in order]
+            for n, [new] in zip(order, model.rate(teams, ranks=list(range(1, len(order) + 1)))):
+                ratings[n] = new
         for a, b in itertools.combinations(order, 2):  # a finished ahead of b
             h2h[names.index(a), names.index(b)] += 1
         for car in record["cars"]:
             st = stats[car["agent"]]
             st["races"] += 1
-            st["wins"] += car["place"] == 1
+            # alone (a time trial), a race is won by finishing it
+            st["wins"] += car["place"] == 1 and (len(order) > 1 or car["finish_time"] is not None)
             st["finished"] += car["finish_time"] is not None
+            if car["finish_time"] is not None:
+                st["finish_times"].append(car["finish_time"])
+            st["off_track_s"] += car["time_off_track"]
             st["retired"] += bool(car.get("retired", False))  # records from before incident rules: none
             st["errors"] += car["error"] is not None
             st["collision_steps"] += car["collision_steps"]
@@ -282,7 +295,7 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
             if car.get("solver_converged_fraction") is not None:  # planners only
                 st["converged"].append(car["solver_converged_fraction"])
             others = [c["finish_time"] for c in record["cars"] if c is not car]
-            if car["finish_time"] is not None and all(t is not None for t in others):
+            if others and car["finish_time"] is not None and all(t is not None for t in others):
                 st["margins"].append(float(np.mean(others)) - car["finish_time"])
     rows = []
     for n in names:
@@ -295,10 +308,17 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
                      "rating": r.mu - 3 * r.sigma, "finished": st["finished"], "retired": st["retired"], "errors": st["errors"], "collision_steps": st["collision_steps"],
                      # finish-time lead over the mean of the other cars, in races where all finished
                      "mean_margin_s": float(np.mean(st["margins"])) if st["margins"] else None,
+                     # over the races it finished
+                     "mean_finish_time_s": float(np.mean(st["finish_times"])) if st["finish_times"] else None,
+                     "best_finish_time_s": min(st["finish_times"]) if st["finish_times"] else None,
+                     "time_off_track_s": st["off_track_s"],
                      "mean_act_time_s": float(np.mean(st["act_times"])) if st["act_times"] else float("nan"),
                      # a planner's share of re-plans that converged, averaged over its races
                      "converged_fraction": float(np.mean(st["converged"])) if st["converged"] else None})
-    rows.sort(key=lambda row: -row["rating"])
+    if config.cars == 1:  # a time trial: the most races finished, then the fastest
+        rows.sort(key=lambda row: (-row["finished"], row["mean_finish_time_s"] or math.inf))
+    else:
+        rows.sort(key=lambda row: -row["rating"])
     return {"rows": rows, "head_to_head": {"agents": names, "wins": h2h.tolist()}}
 
 
@@ -324,6 +344,24 @@ def plot_head_to_head(table: dict[str, Any], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _time_trial_table(board: dict[str, Any], records: list[dict[str, Any]], config: TournamentConfig, retire: bool):
+    """The leaderboard of a time trial as a rich table: finish times, not wins."""
+    from rich.table import Table
+
+    table = Table(title=f"time trial: {len(records)} laps alone on {config.track}")
+    for col in ("#", "agent", "finished", "mean finish time [s]", "best [s]", "off track [s]",
+                *(("retired",) if retire else ()), "errors", "act [ms]", "converged"):
+        table.add_column(col, overflow="fold")
+    for k, row in enumerate(board["rows"], 1):
+        seconds = lambda value: "-" if value is None else f"{value:.2f}"
+        table.add_row(str(k), row["agent"], f"{row['finished']}/{row['races']}", seconds(row["mean_finish_time_s"]),
+                      seconds(row["best_finish_time_s"]), f"{row['time_off_track_s']:.1f}",
+                      *((str(row["retired"]),) if retire else ()), str(row["errors"]),
+                      f"{1e3 * row['mean_act_time_s']:.1f}",
+                      "-" if row["converged_fraction"] is None else f"{row['converged_fraction']:.0%}")
+    return table
 
 
 def load_results(out: Path) -> list[dict[str, Any]]:
@@ -388,10 +426,15 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
         for row in board["rows"]:
             flat = {k: v for k, v in row.items() if k != "win_rate_ci95"}
             writer.writerow({**flat, "ci95_low": row["win_rate_ci95"][0], "ci95_high": row["win_rate_ci95"][1]})
-    plot_head_to_head(board["head_to_head"], out / "head_to_head.png")
+    if config.cars > 1:
+        plot_head_to_head(board["head_to_head"], out / "head_to_head.png")
     (out / "leaderboard.json").write_text(json.dumps(board, indent=2))
-    table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
     retire = config.on_collision in RETIRING_MODES or config.on_off_track in RETIRING_MODES
+    if config.cars == 1:
+        console.print(_time_trial_table(board, records, config, retire))
+        console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}" + (f", {out / GIF}" if (out / GIF).exists() else ""))
+        return board
+    table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "finished",
                 *(("retired",) if retire else ()), "margin [s]", "errors", "contact steps", "act [ms]", "converged"):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut

@@ -403,7 +403,7 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
             times.append(me["finish_time"])
         if me["error"]:
             errors.append(me["error"])
-        if me["finish_time"] is not None and all(c["finish_time"] is not None for c in others):
+        if others and me["finish_time"] is not None and all(c["finish_time"] is not None for c in others):
             margins.append(float(np.mean([c["finish_time"] for c in others])) - me["finish_time"])
     # alone, a race is won by finishing it (a lone car is always first)
     won = [p == 1 and (len(record["cars"]) > 1 or record["cars"][slot]["finish_time"] is not None)

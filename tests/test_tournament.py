@@ -243,7 +243,7 @@ def test_leaderboard_of_hand_made_records_counts_wins_finishes_and_margins():
 
     def car(agent, place, finish, converged=None):
         return {"agent": agent, "place": place, "finish_time": finish, "error": None, "collision_steps": 0,
-                "act_time_mean_s": 0.01, "solver_converged_fraction": converged}
+                "time_off_track": 0.0, "act_time_mean_s": 0.01, "solver_converged_fraction": converged}
 
     records = [
         {"id": first["id"], "order": ["ilqr", "lane-keeping"],
@@ -256,6 +256,32 @@ def test_leaderboard_of_hand_made_records_counts_wins_finishes_and_margins():
     assert (rows["lane-keeping"]["wins"], rows["lane-keeping"]["finished"]) == (1, 2)
     assert rows["ilqr"]["mean_margin_s"] == 1.5 and rows["lane-keeping"]["mean_margin_s"] == -1.5
     assert rows["ilqr"]["converged_fraction"] == pytest.approx(0.5, abs=1e-15)
+
+
+def test_a_time_trial_races_each_agent_alone_and_ranks_by_finish_time(tmp_path, capsys):
+    """cars=1: one race per agent and grid, the agent alone; ranked by races finished, then
+    mean finish time (a lane keeper at 10 m/s laps slower than one at its default speed);
+    no ratings, no head-to-head, no margin. A gauntlet makes no sense alone."""
+    slow, fast = "lane-keeping:target_speed=10", "lane-keeping"
+    code = main(["tournament", "--cars", "1", "--agents", slow, fast, "--track", "straight", "--race-distance",
+                 "120", "--grids", "2", "--max-steps", "400", "--no-gif", "--out", str(tmp_path)])
+    assert code == 0
+    records = tour.load_results(tmp_path)
+    assert sorted(r["id"] for r in records) == sorted(f"{a}@grid{g}" for a in (slow, fast) for g in (0, 1))
+    assert all(len(r["cars"]) == 1 and r["gap"] is None for r in records)
+    board = json.loads((tmp_path / "leaderboard.json").read_text())
+    assert [row["agent"] for row in board["rows"]] == [fast, slow]
+    for row in board["rows"]:
+        times = [r["cars"][0]["finish_time"] for r in records if r["order"] == [row["agent"]]]
+        assert row["finished"] == row["wins"] == 2 and row["mean_margin_s"] is None
+        assert row["mean_finish_time_s"] == pytest.approx(np.mean(times), rel=1e-15)
+        assert row["best_finish_time_s"] == min(times)
+    assert board["rows"][0]["rating"] == board["rows"][1]["rating"]  # the prior: no one to be rated against
+    assert not (tmp_path / "head_to_head.png").exists()
+    assert "time trial: 4 laps alone on straight" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="versus has no one to race"):
+        tour.TournamentConfig(agents=(slow, fast), cars=1, versus=fast)
+    assert len(tour.schedule(tour.TournamentConfig(agents=(fast,), cars=1, grids=3))) == 3
 
 
 WANDERER, KEEPER = "lane-keeping:target_n=8", "lane-keeping"  # 8 m left: beyond the 6 m half-width

@@ -255,6 +255,17 @@ def test_summarize_evaluation_counts_the_learner_slot():
                       "time_off_track_s": 3.0, "errors": []}
 
 
+def test_summarize_evaluation_of_a_time_trial_reports_finish_times_and_no_margin():
+    def lap(finish, distance):
+        return {"cars": [{"start_place": 1, "place": 1, "finish_time": finish, "distance": distance,
+                          "collision_steps": 0, "time_off_track": 0.0, "error": None}]}
+
+    record = train_rl.summarize_evaluation([(0, lap(56.0, 1427.0)), (0, lap(None, 300.0)), (0, lap(57.0, 1427.0))],
+                                           timesteps=10)
+    assert record["mean_finish_time_s"] == 56.5 and record["mean_margin_s"] is None
+    assert record["wins"] == record["finished"] == 2 and record["races_by_start_place"] == [3]
+
+
 def test_init_model_is_trained_further(tmp_path):
     """--init-model starts from the saved policy and its VecNormalize statistics, counts
     its own steps from zero, and refuses a model it cannot continue."""
