@@ -20,6 +20,7 @@ Output folder::
 
     train.json            configuration, status, timesteps, wall time, final evaluation
     model.zip             the final policy (+ model.vecnormalize.pkl): ``rl:OUT/model.zip``
+    init_model_widened.zip  (+ statistics) an init_model of fewer cars, widened for this race
     checkpoints/          step_<timesteps>.zip (+ .vecnormalize.pkl, + .replay_buffer.pkl for the latest)
     episodes.jsonl        one line per finished training episode
     evaluations.jsonl     one line per evaluation
@@ -55,6 +56,7 @@ EPISODES = "episodes.jsonl"
 EVALUATIONS = "evaluations.jsonl"
 CHECKPOINTS = "checkpoints"
 MODEL = "model.zip"
+WIDENED_MODEL = "init_model_widened.zip"  # an init_model of fewer cars, as widened for this race
 _CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
 # the fields of TrainConfig that may change between a run and its resumption
 _RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses")
@@ -541,7 +543,7 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
         init_model = config.init_model
         if widening is not None:  # trained with fewer cars (e.g. a time trial): zero weights on the new cars
             init_model = widen_saved_model(algo, config.init_model, venv.observation_space, widening,
-                                           out / "init_model_widened.zip")
+                                           out / WIDENED_MODEL)
         if config.normalize:
             venv = (VecNormalize.load(str(stats), venv) if widening is None
                     else widen_normalizer(stats, venv, widening))
@@ -551,6 +553,8 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
                          f"(hyperparameters {hyperparameters}): {err}") from err
     if widening is not None and config.normalize:
         measure_new_features(model, venv, widening, steps=WIDENING_MEASURE_STEPS)
+        # beside the widened model, so that it races as trained so far: rl:OUT/init_model_widened.zip
+        replace_atomically(lambda tmp: venv.save(str(tmp)), vecnormalize_path(init_model))
     model.num_timesteps = 0  # this run's steps count from zero
     model.set_random_seed(config.seed)
     return model
@@ -575,9 +579,10 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     check_specs(config.opponents)
     config_path = out / CONFIG
     if fresh and out.exists():
-        for name in (CONFIG, EPISODES, EVALUATIONS, MODEL, "learning_curve.png"):
+        for name in (CONFIG, EPISODES, EVALUATIONS, MODEL, WIDENED_MODEL, "learning_curve.png"):
             (out / name).unlink(missing_ok=True)
-        vecnormalize_path(out / MODEL).unlink(missing_ok=True)
+        for name in (MODEL, WIDENED_MODEL):
+            vecnormalize_path(out / name).unlink(missing_ok=True)
         shutil.rmtree(out / CHECKPOINTS, ignore_errors=True)
     wanted = _config_json(config)
     resume_from = latest_checkpoint(out)

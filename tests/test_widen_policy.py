@@ -71,6 +71,10 @@ def test_a_time_trial_policy_is_trained_further_against_an_opponent(tmp_path):
     assert stats.var[8] > 1.0
     racing = stats.mean[14]
     assert 0.5 < racing <= 1.0 and stats.var[14] == pytest.approx(racing * (1.0 - racing), abs=1e-6)
+    # the widened model races as an agent with these statistics
+    widened_agent = make_agent(f"rl:{tmp_path / 'duel' / 'init_model_widened.zip'}")
+    np.testing.assert_array_equal(widened_agent.normalizer.obs_rms.mean, stats.mean)
+    np.testing.assert_array_equal(widened_agent.normalizer.obs_rms.var, stats.var)
     model.get_env().close()
 
     report = run_training(config, tmp_path / "duel", progress=False)
