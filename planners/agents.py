@@ -107,6 +107,18 @@ def game_of(env_info: Any):
     )
 
 
+def _observation_space_of(env_info: Any, index: int):
+    """Car ``index``'s observation space in an env (parallel or Gymnasium view), or None for
+    a bare game, which has none."""
+    for env in (env_info, getattr(env_info, "race", None), getattr(env_info, "unwrapped", None)):
+        spaces = getattr(env, "observation_space", None)
+        if callable(spaces) and hasattr(env, "possible_agents"):  # a PettingZoo env: one space per agent
+            return spaces(env.possible_agents[index])
+        if env is not env_info and getattr(env, "race", None) is not None:
+            return _observation_space_of(env.race, index)
+    return None
+
+
 def _finite(solution: tuple) -> bool:
     """Whether a solver's ``(us, xs, K or None, result)`` plan arrays are all finite."""
     return all(np.all(np.isfinite(part)) for part in solution[:3] if part is not None)
@@ -902,7 +914,18 @@ class SB3Agent(BaseAgent):
         self.normalizer = _observation_normalizer(stats, self.model) if stats.exists() else None
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
+        """As every agent's; also refuses a race whose observations the model cannot read
+        (another number of cars or preview), which would otherwise only brake each step."""
         super().reset(seed, index, env_info)
+        space = _observation_space_of(env_info, self.index)
+        expected = self.model.observation_space.shape
+        if space is not None and space.shape != expected:
+            raise ValueError(
+                f"{self.path} reads observations of shape {expected}, and car {self.index} of this "
+                f"{self.game.num_players}-car race observes {space.shape}: trained with another number of cars "
+                "or preview distances? (A time-trial model races alone, racing tournament --cars 1; "
+                "racing train --init-model carries it into a race with more cars.)"
+            )
         if seed is not None:
             try:
                 self.model.set_random_seed(seed)

@@ -429,9 +429,13 @@ def test_sb3_agent_real_ppo(tmp_path):
     obs, _ = env.reset(seed=0)
     expected, _ = model.predict(obs["car_0"], deterministic=True)
     np.testing.assert_allclose(agent.act(obs["car_0"], env.state()), np.clip(expected, -1, 1), atol=1e-6)
-    # an observation of the wrong size (3 cars) falls back instead of crashing
+    # a race of another size (3 cars) is refused at reset, where a tournament records the error
     env3 = racing_env.parallel_env(track="straight", num_agents=3)
-    agent.reset(0, 0, env3)
+    with pytest.raises(ValueError, match=r"reads observations of shape \(30,\), and car 0 of this 3-car race "
+                                         r"observes \(37,\)"):
+        agent.reset(0, 0, env3)
+    # reset with only the game cannot tell; an observation of the wrong size then falls back instead of crashing
+    agent.reset(0, 0, env3.game)
     obs3, _ = env3.reset(seed=0)
     a = agent.act(obs3["car_0"], env3.state())
     assert np.all(np.isfinite(a)) and agent.diagnostics()["fallback"]
