@@ -70,8 +70,8 @@ class TrainConfig:
 
     Attributes:
         opponents: agent specs of the other cars (:func:`planners.agents.make_agent`); their
-            number fixes the race's N = len(opponents) + 1. None, ``()``: a time trial, the
-            learner alone on the track (N = 1). With ``pool`` they are a pool
+            number fixes the race's N = len(opponents) + 1. ``()``: a time trial, the learner
+            alone on the track (N = 1). With ``pool`` they are a pool
             instead: every episode each opponent car is driven by one of them, drawn at
             random (a spec given twice is drawn twice as often).
         pool: draw the opponents from ``opponents`` every episode
@@ -635,8 +635,10 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
                         time_trial=config.time_trial)
     _close(model.get_env(), interrupted=report["status"] == "interrupted")
     if report["status"] == "completed":
-        rivals = " ".join(dict.fromkeys(config.opponents)) or "ilqr lane-keeping"
-        console.print(f"wrote {out / MODEL} (race it: racing tournament --agents rl:{out / MODEL} {rivals}), "
+        # a time-trial policy observes one car: it races alone, against others' laps
+        race_it = ("--cars 1 --agents rl:{} ilqr lane-keeping" if config.time_trial
+                   else "--agents rl:{} " + " ".join(dict.fromkeys(config.opponents))).format(out / MODEL)
+        console.print(f"wrote {out / MODEL} (race it: racing tournament {race_it}), "
                       f"{out / 'learning_curve.png'}, {out / EVALUATIONS}")
     return report
 
