@@ -325,8 +325,8 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser(
         "train", parents=[cache],
         help="train a stable-baselines3 agent against planner or scripted opponents (resumable)",
-        description="Train an SB3 policy (MlpPolicy) to drive one car against --opponents (or alone: --time-trial) on seeded "
-        "rolling grids, "
+        description="Train an SB3 policy (MlpPolicy) to drive one car against --opponents (or alone: "
+        "--time-trial) on seeded rolling grids, "
         "--envs copies of the race side by side (the learner a different car in each). Every --eval-every "
         "steps the policy is raced against the opponents under tournament rules (each starting slot, --eval-grids "
         "grids). Writes OUT/model.zip (race it with: racing tournament --agents rl:OUT/model.zip ...), "
@@ -384,8 +384,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="a keyword argument of the algorithm, e.g. n_steps=1024 or learning_rate=1e-4 "
                        "(repeatable; values are Python literals)")
     train.add_argument("--init-model", default=None, metavar="PATH.zip",
-                       help="train this saved model further (same --algo; its VecNormalize statistics come along), e.g. one "
-                       "trained against the lane keeper before a planner. A model of fewer cars (a --time-trial "
+                       help="train this saved model further (same --algo; its VecNormalize statistics come "
+                       "along), e.g. one trained against the lane keeper before a planner. A model of fewer cars (a --time-trial "
                        "one) gets zero weights on the new cars' features, so it starts out driving as it did; "
                        "their normalisation statistics are measured over 2,048 steps of the new race first")
     train.add_argument("--out", default="runs/train", help="output folder (default: runs/train)")

@@ -432,7 +432,8 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     retire = config.on_collision in RETIRING_MODES or config.on_off_track in RETIRING_MODES
     if config.cars == 1:
         console.print(_time_trial_table(board, records, config, retire))
-        console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}" + (f", {out / GIF}" if (out / GIF).exists() else ""))
+        gif_note = f", {out / GIF}" if (out / GIF).exists() else ""
+        console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}{gif_note}")
         return board
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "finished",

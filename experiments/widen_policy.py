@@ -60,8 +60,9 @@ def _widened_state(old: dict, new: dict, widening: Widening, old_size: int) -> d
         target = new[key].shape
         if tensor.shape == target:
             state[key] = tensor
+        # a weight reading the observation first (a critic may append the action to it)
         elif (tensor.ndim == 2 and target[0] == tensor.shape[0] and tensor.shape[1] >= old_size
-              and target[1] == tensor.shape[1] + widening.extra):  # the observation first (a critic may append the action)
+              and target[1] == tensor.shape[1] + widening.extra):
             zeros = tensor.new_zeros(tensor.shape[0], widening.extra)
             state[key] = torch.cat([tensor[:, : widening.at], zeros, tensor[:, widening.at:]], dim=1)
         else:

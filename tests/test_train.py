@@ -251,8 +251,8 @@ def test_summarize_evaluation_counts_the_learner_slot():
     record = train_rl.summarize_evaluation(races, timesteps=4096)
     assert record == {"timesteps": 4096, "races": 2, "wins": 1, "win_rate": 0.5, "races_by_start_place": [1, 1],
                       "wins_by_start_place": [0, 1], "mean_place": 1.5,
-                      "finished": 1, "mean_finish_time_s": 60.0, "mean_margin_s": 1.5, "mean_distance": 460.0, "contact_steps": 2,
-                      "time_off_track_s": 3.0, "errors": []}
+                      "finished": 1, "mean_finish_time_s": 60.0, "mean_margin_s": 1.5, "mean_distance": 460.0,
+                      "contact_steps": 2, "time_off_track_s": 3.0, "errors": []}
 
 
 def test_summarize_evaluation_of_a_time_trial_reports_finish_times_and_no_margin():
