@@ -239,6 +239,12 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     return record, result.frames
 
 
+def won_race(car: dict[str, Any], num_cars: int) -> bool:
+    """Whether a car's record of a race of ``num_cars`` cars is a win: first place, and in a
+    time trial (one car, always first) a finished lap."""
+    return car["place"] == 1 and (num_cars > 1 or car["finish_time"] is not None)
+
+
 def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0):
     """Race one scheduled lineup; returns ``(record, frames)``. Faults are recorded, never raised."""
     record, frames = race_lineup(race_config(config, render=bool(render_every)), race["lineup"], race["seed"],
@@ -281,8 +287,7 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
         for car in record["cars"]:
             st = stats[car["agent"]]
             st["races"] += 1
-            # alone (a time trial), a race is won by finishing it
-            st["wins"] += car["place"] == 1 and (len(order) > 1 or car["finish_time"] is not None)
+            st["wins"] += won_race(car, len(order))
             st["finished"] += car["finish_time"] is not None
             if car["finish_time"] is not None:
                 st["finish_times"].append(car["finish_time"])

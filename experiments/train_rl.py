@@ -45,6 +45,7 @@ import numpy as np
 
 from experiments.bench import replace_atomically, write_json_atomically
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
+from experiments.tournament import won_race
 from experiments.widen_policy import (Widening, measure_new_features, observation_widening, widen_normalizer,
                                       widen_saved_model)
 from planners.agents import SB3_ALGOS, check_specs, make_agent, vecnormalize_path
@@ -407,9 +408,7 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
             errors.append(me["error"])
         if others and me["finish_time"] is not None and all(c["finish_time"] is not None for c in others):
             margins.append(float(np.mean([c["finish_time"] for c in others])) - me["finish_time"])
-    # alone, a race is won by finishing it (a lone car is always first)
-    won = [p == 1 and (len(record["cars"]) > 1 or record["cars"][slot]["finish_time"] is not None)
-           for p, (slot, record) in zip(places, races)]
+    won = [won_race(record["cars"][slot], len(record["cars"])) for slot, record in races]
     wins = sum(won)
     starts = [record["cars"][slot]["start_place"] for slot, record in races]
     cars = len(races[0][1]["cars"])
@@ -539,11 +538,11 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
                          f"VecNormalize (statistics {'found' if stats.exists() else 'not found'} at {stats}); "
                          f"train it further with{'' if stats.exists() else ' --no-normalize'}")
     try:
-        widening = _init_model_widening(config, algo, venv)
+        saved = algo.load(config.init_model, device="cpu")
+        widening = _init_model_widening(config, saved, venv)
         init_model = config.init_model
         if widening is not None:  # trained with fewer cars (e.g. a time trial): zero weights on the new cars
-            init_model = widen_saved_model(algo, config.init_model, venv.observation_space, widening,
-                                           out / WIDENED_MODEL)
+            init_model = widen_saved_model(saved, venv.observation_space, widening, out / WIDENED_MODEL)
         if config.normalize:
             venv = (VecNormalize.load(str(stats), venv) if widening is None
                     else widen_normalizer(stats, venv, widening))
@@ -560,12 +559,11 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
     return model
 
 
-def _init_model_widening(config: TrainConfig, algo, venv) -> Widening | None:
-    """How ``config.init_model``'s observation fits this race (None: it fits as it is)."""
-    saved = algo.load(config.init_model, device="cpu").observation_space.shape
+def _init_model_widening(config: TrainConfig, saved, venv) -> Widening | None:
+    """How the ``saved`` init model's observation fits this race (None: it fits as it is)."""
     race = config.race_config()
-    return observation_widening(saved[0], venv.observation_space.shape[0], race.num_agents,
-                                len(race.preview_distances))
+    return observation_widening(saved.observation_space.shape[0], venv.observation_space.shape[0],
+                                race.num_agents, len(race.preview_distances))
 
 
 def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: bool = True) -> dict[str, Any]:

@@ -70,11 +70,10 @@ def _widened_state(old: dict, new: dict, widening: Widening, old_size: int) -> d
     return state
 
 
-def widen_saved_model(algo_class, path: str | Path, observation_space, widening: Widening, dest: Path) -> Path:
-    """Write ``dest`` (a ``.zip``): the model saved at ``path`` observing ``observation_space``,
-    with zero weights on the new inputs (:class:`Widening`). Its hyperparameters are kept;
-    the optimizer starts afresh (its moments are per weight)."""
-    model = algo_class.load(path, device="cpu")
+def widen_saved_model(model, observation_space, widening: Widening, dest: Path) -> Path:
+    """Write ``dest`` (a ``.zip``): ``model`` (loaded, and changed in place) observing
+    ``observation_space``, with zero weights on the new inputs (:class:`Widening`). Its
+    hyperparameters are kept; the optimizer starts afresh (its moments are per weight)."""
     old_size = model.observation_space.shape[0]
     old_state = model.policy.state_dict()
     model.observation_space = observation_space

@@ -108,14 +108,14 @@ def game_of(env_info: Any):
 
 
 def _observation_space_of(env_info: Any, index: int):
-    """Car ``index``'s observation space in an env (parallel or Gymnasium view), or None for
-    a bare game, which has none."""
-    for env in (env_info, getattr(env_info, "race", None), getattr(env_info, "unwrapped", None)):
-        spaces = getattr(env, "observation_space", None)
-        if callable(spaces) and hasattr(env, "possible_agents"):  # a PettingZoo env: one space per agent
-            return spaces(env.possible_agents[index])
-        if env is not env_info and getattr(env, "race", None) is not None:
-            return _observation_space_of(env.race, index)
+    """Car ``index``'s observation space in an env (parallel or Gymnasium view, found as
+    :func:`game_of` finds the game), or None for a bare game, which has none."""
+    if callable(getattr(env_info, "observation_space", None)) and hasattr(env_info, "possible_agents"):
+        return env_info.observation_space(env_info.possible_agents[index])  # PettingZoo: one space per agent
+    for attr in ("race", "unwrapped"):
+        inner = getattr(env_info, attr, None)
+        if inner is not None and inner is not env_info:
+            return _observation_space_of(inner, index)
     return None
 
 
