@@ -1,7 +1,7 @@
 """`racing sweep`: races over a grid of settings, on local worker processes or a Ray cluster.
 
 A sweep is a TOML file: a ``lineup`` of agent specs (agent 0 is the one the sweep is
-about), the race (``track``, ``laps`` or ``race_distance``, ``grids``, ``seed``,
+about; a lineup of one is a time trial, the agent alone), the race (``track``, ``laps`` or ``race_distance``, ``grids``, ``seed``,
 ``max_steps``, ``jerk_weight``, the incident rules ``on_collision`` and ``on_off_track``)
 and a ``[parameters]`` table whose values are lists; every combination of them (a point)
 is raced on ``grids`` seeded rolling grids, once per rotation of the starting slots::
@@ -70,7 +70,8 @@ class SweepConfig:
 
     Attributes:
         lineup: agent specs by agent index (:func:`planners.agents.make_agent`); agent 0 is
-            the subject of the summary, which reports every agent.
+            the subject of the summary, which reports every agent. One spec: a time trial,
+            the agent alone on the track, where a finished lap counts as a win.
         parameters: ``(name, values)`` pairs; every combination is a point.
         track, laps, race_distance, max_steps, jerk_weight, on_collision, on_off_track: the
             race (as in tournaments) where a parameter does not set them.
@@ -93,8 +94,8 @@ class SweepConfig:
     on_off_track: str = "penalty"
 
     def __post_init__(self) -> None:
-        if len(self.lineup) < 2:
-            raise ValueError(f"a lineup needs at least 2 agent specs, got {list(self.lineup)}")
+        if len(self.lineup) < 1:
+            raise ValueError(f"a lineup needs at least 1 agent spec (1: a time trial), got {list(self.lineup)}")
         if not _is_int(self.grids) or self.grids < 1:
             raise ValueError(f"grids must be an integer >= 1, got {self.grids!r}")
         if not _is_int(self.seed) or self.seed < 0:
@@ -282,11 +283,15 @@ def run_job(config: SweepConfig, job: dict[str, Any]) -> dict[str, Any]:
 
 def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per point and agent: races, wins (and of those started in front, how many were
-    won), races finished, races retired by an incident rule, mean place, mean finish-time
-    margin over the other cars (races all finished), overtakes per race, contact steps,
+    won; alone, a finished lap wins), races finished, races retired by an incident rule,
+    mean place, mean finish-time margin over the other cars (races all finished; None
+    alone), mean and best finish time of its finished races, overtakes per race, contact steps,
     time off track, errors, and for planners the mean share of re-plans that converged
     (results where it is low are the solver's, not the weights': see the README's sweep of
     the gap weight)."""
+    from experiments.tournament import won_race
+
+    cars = len(config.lineup)
     position = {job["id"]: k for k, job in enumerate(schedule(config))}
     by_point: dict[int, list[dict[str, Any]]] = {}
     for record in sorted(records, key=lambda r: position[r["id"]]):  # sums in one order, however they came
@@ -296,21 +301,24 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
         races = by_point.get(index, [])
         for agent, spec in enumerate(config.lineup):
             mine = [r["agents"][agent] for r in races]
+            times_of_mine = [car["finish_time"] for car in mine if car["finish_time"] is not None]
             margins = []
             for race in races:
                 times = [car["finish_time"] for car in race["agents"]]
-                if all(t is not None for t in times):
+                if cars > 1 and all(t is not None for t in times):
                     others = [t for k, t in enumerate(times) if k != agent]
                     margins.append(float(np.mean(others)) - times[agent])
             rows.append({
                 "point": index, **point, "agent": agent, "spec": spec, "races": len(mine),
-                "wins": sum(car["place"] == 1 for car in mine),
+                "wins": sum(won_race(car, cars) for car in mine),
                 "races_from_front": sum(car["start_place"] == 1 for car in mine),
-                "wins_from_front": sum(car["start_place"] == 1 and car["place"] == 1 for car in mine),
+                "wins_from_front": sum(car["start_place"] == 1 and won_race(car, cars) for car in mine),
                 "finished": sum(car["finish_time"] is not None for car in mine),
                 "retired": sum(bool(car.get("retired", False)) for car in mine),  # none in older records
                 "mean_place": float(np.mean([car["place"] for car in mine])) if mine else None,
                 "mean_margin_s": float(np.mean(margins)) if margins else None,
+                "mean_finish_time_s": float(np.mean(times_of_mine)) if times_of_mine else None,
+                "best_finish_time_s": min(times_of_mine) if times_of_mine else None,
                 "overtakes_per_race": float(np.mean([r["overtakes"] for r in races])) if races else None,
                 "contact_steps": sum(car["collision_steps"] for car in mine),
                 "time_off_track_s": float(sum(car["time_off_track"] for car in mine)),
@@ -380,28 +388,44 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         writer.writeheader()
         writer.writerows(rows)
     names = [name for name, _ in config.parameters]
-    table = Table(title=f"sweep: {' vs '.join(config.lineup)}")
-    for column in (*names, "agent", "races", "wins", "from the front", "finished", "retired", "mean place", "margin [s]",
-                   "overtakes/race", "contact steps", "off track [s]", "errors", "converged"):
+    time_trial = len(config.lineup) == 1
+    columns = [  # (header, cell of a row, shown in a time trial)
+        ("agent", lambda row: f"{row['agent']}: {row['spec']}", True),
+        ("races", lambda row: str(row["races"]), True),
+        ("wins", lambda row: str(row["wins"]), False),
+        ("from the front", lambda row: f"{row['wins_from_front']}/{row['races_from_front']}", False),
+        ("finished", lambda row: f"{row['finished']}/{row['races']}", True),
+        ("retired", lambda row: str(row["retired"]), True),
+        ("mean place", lambda row: _formatted(row["mean_place"], "{:.2f}"), False),
+        ("margin [s]", lambda row: _formatted(row["mean_margin_s"], "{:+.2f}"), False),
+        ("finish time [s]", lambda row: _formatted(row["mean_finish_time_s"], "{:.2f}"), True),
+        ("best [s]", lambda row: _formatted(row["best_finish_time_s"], "{:.2f}"), True),
+        ("overtakes/race", lambda row: _formatted(row["overtakes_per_race"], "{:.2f}"), False),
+        ("contact steps", lambda row: str(row["contact_steps"]), False),
+        ("off track [s]", lambda row: f"{row['time_off_track_s']:.1f}", True),
+        ("errors", lambda row: str(row["errors"]), True),
+        ("converged", lambda row: _formatted(row["converged_fraction"], "{:.0%}"), True),
+    ]
+    columns = [(header, cell) for header, cell, alone in columns if alone or not time_trial]
+    table = Table(title=f"sweep: {' vs '.join(config.lineup)}{' (time trial)' if time_trial else ''}")
+    for column in (*names, *(header for header, _ in columns)):
         table.add_column(column, overflow="fold")  # long specs and parameter names wrap instead of being cut
     for row in rows:
-        margin = "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}"
-        place = "-" if row["mean_place"] is None else f"{row['mean_place']:.2f}"
-        overtakes = "-" if row["overtakes_per_race"] is None else f"{row['overtakes_per_race']:.2f}"
-        converged = "-" if row["converged_fraction"] is None else f"{row['converged_fraction']:.0%}"
-        table.add_row(*(str(row[n]) for n in names), f"{row['agent']}: {row['spec']}", str(row["races"]),
-                      str(row["wins"]), f"{row['wins_from_front']}/{row['races_from_front']}",
-                      f"{row['finished']}/{row['races']}", str(row["retired"]), place, margin,
-                      overtakes, str(row["contact_steps"]),
-                      f"{row['time_off_track_s']:.1f}", str(row["errors"]), converged)
+        table.add_row(*(str(row[n]) for n in names), *(cell(row) for _, cell in columns))
     console.print(table)
     plot_sweep(config, rows, out / "sweep.png")
     console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'summary.json'}, {out / 'sweep.png'}")
 
 
+def _formatted(value: float | None, form: str) -> str:
+    """``form`` applied to ``value``, or ``-`` for None."""
+    return "-" if value is None else form.format(value)
+
+
 def plot_sweep(config: SweepConfig, rows: list[dict[str, Any]], path: Path) -> None:
-    """Agent 0's win rate, mean margin and contact steps per race against the first
-    parameter, one line per combination of the others."""
+    """Agent 0's results against the first parameter, one line per combination of the
+    others: its win rate, mean margin and contact steps per race; in a time trial, the
+    share of laps finished, the mean finish time and the time off the track per lap."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -410,33 +434,46 @@ def plot_sweep(config: SweepConfig, rows: list[dict[str, Any]], path: Path) -> N
     names = [name for name, _ in config.parameters]
     first, rest = names[0], names[1:]
     subject = [row for row in rows if row["agent"] == 0]
-    fig, (top, middle, bottom) = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
+    time_trial = len(config.lineup) == 1
+    key = "mean_finish_time_s" if time_trial else "mean_margin_s"
+
+    def per_race(row: dict[str, Any], value: float) -> float:
+        return value / row["races"] if row["races"] else np.nan
+
+    panels = [  # (y label, value of a row)
+        (f"laps finished by {config.lineup[0]}" if time_trial else f"win rate of {config.lineup[0]}",
+         lambda row: per_race(row, row["wins"])),
+        ("mean finish time [s]" if time_trial else "mean finish margin [s]",
+         lambda row: np.nan if row[key] is None else row[key]),
+        ("time off track per lap [s]" if time_trial else "contact steps per race",
+         lambda row: per_race(row, row["time_off_track_s"] if time_trial else row["contact_steps"])),
+    ]
+    fig, axes = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
     labels = {}
     for row in subject:
         labels.setdefault(tuple(row[n] for n in rest), []).append(row)
     categorical = not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in dict(config.parameters)[first])
-    for key, line in labels.items():
+    for line_key, line in labels.items():
         xs = list(range(len(line))) if categorical else [row[first] for row in line]
-        label = ", ".join(f"{n}={v}" for n, v in zip(rest, key)) or None
-        top.plot(xs, [row["wins"] / row["races"] if row["races"] else np.nan for row in line], "o-", label=label)
-        middle.plot(xs, [np.nan if row["mean_margin_s"] is None else row["mean_margin_s"] for row in line],
-                    "o-", label=label)
-        bottom.plot(xs, [row["contact_steps"] / row["races"] if row["races"] else np.nan for row in line],
-                    "o-", label=label)
+        label = ", ".join(f"{n}={v}" for n, v in zip(rest, line_key)) or None
+        for axis, (_, value) in zip(axes, panels):
+            axis.plot(xs, [value(row) for row in line], "o-", label=label)
+    for axis, (ylabel, _) in zip(axes, panels):
+        axis.set_ylabel(ylabel)
+    top, middle, bottom = axes
     values = dict(config.parameters)[first]
     if categorical:
         bottom.set_xticks(range(len(values)), [str(v) for v in values])
     elif min(values) > 0 and max(values) >= 100 * min(values):  # values spread over decades
         bottom.set_xscale("log")
-    top.set_ylabel(f"win rate of {config.lineup[0]}")
     top.set_ylim(-0.05, 1.05)
-    middle.axhline(0.0, color="black", lw=0.8)
-    middle.set_ylabel("mean finish margin [s]")
-    bottom.set_ylabel("contact steps per race")
+    if not time_trial:
+        middle.axhline(0.0, color="black", lw=0.8)
     bottom.set_xlabel(first)
     if rest:
         top.legend(fontsize=8)
-    top.set_title(f"{config.lineup[0]} vs {', '.join(config.lineup[1:])}")
+    top.set_title(f"{config.lineup[0]} alone (time trial)" if time_trial
+                  else f"{config.lineup[0]} vs {', '.join(config.lineup[1:])}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -186,11 +186,53 @@ def test_summary_of_hand_made_records():
     assert planner == {"point": 0, "laps": 1, "agent": 0, "spec": "ilqgame-fb", "races": 2, "wins": 1,
                        "races_from_front": 1, "wins_from_front": 1, "finished": 2, "retired": 0, "mean_place": 1.5,
                        "mean_margin_s": -1.0,  # only the race both finished counts
+                       "mean_finish_time_s": 60.0, "best_finish_time_s": 59.0,
                        "overtakes_per_race": 0.5, "contact_steps": 3, "time_off_track_s": 0.0, "errors": 0,
                        "converged_fraction": 0.7}
     assert keeper["wins"] == 1 and keeper["mean_margin_s"] == 1.0 and keeper["time_off_track_s"] == 0.4
     assert keeper["finished"] == 1 and keeper["retired"] == 1  # it retired in the second race
     assert keeper["converged_fraction"] is None  # not a planner
+    assert keeper["mean_finish_time_s"] == keeper["best_finish_time_s"] == 60.0
+
+
+def test_summary_of_a_hand_made_time_trial():
+    """Alone, a car is always first: only a finished lap counts as a win, and there is no margin."""
+    config = SweepConfig(lineup=("ilqr",), parameters=(("laps", (1,)),), grids=2)
+    jobs = sweep.schedule(config)
+    assert len(jobs) == 2  # one rotation per grid
+
+    def car(finish, off=0.0):
+        return {"start_place": 1, "place": 1, "finish_time": finish, "collision_steps": 0, "time_off_track": off,
+                "error": None, "solver_converged_fraction": None}
+
+    records = [{**jobs[0], "overtakes": 0, "agents": [car(None, off=2.5)]},
+               {**jobs[1], "overtakes": 0, "agents": [car(57.5)]}]
+    (row,) = sweep.summarize(config, records)
+    assert row["wins"] == row["wins_from_front"] == row["finished"] == 1 and row["races_from_front"] == 2
+    assert row["mean_margin_s"] is None and row["mean_place"] == 1.0
+    assert row["mean_finish_time_s"] == row["best_finish_time_s"] == 57.5 and row["time_off_track_s"] == 2.5
+
+
+def test_a_time_trial_sweep_races_one_car_alone(tmp_path, capsys):
+    """A lineup of one agent: every point is raced alone on each grid, once (one slot); a
+    faster target speed gives the lane keeper a shorter finish time, as the summary, the
+    table and the plot report."""
+    path = tmp_path / "alone.toml"
+    path.write_text('lineup = ["lane-keeping"]\ntrack = "straight"\nrace_distance = 150.0\ngrids = 2\n'
+                    '[parameters]\n"agent0.target_speed" = [15.0, 24.0]\n')
+    assert main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 0
+    slow, fast = json.loads((tmp_path / "out" / "summary.json").read_text())
+    records = sweep.read_results(tmp_path / "out")
+    assert len(records) == 4 and all(len(r["agents"]) == 1 and r["gap"] is None for r in records)
+    for row, speed in ((slow, 15.0), (fast, 24.0)):
+        times = [r["agents"][0]["finish_time"] for r in records if r["point"]["agent0.target_speed"] == speed]
+        assert row["races"] == row["wins"] == row["finished"] == 2 and row["mean_margin_s"] is None
+        assert row["mean_finish_time_s"] == pytest.approx(np.mean(times), abs=1e-12)
+        assert row["best_finish_time_s"] == min(times)
+    assert fast["mean_finish_time_s"] < slow["mean_finish_time_s"]
+    err = capsys.readouterr().err
+    assert "lane-keeping (time trial)" in err and "finish time" in err and "margin" not in err
+    assert (tmp_path / "out" / "sweep.png").stat().st_size > 0
 
 
 @pytest.mark.parametrize("text, message", [
@@ -209,7 +251,7 @@ def test_summary_of_hand_made_records():
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nlaps = []', "non-empty list"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\nlaps = [0]', "laps must be"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent0.c_collision" = [-1.0]', "c_collision"),
-    ('lineup = ["lane-keeping"]\n[parameters]\nlaps = [1]', "at least 2 agent specs"),
+    ('lineup = []\n[parameters]\nlaps = [1]', "at least 1 agent spec"),
     ('lineup = ["lane-keeping", "constant-speed"\n', "not valid TOML"),
     # only agent<i>. is applied to agent i: agent01. would be accepted and never set
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\n"agent01.c_gap" = [1.0]', "agent1.c_gap"),
