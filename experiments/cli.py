@@ -12,7 +12,7 @@ from pathlib import Path
 DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping")
 # racing_env.config.INCIDENT_MODES and racing_env.scenarios.SCENARIOS (not imported here: JAX)
 INCIDENT_CHOICES = ("penalty", "terminate", "both", "ignore")
-SCENARIO_CHOICES = ("grid", "paper", "side_by_side")
+SCENARIO_CHOICES = ("grid", "paper", "side_by_side", "anywhere")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -129,7 +129,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     config = TrainConfig(
         opponents=opponents, pool=args.pool, pool_cars=args.pool_cars, algo=args.algo,
         timesteps=args.timesteps, track=args.track, laps=args.laps, race_distance=args.race_distance,
-        max_steps=args.max_steps, seed=args.seed, envs=args.envs, subprocesses=args.subprocesses,
+        max_steps=args.max_steps, start=args.start, seed=args.seed, envs=args.envs, subprocesses=args.subprocesses,
         normalize=args.normalize,
         on_off_track=args.off_track, on_collision=args.collision, eval_off_track=args.eval_off_track,
         checkpoint_every=args.checkpoint_every,
@@ -265,8 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--scenario", default="grid", choices=SCENARIO_CHOICES,
                       help="the start: grid (a seeded rolling grid per --grids, the default), paper (the paper's "
                       "overtaking scene: the first slot's car, v_max 20 m/s, 10 m ahead of the second, v_max 25 m/s, "
-                      "2 m to its left; each pair races once each way round) or side_by_side; the last two need "
-                      "--cars 2 --grids 1")
+                      "2 m to its left; each pair races once each way round), side_by_side (these two need "
+                      "--cars 2 --grids 1) or anywhere (per --grids a seeded close-quarters scene anywhere on the "
+                      "lap, cars up to 15 m apart at 5-19 m/s, at least 100 m before the finish)")
     tour.add_argument("--collision", default="penalty", choices=INCIDENT_CHOICES,
                       help="what contact does: penalty (counted, the default) or ignore (counted too: the two "
                       "differ only in the env's reward, which tournaments do not use), terminate or both (the cars "
@@ -351,6 +352,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--laps", type=int, default=1, help="laps per episode on closed tracks (default: 1)")
     train.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
     train.add_argument("--max-steps", type=int, default=3000, help="truncate episodes after this many steps")
+    train.add_argument("--start", default="grid", choices=("grid", "anywhere"),
+                       help="where training episodes start: grid (a rolling grid behind the line, the default) or "
+                       "anywhere (a seeded close-quarters scene anywhere on the lap, racing to the same finish line, "
+                       "so that on a long circuit the policy meets every corner early); evaluations start on the grid")
     train.add_argument("--seed", type=int, default=0, help="seed of the policy and the start grids (default: 0)")
     train.add_argument("--envs", type=int, default=2,
                        help="copies of the race stepped side by side; in copy k the learner drives car k mod cars (default: 2)")

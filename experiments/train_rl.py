@@ -61,6 +61,9 @@ WIDENED_MODEL = "init_model_widened.zip"  # an init_model of fewer cars, as wide
 _CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
 # the fields of TrainConfig that may change between a run and its resumption
 _RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses")
+TRAINING_STARTS = ("grid", "anywhere")  # the scenarios training episodes may start from
+# fields added to TrainConfig after runs were saved, with the value those runs had
+_ADDED_LATER = {"start": "grid"}
 # steps (all copies) over which a widened init_model's new observation features are measured
 WIDENING_MEASURE_STEPS = 2048
 
@@ -84,6 +87,11 @@ class TrainConfig:
         track: built-in track name or TUMFTM CSV path.
         laps / race_distance: the race's length (``race_distance`` [m] overrides ``laps``).
         max_steps: an episode is truncated after this many steps.
+        start: where training episodes start: ``grid`` (a seeded rolling grid behind the
+            line, as the evaluations) or ``anywhere`` (a seeded close-quarters scene anywhere
+            on the lap, :func:`racing_env.scenarios.anywhere`, racing to the same finish
+            line), so that on a long circuit the policy meets every corner from the start.
+            Evaluations always start on the grid.
         seed: seeds the policy, the start grids and the evaluation grids.
         envs: copies of the race stepped side by side; in copy ``k`` the learner drives car
             ``k % N``.
@@ -124,6 +132,7 @@ class TrainConfig:
     laps: int = 1
     race_distance: float | None = None
     max_steps: int = 3000
+    start: str = "grid"
     seed: int = 0
     envs: int = 2
     subprocesses: bool = False
@@ -144,6 +153,8 @@ class TrainConfig:
             raise ValueError("a pool needs at least one opponent spec to draw from (e.g. lane-keeping)")
         if self.algo not in SB3_ALGOS:
             raise ValueError(f"algo must be one of {SB3_ALGOS}, got {self.algo!r}")
+        if self.start not in TRAINING_STARTS:
+            raise ValueError(f"start must be one of {TRAINING_STARTS}, got {self.start!r}")
         if not isinstance(self.pool_cars, (int, np.integer)) or self.pool_cars < 2:
             raise ValueError(f"pool_cars must be an integer >= 2, got {self.pool_cars!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
@@ -209,7 +220,8 @@ class TrainConfig:
                          reward=RewardConfig(**dict(self.reward)))
         else:
             rules = {} if self.eval_off_track is None else dict(on_off_track=self.eval_off_track)
-        return RaceConfig(track=self.track, num_agents=self.cars, scenario="grid", laps=self.laps,
+        return RaceConfig(track=self.track, num_agents=self.cars, scenario=self.start if training else "grid",
+                          laps=self.laps,
                           race_distance=self.race_distance, max_steps=self.max_steps,
                           weights=CostWeights(r_jx=self.jerk_weight, r_jy=self.jerk_weight), **rules)
 
@@ -586,7 +598,8 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     resume_from = latest_checkpoint(out)
     if config_path.exists():
         previous = json.loads(config_path.read_text())["config"]
-        differs = sorted(k for k in wanted if k not in _RESUMABLE_CHANGES and previous.get(k) != wanted[k])
+        differs = sorted(k for k in wanted
+                         if k not in _RESUMABLE_CHANGES and previous.get(k, _ADDED_LATER.get(k)) != wanted[k])
         if differs and (resume_from or (out / EPISODES).exists()):
             raise ValueError(f"{out} holds a training run with other settings ({', '.join(differs)}); "
                              "use another --out folder or --fresh to start over")

@@ -198,11 +198,11 @@ class RacingParallelEnv(ParallelEnv):
         self.possible_agents = [agent_name(i) for i in range(num)]
         self.agents: list[str] = []
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
-        scenario = make_scenario(config.scenario, self.track, num, config.vehicles, seed=0)
+        self.finish_s = _finish_line(config, self.track)
+        scenario = make_scenario(config.scenario, self.track, num, config.vehicles, seed=0, finish_s=self.finish_s)
         self.game = RaceGame.create(
             self.track, scenario.vehicles, config.weights, dt=config.dt, horizon=config.horizon
         )
-        self.finish_s = _finish_line(config, self.track)
         _check_starts_behind(self.finish_s, scenario.x0, config.scenario)
         # on the device once, as one array: a step neither re-transfers them nor pays for
         # their ~30 argument leaves
@@ -258,7 +258,8 @@ class RacingParallelEnv(ParallelEnv):
                 )
         else:
             config = self.config
-            x0 = make_scenario(config.scenario, self.track, self.num_cars, config.vehicles, scenario_seed).x0
+            x0 = make_scenario(config.scenario, self.track, self.num_cars, config.vehicles, scenario_seed,
+                               self.finish_s).x0
             # seed 0's grid was checked in __init__; another seed's jitter moves cars by up to 1 m
             _check_starts_behind(self.finish_s, x0, config.scenario)
         if options:

@@ -1,5 +1,6 @@
-"""Named start configurations: the paper's overtaking scenario and seeded start grids, and
-seeded random scenes anywhere on a track (:func:`random_scenes`).
+"""Named start configurations: the paper's overtaking scenario, seeded start grids and
+seeded scenes anywhere on the lap (``anywhere``), and batches of random scenes for solver
+studies (:func:`random_scenes`).
 
 A scenario returns the joint start state ``x0 (N, 6)`` and the cars' parameters. On closed
 tracks the grid lines up just behind the start/finish line at ``s = 0`` (negative ``s`` is
@@ -129,14 +130,16 @@ def random_scenes(
     track: Track,
     vehicles: Sequence[VehicleParams],
     count: int,
-    seed: int = 0,
+    seed: int | None = 0,
     spread: float = 15.0,
     speed: tuple[float, float] = (10.0, 19.0),
     margin: float = 1.5,
+    s_max: float | None = None,
 ) -> np.ndarray:
     """``count`` seeded close-quarters starts anywhere on ``track``: ``x0s (count, N, 6)``.
 
-    Per scene a reference arc length is drawn uniformly over the track; every car starts
+    Per scene a reference arc length is drawn uniformly over the track (below ``s_max``
+    [m] if given, e.g. to keep the scenes short of a finish line); every car starts
     0 to ``spread`` metres [m] behind it, at a lateral offset drawn uniformly inside the
     track at its own arc length, ``margin`` [m] from either edge, and at a speed drawn from
     ``speed`` [m/s] (capped at 95% of the car's ``v_max``); heading and accelerations are
@@ -155,10 +158,14 @@ def random_scenes(
     stacked = stack_vehicles(vehicles)
     v_max = np.array([float(v.v_max) for v in vehicles])
     lo = spread if not track.closed else 0.0  # open tracks: every car at s >= 0
+    hi = track.length if s_max is None else min(track.length, s_max)
+    if not hi > lo:
+        raise ValueError(f"no room for a scene on track {track.name!r}: its reference arc length would be "
+                         f"drawn from [{lo:g}, {hi:g}) m")
     scenes = np.zeros((int(count), num_cars, STATE_DIM))
     for scene in scenes:
         for _ in range(1000):
-            s = rng.uniform(lo, track.length) - rng.uniform(0.0, spread, num_cars)
+            s = rng.uniform(lo, hi) - rng.uniform(0.0, spread, num_cars)
             left = np.asarray(track.width_left_at(s)) - margin
             right = np.asarray(track.width_right_at(s)) - margin
             if np.any(left + right < 0):
@@ -173,24 +180,55 @@ def random_scenes(
     return scenes
 
 
+#: How far [m] before the finish line an ``anywhere`` scene's reference point lies at least, so
+#: that no episode is over in its first seconds.
+ANYWHERE_MIN_RUN = 100.0
+#: Start speeds [m/s] of ``anywhere`` scenes: slow enough at the bottom for the tightest
+#: corners of real circuits (Monza's first chicane, radius 9 m, iLQR takes at 1-7 m/s), so
+#: that a start inside one can be survived.
+ANYWHERE_SPEED = (5.0, 19.0)
+
+
+def anywhere(
+    track: Track, num_cars: int = 2, vehicles=None, seed: int | None = 0, finish_s: float | None = None
+) -> Scenario:
+    """One seeded close-quarters scene anywhere on the lap (:func:`random_scenes`: cars up to
+    15 m apart, 1.5 m inside the edges, at :data:`ANYWHERE_SPEED`, 5-19 m/s), its
+    reference point at least :data:`ANYWHERE_MIN_RUN` metres before the finish line
+    ``finish_s`` [m] (if given). For training on long circuits: episodes start in every
+    corner instead of always on the grid, so a policy meets the whole lap early."""
+    vehicles = _default_vehicles(num_cars, vehicles)
+    if finish_s is not None and finish_s <= ANYWHERE_MIN_RUN:
+        raise ValueError(f"scenario 'anywhere' places its scenes at least {ANYWHERE_MIN_RUN:g} m before the finish "
+                         f"line, which lies at s = {finish_s:g} m: race further (race_distance)")
+    s_max = None if finish_s is None else finish_s - ANYWHERE_MIN_RUN
+    x0 = random_scenes(track, vehicles, 1, seed=seed, speed=ANYWHERE_SPEED, s_max=s_max)[0]
+    return Scenario("anywhere", x0, vehicles)
+
+
 SCENARIOS: dict[str, Callable[..., Scenario]] = {
     "paper": paper_overtake,
     "grid": grid,
     "side_by_side": side_by_side,
+    "anywhere": anywhere,
 }
 FIXED_STARTS = ("paper", "side_by_side")
 """The scenarios with a single start whatever the seed, both of exactly 2 cars."""
+NEEDS_FINISH_LINE = ("anywhere",)
+"""The scenarios that place their cars relative to the finish line (``finish_s``)."""
 
 
 def make_scenario(
-    name: str, track: Track, num_cars: int, vehicles=None, seed: int | None = 0
+    name: str, track: Track, num_cars: int, vehicles=None, seed: int | None = 0, finish_s: float | None = None
 ) -> Scenario:
-    """Build the named scenario (``paper``, ``grid``, ``side_by_side``)."""
+    """Build the named scenario (``paper``, ``grid``, ``side_by_side``, ``anywhere``);
+    ``finish_s`` [m], the race's finish line, keeps an ``anywhere`` scene short of it."""
     if name not in SCENARIOS:
         raise ValueError(f"unknown scenario {name!r}; choose one of {sorted(SCENARIOS)}")
     if num_cars < 1:
         raise ValueError(f"num_cars must be >= 1, got {num_cars}")
-    scenario = SCENARIOS[name](track, num_cars=num_cars, vehicles=vehicles, seed=seed)
+    extra = {"finish_s": finish_s} if name in NEEDS_FINISH_LINE else {}
+    scenario = SCENARIOS[name](track, num_cars=num_cars, vehicles=vehicles, seed=seed, **extra)
     half_widths = np.stack([track.width_left_at(scenario.x0[:, S]), track.width_right_at(scenario.x0[:, S])])
     if np.any(scenario.x0[:, N_LAT] > half_widths[0]) or np.any(-scenario.x0[:, N_LAT] > half_widths[1]):
         raise ValueError(f"scenario {name!r} places a car outside the track {track.name!r}")

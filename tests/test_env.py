@@ -583,6 +583,75 @@ def test_random_scenes_are_seeded_inside_the_track_and_apart(trefoil, long_strai
         random_scenes(long_straight, vehicles, 1, spread=2 * long_straight.length)
 
 
+def test_random_scenes_stay_below_s_max(trefoil):
+    """``s_max`` bounds the reference arc length, so no car starts beyond it; a bound at or
+    below the lowest reference point leaves no room and is refused."""
+    from racing_env.dynamics import S
+    from racing_env.scenarios import random_scenes
+
+    vehicles = [VehicleParams()] * 2
+    s = random_scenes(trefoil, vehicles, 200, seed=2, s_max=300.0)[..., S]
+    assert np.all(s.max(axis=1) < 300.0) and s.max() > 250.0  # the bound is used, not undershot
+    with pytest.raises(ValueError, match=r"no room for a scene on track 'trefoil'.*\[0, 0\) m"):
+        random_scenes(trefoil, vehicles, 1, s_max=0.0)
+
+
+def test_anywhere_starts_seeded_scenes_all_over_the_lap_short_of_the_finish(trefoil, long_straight):
+    """Scenario ``anywhere``: each reset draws a close-quarters scene from its seed (the same
+    seed, the same scene), inside the track, at 5-19 m/s, with every car at least ANYWHERE_MIN_RUN metres
+    before the finish line (here a race_distance shorter than the lap) and the scenes spread
+    over the whole allowed stretch; a finish too close to the start is refused by name."""
+    from racing_env.dynamics import N_LAT, S, V
+    from racing_env.scenarios import ANYWHERE_MIN_RUN
+
+    env = racing_env.parallel_env(track=trefoil, num_agents=2, scenario="anywhere", race_distance=700.0)
+    starts = []
+    for seed in range(40):
+        env.reset(seed=seed)
+        starts.append(env.state())
+    starts = np.stack(starts)
+    env.reset(seed=7)
+    assert env.state().tobytes() == starts[7].tobytes()
+    s, n = starts[..., S], starts[..., N_LAT]
+    assert np.all(s <= 700.0 - ANYWHERE_MIN_RUN)
+    assert s.max() > 500.0 and s.min() < 100.0  # over the stretch, not bunched
+    assert np.all(n <= np.asarray(trefoil.width_left_at(s)) - 1.5)
+    assert np.all(-n <= np.asarray(trefoil.width_right_at(s)) - 1.5)
+    assert np.all(np.ptp(s, axis=1) <= 15.0)
+    speeds = starts[..., V]
+    assert np.all((speeds >= 5.0) & (speeds <= 19.0)) and speeds.min() < 8.0 and speeds.max() > 16.0
+    # an open track: every car at s >= 0, short of its default finish 20 m before the end
+    straight = racing_env.parallel_env(track=long_straight, num_agents=2, scenario="anywhere")
+    for seed in range(10):
+        straight.reset(seed=seed)
+        assert np.all(straight.state()[:, S] >= 0.0)
+        assert np.all(straight.state()[:, S] <= long_straight.length - 20.0 - ANYWHERE_MIN_RUN)
+    with pytest.raises(ValueError, match="scenario 'anywhere' places its scenes at least 100 m before the finish"):
+        racing_env.parallel_env(track=trefoil, num_agents=2, scenario="anywhere", race_distance=80.0)
+
+
+def test_a_race_from_anywhere_charges_the_time_from_its_own_start(trefoil):
+    """A lone car started anywhere races to the same finish line; the time term (weight -1)
+    sums to its finish time, which counts from its own start, and the progress term to the
+    distance it covered from there (both to float rounding)."""
+    from racing_env.config import RewardConfig
+    from racing_env.dynamics import S
+
+    env = racing_env.parallel_env(track=trefoil, num_agents=1, scenario="anywhere", race_distance=600.0,
+                                  reward=RewardConfig(progress=1.0, time=-1.0, finish=0.0, off_track=0.0))
+    env.reset(seed=3)
+    start = float(env.state()[0, S])
+    sums = {"progress": 0.0, "time": 0.0}
+    while env.agents:
+        _, _, _, _, infos = env.step({"car_0": np.array([0.3, 0.0])})
+        for name in sums:
+            sums[name] += infos["car_0"]["reward_terms"][name]
+    assert infos["car_0"]["finished"]
+    assert sums["time"] == pytest.approx(-infos["car_0"]["finish_time"], abs=1e-9)
+    assert sums["progress"] == pytest.approx(float(env.state()[0, S]) - start, abs=1e-9)
+    assert 0.0 < infos["car_0"]["finish_time"] < (600.0 - start) / 5.0  # it started rolling, at >= 5 m/s
+
+
 def test_four_car_grid(trefoil):
     """A 4-car grid starts on the track without contacts and races."""
     env = racing_env.parallel_env(track=trefoil, num_agents=4)

@@ -337,6 +337,31 @@ def test_the_paper_scene_as_a_start(tmp_path):
             tour.TournamentConfig(agents=("a", "b", "c"), **{"scenario": "paper", "grids": 1, **bad})
 
 
+def test_scenes_anywhere_as_starts(tmp_path):
+    """--scenario anywhere: each grid seed is one scene somewhere on the track, raced once per
+    starting slot, so every agent starts each scene once in front and once behind; two grid
+    seeds give two scenes."""
+    from racing_env.dynamics import S
+
+    config = tour.TournamentConfig(agents=("lane-keeping", "constant-speed"), scenario="anywhere",
+                                   **{**SHORT, "race_distance": 250.0, "grids": 2})
+    env = RacingParallelEnv(tour.race_config(config))
+    scenes = {}
+    for race in tour.schedule(config):
+        env.reset(seed=race["seed"])
+        scenes.setdefault(race["grid"], env.state()[:, S])
+    assert not np.array_equal(scenes[0], scenes[1])
+    assert all(np.all(s <= 150.0) for s in scenes.values())  # 100 m short of the finish at least
+    tour.run_tournament(config, tmp_path, gif=False, progress=False)
+    records = tour.load_results(tmp_path)
+    assert len(records) == 4
+    for grid in (0, 1):
+        for agent in config.agents:
+            places = sorted(c["start_place"] for r in records if r["grid"] == grid for c in r["cars"]
+                            if c["agent"] == agent)
+            assert places == [1, 2]
+
+
 def test_a_tournament_written_before_the_incident_rules_resumes(tmp_path):
     """A run whose settings file predates the incident-rule fields resumes under the default
     rules instead of being refused as another configuration."""

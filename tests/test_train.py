@@ -152,6 +152,7 @@ def test_interrupted_training_process_resumes(tmp_path, subprocesses):
     (dict(hyperparameters=(("nsteps", 64),)), "no hyperparameter 'nsteps'"),
     (dict(pool=True, pool_cars=1), "pool_cars"),
     (dict(seed=-1), r"seed \(--seed\) must be an integer >= 0"),
+    (dict(start="pitlane"), r"start must be one of \('grid', 'anywhere'\), got 'pitlane'"),
 ])
 def test_bad_settings_are_refused(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -229,6 +230,46 @@ def test_a_time_trial_trains_the_learner_alone_and_reports_its_finish_time(tmp_p
     assert report["final_evaluation"]["finished"] == (race["cars"][0]["finish_time"] is not None)
     assert report["final_evaluation"]["mean_finish_time_s"] == race["cars"][0]["finish_time"]
     assert report["final_evaluation"]["wins"] == report["final_evaluation"]["finished"]
+
+
+def test_training_starts_anywhere_and_evaluates_on_the_grid():
+    """start="anywhere": every training episode starts from its own scene, spread over the
+    stretch before the finish line (150 m here, so the scenes' front is below 50 m and
+    their cars up to 15 m behind it); the evaluation race keeps the grid."""
+    from racing_env.dynamics import S
+
+    config = TrainConfig(**{**TINY, "start": "anywhere"})
+    assert config.race_config().scenario == "anywhere"
+    assert config.race_config(training=False).scenario == "grid"
+    venv = train_rl.make_training_env(config)
+    try:
+        race = venv.envs[1].unwrapped.race
+        starts = []
+        for seed in range(20):
+            venv.envs[1].reset(seed=seed)
+            starts.append(race.state()[:, S])
+        starts = np.array(starts)
+        assert np.all(starts < 50.0) and np.all(starts >= -15.0)
+        assert starts.max() > 30.0 and starts.min() < 5.0
+        assert len({row.tobytes() for row in starts}) == 20
+    finally:
+        venv.close()
+
+
+def test_a_run_saved_before_training_starts_existed_resumes_as_a_grid_run(tmp_path, capsys):
+    """train.json of a run saved before the ``start`` setting existed lacks it: the run
+    resumes as the grid run it was, and starting it anywhere instead is refused."""
+    out = tmp_path / "run"
+    args = [*TINY_ARGS, "--eval-every", "0", "--checkpoint-every", "512", "--out", str(out)]
+    assert main([*args, "--timesteps", "512"]) == 0
+    report = json.loads((out / "train.json").read_text())
+    del report["config"]["start"]
+    (out / "train.json").write_text(json.dumps(report))
+    assert main([*args, "--timesteps", "1024", "--start", "anywhere"]) == 2
+    assert "holds a training run with other settings (start)" in capsys.readouterr().err
+    assert main([*args, "--timesteps", "1024"]) == 0
+    report = json.loads((out / "train.json").read_text())
+    assert report["status"] == "completed" and report["timesteps"] == 1024 and report["config"]["start"] == "grid"
 
 
 def test_parse_hyperparameter():
