@@ -10,9 +10,11 @@ from pathlib import Path
 
 
 DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping")
-# racing_env.config.INCIDENT_MODES and racing_env.scenarios.SCENARIOS (not imported here: JAX)
+# racing_env.config.INCIDENT_MODES, racing_env.scenarios.SCENARIOS and
+# experiments.train_rl.TRAINING_STARTS (not imported here: JAX)
 INCIDENT_CHOICES = ("penalty", "terminate", "both", "ignore")
 SCENARIO_CHOICES = ("grid", "paper", "side_by_side", "anywhere")
+START_CHOICES = ("grid", "anywhere")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -352,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--laps", type=int, default=1, help="laps per episode on closed tracks (default: 1)")
     train.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
     train.add_argument("--max-steps", type=int, default=3000, help="truncate episodes after this many steps")
-    train.add_argument("--start", default="grid", choices=("grid", "anywhere"),
+    train.add_argument("--start", default="grid", choices=START_CHOICES,
                        help="where training episodes start: grid (a rolling grid behind the line, the default) or "
                        "anywhere (a seeded close-quarters scene anywhere on the lap, racing to the same finish line, "
                        "so that on a long circuit the policy meets every corner early); evaluations start on the grid")

@@ -1,8 +1,9 @@
 """`racing sweep`: races over a grid of settings, on local worker processes or a Ray cluster.
 
 A sweep is a TOML file: a ``lineup`` of agent specs (agent 0 is the one the sweep is
-about; a lineup of one is a time trial, the agent alone), the race (``track``, ``laps`` or ``race_distance``, ``grids``, ``seed``,
-``max_steps``, ``jerk_weight``, the incident rules ``on_collision`` and ``on_off_track``)
+about; a lineup of one is a time trial, the agent alone), the race (``track``, ``laps``
+or ``race_distance``, ``grids``, ``seed``, ``max_steps``, ``jerk_weight``, the incident
+rules ``on_collision`` and ``on_off_track``)
 and a ``[parameters]`` table whose values are lists; every combination of them (a point)
 is raced on ``grids`` seeded rolling grids, once per rotation of the starting slots::
 

@@ -238,6 +238,9 @@ def test_training_starts_anywhere_and_evaluates_on_the_grid():
     their cars up to 15 m behind it); the evaluation race keeps the grid."""
     from racing_env.dynamics import S
 
+    from experiments.cli import START_CHOICES
+
+    assert START_CHOICES == train_rl.TRAINING_STARTS  # the command line offers what the config takes
     config = TrainConfig(**{**TINY, "start": "anywhere"})
     assert config.race_config().scenario == "anywhere"
     assert config.race_config(training=False).scenario == "grid"
