@@ -14,7 +14,7 @@ DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping")
 # experiments.train_rl.TRAINING_STARTS (not imported here: JAX)
 INCIDENT_CHOICES = ("penalty", "terminate", "both", "ignore")
 SCENARIO_CHOICES = ("grid", "paper", "side_by_side", "anywhere")
-START_CHOICES = ("grid", "anywhere")
+START_CHOICES = ("grid", "anywhere", "mixed")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -357,7 +357,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--start", default="grid", choices=START_CHOICES,
                        help="where training episodes start: grid (a rolling grid behind the line, the default) or "
                        "anywhere (a seeded close-quarters scene anywhere on the lap, racing to the same finish line, "
-                       "so that on a long circuit the policy meets every corner early); evaluations start on the grid")
+                       "so that on a long circuit the policy meets every corner early) or mixed (the even copies of "
+                       "--envs on the grid, the odd ones anywhere); evaluations start on the grid")
     train.add_argument("--seed", type=int, default=0, help="seed of the policy and the start grids (default: 0)")
     train.add_argument("--envs", type=int, default=2,
                        help="copies of the race stepped side by side; in copy k the learner drives car k mod cars (default: 2)")

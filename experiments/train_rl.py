@@ -61,7 +61,7 @@ WIDENED_MODEL = "init_model_widened.zip"  # an init_model of fewer cars, as wide
 _CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
 # the fields of TrainConfig that may change between a run and its resumption
 _RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses")
-TRAINING_STARTS = ("grid", "anywhere")  # the scenarios training episodes may start from
+TRAINING_STARTS = ("grid", "anywhere", "mixed")  # where training episodes may start (TrainConfig.start)
 # fields added to TrainConfig after runs were saved, with the value those runs had
 _ADDED_LATER = {"start": "grid"}
 # steps (all copies) over which a widened init_model's new observation features are measured
@@ -90,8 +90,9 @@ class TrainConfig:
         start: where training episodes start: ``grid`` (a seeded rolling grid behind the
             line, as the evaluations) or ``anywhere`` (a seeded close-quarters scene anywhere
             on the lap, :func:`racing_env.scenarios.anywhere`, racing to the same finish
-            line), so that on a long circuit the policy meets every corner from the start.
-            Evaluations always start on the grid.
+            line), so that on a long circuit the policy meets every corner from the start;
+            or ``mixed``: the even copies of the race (``envs``) start on the grid, the odd
+            ones anywhere. Evaluations always start on the grid.
         seed: seeds the policy, the start grids and the evaluation grids.
         envs: copies of the race stepped side by side; in copy ``k`` the learner drives car
             ``k % N``.
@@ -188,7 +189,8 @@ class TrainConfig:
             if name not in known:
                 raise ValueError(f"{self.algo} has no hyperparameter {name!r}; it takes {sorted(known)}")
         # the race itself (track name or file, laps, distance, steps) is checked by RaceConfig
-        self.race_config()
+        for copy in range(min(self.envs, 2)):  # every start the copies use
+            self.race_config(copy=copy)
 
     @property
     def cars(self) -> int:
@@ -212,16 +214,22 @@ class TrainConfig:
             return [(", ".join(self.opponents) or "time trial", list(self.opponents))]
         return [(spec, [spec] * (self.cars - 1)) for spec in dict.fromkeys(self.opponents)]
 
-    def race_config(self, training: bool = True) -> RaceConfig:
-        """The race the learner trains in (``training``) or is evaluated in (tournament rules,
-        with ``eval_off_track`` if set)."""
+    def scenario(self, copy: int = 0) -> str:
+        """The scenario copy ``copy`` of the training race starts from (:attr:`start`)."""
+        if self.start == "mixed":
+            return "grid" if copy % 2 == 0 else "anywhere"
+        return self.start
+
+    def race_config(self, training: bool = True, copy: int = 0) -> RaceConfig:
+        """The race the learner trains in (``training``; copy ``copy`` of it) or is evaluated
+        in (tournament rules, with ``eval_off_track`` if set)."""
         if training:
             rules = dict(on_off_track=self.on_off_track, on_collision=self.on_collision,
                          reward=RewardConfig(**dict(self.reward)))
         else:
             rules = {} if self.eval_off_track is None else dict(on_off_track=self.eval_off_track)
-        return RaceConfig(track=self.track, num_agents=self.cars, scenario=self.start if training else "grid",
-                          laps=self.laps,
+        scenario = self.scenario(copy) if training else "grid"
+        return RaceConfig(track=self.track, num_agents=self.cars, scenario=scenario, laps=self.laps,
                           race_distance=self.race_distance, max_steps=self.max_steps,
                           weights=CostWeights(r_jx=self.jerk_weight, r_jy=self.jerk_weight), **rules)
 
@@ -314,7 +322,7 @@ class _RaceCopy:
             enable_compile_cache(self.compile_cache)
         from racing_env.single_agent import OpponentPool
 
-        race = self.config.race_config()
+        race = self.config.race_config(copy=self.copy)
         specs = self.config.opponents
         if self.config.pool:
             opponents = [OpponentPool([make_agent(spec) for spec in specs], names=specs)

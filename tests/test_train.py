@@ -152,7 +152,7 @@ def test_interrupted_training_process_resumes(tmp_path, subprocesses):
     (dict(hyperparameters=(("nsteps", 64),)), "no hyperparameter 'nsteps'"),
     (dict(pool=True, pool_cars=1), "pool_cars"),
     (dict(seed=-1), r"seed \(--seed\) must be an integer >= 0"),
-    (dict(start="pitlane"), r"start must be one of \('grid', 'anywhere'\), got 'pitlane'"),
+    (dict(start="pitlane"), r"start must be one of \('grid', 'anywhere', 'mixed'\), got 'pitlane'"),
 ])
 def test_bad_settings_are_refused(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -255,6 +255,31 @@ def test_training_starts_anywhere_and_evaluates_on_the_grid():
         assert np.all(starts < 50.0) and np.all(starts >= -15.0)
         assert starts.max() > 30.0 and starts.min() < 5.0
         assert len({row.tobytes() for row in starts}) == 20
+    finally:
+        venv.close()
+
+
+def test_mixed_starts_put_the_even_copies_on_the_grid_and_the_odd_ones_anywhere():
+    """start="mixed": copy 0 (and every even copy) of the race starts on the seeded grid,
+    behind the line, and copy 1 from scenes anywhere before the finish."""
+    from racing_env.dynamics import S
+
+    config = TrainConfig(**{**TINY, "start": "mixed", "envs": 3})
+    assert [config.scenario(copy) for copy in range(3)] == ["grid", "anywhere", "grid"]
+    venv = train_rl.make_training_env(config)
+    try:
+        for copy, scenario in enumerate(["grid", "anywhere", "grid"]):
+            env = venv.envs[copy]
+            assert env.unwrapped.race.config.scenario == scenario
+            starts = []
+            for seed in range(10):
+                env.reset(seed=seed)
+                starts.append(env.unwrapped.race.state()[:, S])
+            starts = np.array(starts)
+            if scenario == "grid":  # two cars, 4 m apart, behind the line at s = 0 (jittered by up to 1 m)
+                assert np.all(starts < 0.0) and np.all(starts > -11.0)
+            else:
+                assert starts.max() > 10.0
     finally:
         venv.close()
 
