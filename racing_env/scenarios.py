@@ -183,9 +183,9 @@ def random_scenes(
 #: How far [m] before the finish line an ``anywhere`` scene's reference point lies at least, so
 #: that no episode is over in its first seconds.
 ANYWHERE_MIN_RUN = 100.0
-#: Start speeds [m/s] of ``anywhere`` scenes: slow enough at the bottom for the tightest
-#: corners of real circuits (Monza's first chicane, radius 9 m, iLQR takes at 1-7 m/s), so
-#: that a start inside one can be survived.
+#: Start speeds [m/s] of ``anywhere`` scenes: slow enough at the bottom that a start inside
+#: the tightest corners of real circuits can be survived (Monza's first chicane, radius 9 m
+#: on the centre line, which iLQR takes at 13 m/s on a line across the whole width).
 ANYWHERE_SPEED = (5.0, 19.0)
 
 
