@@ -399,6 +399,9 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     console = Console(width=140)
     check_backend(backend, workers)
     check_specs(config.agents)
+    # the race itself, so that one the env refuses (a finish line no start is behind, a
+    # track file it cannot read) fails before anything is written
+    RacingParallelEnv(race_config(config))
     done = open_run_log(out, RESULTS, CONFIG, settings_json(config, ADDED_LATER), fresh,
                         "tournament configuration", outputs=(GIF,))
     races = schedule(config)

@@ -360,6 +360,11 @@ def test_scenes_anywhere_as_starts(tmp_path):
             places = sorted(c["start_place"] for r in records if r["grid"] == grid for c in r["cars"]
                             if c["agent"] == agent)
             assert places == [1, 2]
+    # a finish line too close for the scenes is refused before anything is written
+    short = dataclasses.replace(config, race_distance=80.0)
+    with pytest.raises(ValueError, match="scenario 'anywhere' places its scenes at least 100 m"):
+        tour.run_tournament(short, tmp_path / "short", gif=False, progress=False)
+    assert not (tmp_path / "short").exists()
 
 
 def test_a_tournament_written_before_the_incident_rules_resumes(tmp_path):
