@@ -306,4 +306,9 @@ def test_bad_command_lines_fail_before_any_race(tmp_path, capsys):
     path.write_text(TINY_TOML.replace('"straight"', f'"{tmp_path / "nowhere.csv"}"'))
     assert main(["sweep", str(path), "--out", str(tmp_path / "c")]) == 2
     assert "nowhere.csv" in capsys.readouterr().err
-    assert not any((tmp_path / name / sweep.RESULTS).exists() for name in "abc")
+    # a point whose finish line lies beyond the open straight's end (300 m), after one that is fine
+    path.write_text(TINY_TOML.replace('track = ["trefoil", "straight"]', 'race_distance = [150.0, 5000.0]')
+                    .replace("race_distance = 150.0\n", 'track = "straight"\n'))
+    assert main(["sweep", str(path), "--out", str(tmp_path / "d")]) == 2
+    assert "the finish line at s = 5000 m lies beyond the end of the open track" in capsys.readouterr().err
+    assert not any((tmp_path / name / sweep.RESULTS).exists() for name in "abcd")
