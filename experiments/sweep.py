@@ -348,13 +348,13 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
 
     from planners.agents import check_specs
     from racing_env.env import RacingParallelEnv
-    from racing_env.track import get_track
 
     check_backend(backend, workers)
     check_specs(config.lineup)
-    for track in dict.fromkeys(point.get("track", config.track) for point in config.points()):
-        get_track(track)  # so does a track that is not built in and not a readable file
-    for point in config.points():  # and a race the env refuses (a finish line beyond an open track's end)
+    # every point's race as the env builds it, so that one it refuses fails before the first
+    # race: a track that is not built in and not a readable file, a finish line beyond an
+    # open track's end
+    for point in config.points():
         RacingParallelEnv(config.race_config(point, rotation=0))
     console = Console(stderr=True, width=160)
     done = open_run_log(out, RESULTS, CONFIG, settings_json(config, ADDED_LATER), fresh, "sweep")
