@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from experiments.bench import convergence_rows, solver_options_by_mode, write_json_atomically
+from experiments.formatting import or_dash
 from planners import ilq
 from racing_env.scenarios import check_scene_ranges
 
@@ -188,7 +189,7 @@ def _table(rows: list[dict[str, Any]]):
         others = ", ".join(f"{v} {short.get(k, k)}" for k, v in row["statuses"].items() if k != "converged")
         table.add_row(row["track"], str(row["cars"]), _MODE_LABELS[row["mode"]],
                       f"{row['statuses'].get('converged', 0)}/{row['scenes']}",
-                      *(("-" if row.get(k) is None else f"{row[k]:.3g}")
+                      *(or_dash(row.get(k), "{:.3g}")
                         for k in ("iterations_median", "iterations_p90", "iterations_max", "residual_p90")),
                       others)
     return table

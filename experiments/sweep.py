@@ -44,6 +44,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from experiments.backends import check_backend, run_jobs
+from experiments.formatting import or_dash
 from experiments.jsonl import append_jsonl, open_run_log, read_jsonl, settings_json
 from planners.agent_specs import with_options
 from racing_env.config import RaceConfig
@@ -400,15 +401,15 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         ("from the front", lambda row: f"{row['wins_from_front']}/{row['races_from_front']}", False),
         ("finished", lambda row: f"{row['finished']}/{row['races']}", True),
         ("retired", lambda row: str(row["retired"]), True),
-        ("mean place", lambda row: _formatted(row["mean_place"], "{:.2f}"), False),
-        ("margin [s]", lambda row: _formatted(row["mean_margin_s"], "{:+.2f}"), False),
-        ("finish time [s]", lambda row: _formatted(row["mean_finish_time_s"], "{:.2f}"), True),
-        ("best [s]", lambda row: _formatted(row["best_finish_time_s"], "{:.2f}"), True),
-        ("overtakes/race", lambda row: _formatted(row["overtakes_per_race"], "{:.2f}"), False),
+        ("mean place", lambda row: or_dash(row["mean_place"], "{:.2f}"), False),
+        ("margin [s]", lambda row: or_dash(row["mean_margin_s"], "{:+.2f}"), False),
+        ("finish time [s]", lambda row: or_dash(row["mean_finish_time_s"], "{:.2f}"), True),
+        ("best [s]", lambda row: or_dash(row["best_finish_time_s"], "{:.2f}"), True),
+        ("overtakes/race", lambda row: or_dash(row["overtakes_per_race"], "{:.2f}"), False),
         ("contact steps", lambda row: str(row["contact_steps"]), False),
         ("off track [s]", lambda row: f"{row['time_off_track_s']:.1f}", True),
         ("errors", lambda row: str(row["errors"]), True),
-        ("converged", lambda row: _formatted(row["converged_fraction"], "{:.0%}"), True),
+        ("converged", lambda row: or_dash(row["converged_fraction"], "{:.0%}"), True),
     ]
     columns = [(header, cell) for header, cell, alone in columns if alone or not time_trial]
     table = Table(title=f"sweep: {' vs '.join(config.lineup)}{' (time trial)' if time_trial else ''}")
@@ -419,11 +420,6 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
     console.print(table)
     plot_sweep(config, rows, out / "sweep.png")
     console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'summary.json'}, {out / 'sweep.png'}")
-
-
-def _formatted(value: float | None, form: str) -> str:
-    """``form`` applied to ``value``, or ``-`` for None."""
-    return "-" if value is None else form.format(value)
 
 
 def plot_sweep(config: SweepConfig, rows: list[dict[str, Any]], path: Path) -> None:

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from experiments.backends import check_backend, run_jobs
+from experiments.formatting import or_dash
 from experiments.jsonl import append_jsonl, open_run_log, read_jsonl, settings_json
 from racing_env.config import RETIRING_MODES, RaceConfig, check_incident_rules
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
@@ -360,12 +361,11 @@ def _time_trial_table(board: dict[str, Any], records: list[dict[str, Any]], conf
                 *(("retired",) if retire else ()), "errors", "act [ms]", "converged"):
         table.add_column(col, overflow="fold")
     for k, row in enumerate(board["rows"], 1):
-        seconds = lambda value: "-" if value is None else f"{value:.2f}"
-        table.add_row(str(k), row["agent"], f"{row['finished']}/{row['races']}", seconds(row["mean_finish_time_s"]),
-                      seconds(row["best_finish_time_s"]), f"{row['time_off_track_s']:.1f}",
+        table.add_row(str(k), row["agent"], f"{row['finished']}/{row['races']}", or_dash(row["mean_finish_time_s"], "{:.2f}"),
+                      or_dash(row["best_finish_time_s"], "{:.2f}"), f"{row['time_off_track_s']:.1f}",
                       *((str(row["retired"]),) if retire else ()), str(row["errors"]),
                       f"{1e3 * row['mean_act_time_s']:.1f}",
-                      "-" if row["converged_fraction"] is None else f"{row['converged_fraction']:.0%}")
+                      or_dash(row["converged_fraction"], "{:.0%}"))
     return table
 
 
@@ -452,10 +452,10 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
         table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
                       f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", f"{row['finished']}/{row['races']}",
                       *((str(row["retired"]),) if retire else ()),
-                      "-" if row["mean_margin_s"] is None else f"{row['mean_margin_s']:+.2f}", str(row["errors"]),
+                      or_dash(row["mean_margin_s"], "{:+.2f}"), str(row["errors"]),
                       str(row["collision_steps"]),
                       f"{1e3 * row['mean_act_time_s']:.1f}",
-                      "-" if row["converged_fraction"] is None else f"{row['converged_fraction']:.0%}")
+                      or_dash(row["converged_fraction"], "{:.0%}"))
     console.print(table)
     console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'head_to_head.png'}"
                   + (f", {out / GIF}" if (out / GIF).exists() else ""))

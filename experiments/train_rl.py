@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from experiments.bench import replace_atomically, write_json_atomically
+from experiments.formatting import or_dash
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
 from experiments.tournament import won_race
 from experiments.widen_policy import (Widening, measure_new_features, observation_widening, widen_normalizer,
@@ -507,11 +508,11 @@ def checkpoint(model, out: Path) -> Path:
 
 def _evaluation_line(record: dict[str, Any]) -> str:
     if len(record["races_by_start_place"]) == 1:  # a time trial: no one to win against
-        lap = "-" if record["mean_finish_time_s"] is None else f"{record['mean_finish_time_s']:.2f} s"
+        lap = or_dash(record["mean_finish_time_s"], "{:.2f} s")
         return (f"[bold]evaluation at {record['timesteps']:,} steps[/]: finished {record['finished']}/"
                 f"{record['races']}, mean finish time {lap}, mean distance {record['mean_distance']:.0f} m, "
                 f"off track {record['time_off_track_s']:.1f} s")
-    margin = "-" if record["mean_margin_s"] is None else f"{record['mean_margin_s']:+.2f} s"
+    margin = or_dash(record["mean_margin_s"], "{:+.2f} s")
     by_start = ", ".join(f"{w}/{n}" for w, n in zip(record["wins_by_start_place"], record["races_by_start_place"]))
     line = (f"[bold]evaluation at {record['timesteps']:,} steps[/]: won {record['wins']}/{record['races']} "
             f"(starting 1st, 2nd, ...: {by_start}), "
@@ -519,7 +520,7 @@ def _evaluation_line(record: dict[str, Any]) -> str:
             f"mean distance {record['mean_distance']:.0f} m, contact steps {record['contact_steps']}, "
             f"off track {record['time_off_track_s']:.1f} s")
     for label, part in record.get("by_opponent", {}).items():
-        margin = "-" if part["mean_margin_s"] is None else f"{part['mean_margin_s']:+.2f} s"
+        margin = or_dash(part["mean_margin_s"], "{:+.2f} s")
         line += f"\n  vs {label}: won {part['wins']}/{part['races']}, mean margin {margin}"
     return line
 
