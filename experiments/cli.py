@@ -137,6 +137,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         checkpoint_every=args.checkpoint_every,
         eval_every=args.eval_every, eval_grids=args.eval_grids,
         reward=tuple(parse_reward_weight(text) for text in args.reward or ()), init_model=args.init_model,
+        imitate=args.imitate, imitate_episodes=args.imitate_episodes, imitate_noise=args.imitate_noise,
         hyperparameters=tuple(parse_hyperparameter(text) for text in args.hyperparameter or ()),
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
     )
@@ -396,6 +397,17 @@ def build_parser() -> argparse.ArgumentParser:
                        "along), e.g. one trained against the lane keeper before a planner. A model of fewer cars (a --time-trial "
                        "one) gets zero weights on the new cars' features, so it starts out driving as it did; "
                        "their normalisation statistics are measured over 2,048 steps of the new race first")
+    train.add_argument("--imitate", default=None, metavar="SPEC",
+                       help="before training, clone a fresh policy from this agent's driving (e.g. ilqr): it drives "
+                       "the learner's car for --imitate-episodes seeded episodes of the training race; the policy, "
+                       "its value and the normaliser are fitted to them, and the clone (imitation.zip) is evaluated "
+                       "at 0 steps. PPO and A2C; not with --init-model")
+    train.add_argument("--imitate-episodes", type=int, default=20,
+                       help="the expert's episodes for --imitate (default: 20)")
+    train.add_argument("--imitate-noise", type=float, default=0.2,
+                       help="standard deviation of the noise added to the expert's actions (normalised, in [-1, 1]) "
+                       "while it drives for --imitate, so that the demonstrations show it recovering (default: 0.2; "
+                       "0: its own line only)")
     train.add_argument("--out", default="runs/train", help="output folder (default: runs/train)")
     train.add_argument("--fresh", action="store_true", help="discard an earlier run in --out and start over")
     train.set_defaults(func=_cmd_train)

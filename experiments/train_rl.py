@@ -25,6 +25,9 @@ Output folder::
     episodes.jsonl        one line per finished training episode
     evaluations.jsonl     one line per evaluation
     learning_curve.png    episode return and evaluation results against timesteps
+    demonstrations.npz    with ``imitate``: the expert's driving (:mod:`experiments.imitation`)
+    imitation.zip         with ``imitate``: the cloned policy RL starts from (+ statistics)
+    imitation.json        with ``imitate``: the expert's episodes and the fit's errors
 """
 
 from __future__ import annotations
@@ -59,12 +62,19 @@ EVALUATIONS = "evaluations.jsonl"
 CHECKPOINTS = "checkpoints"
 MODEL = "model.zip"
 WIDENED_MODEL = "init_model_widened.zip"  # an init_model of fewer cars, as widened for this race
+DEMONSTRATIONS = "demonstrations.npz"
+IMITATION_MODEL = "imitation.zip"
+IMITATION_REPORT = "imitation.json"
+IMITATION_ALGOS = ("ppo", "a2c")  # actor-critics with a Gaussian policy, which behaviour cloning fits
+# demonstration episode k is reset with seed DEMONSTRATION_SEED + 10_000 * seed + k (apart from the grids'
+# of training, seed + copy, and of the evaluations, 1_000_000 + 10_000 * seed + grid)
+DEMONSTRATION_SEED = 2_000_000
 _CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
 # the fields of TrainConfig that may change between a run and its resumption
 _RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses")
 TRAINING_STARTS = ("grid", "anywhere", "mixed")  # where training episodes may start (TrainConfig.start)
 # fields added to TrainConfig after runs were saved, with the value those runs had
-_ADDED_LATER = {"start": "grid"}
+_ADDED_LATER = {"start": "grid", "imitate": None, "imitate_episodes": 20, "imitate_noise": 0.2}
 # steps (all copies) over which a widened init_model's new observation features are measured
 WIDENING_MEASURE_STEPS = 2048
 
@@ -123,6 +133,15 @@ class TrainConfig:
             (a time trial) is widened (:mod:`experiments.widen_policy`): zero weights on the
             new cars' features, whose statistics are measured over
             ``WIDENING_MEASURE_STEPS`` steps of this race before training.
+        imitate: an agent spec (e.g. ``ilqr``) whose driving a fresh policy is cloned from
+            before training (:mod:`experiments.imitation`): it drives the learner's car for
+            ``imitate_episodes`` seeded episodes of the training race, and the policy, its
+            value and the normaliser are fitted to them. PPO and A2C only; not with
+            ``init_model``. The cloned policy is evaluated (at 0 steps) before training.
+        imitate_episodes: the expert's episodes, taken from the copies of the race in turn.
+        imitate_noise: standard deviation of the noise added to the expert's actions
+            (normalised units) while it drives for the demonstrations, so that they show it
+            recovering from the errors a clone makes; 0 for the expert's own line only.
     """
 
     opponents: tuple[str, ...] = ("lane-keeping",)
@@ -149,6 +168,9 @@ class TrainConfig:
     reward: tuple[tuple[str, float], ...] = ()
     hyperparameters: tuple[tuple[str, Any], ...] = ()
     init_model: str | None = None
+    imitate: str | None = None
+    imitate_episodes: int = 20
+    imitate_noise: float = 0.2
 
     def __post_init__(self) -> None:
         if self.pool and not self.opponents:
@@ -161,7 +183,16 @@ class TrainConfig:
             raise ValueError(f"pool_cars must be an integer >= 2, got {self.pool_cars!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise ValueError(f"seed (--seed) must be an integer >= 0, got {self.seed!r}")
-        for name in ("timesteps", "envs", "eval_grids"):
+        if self.imitate is not None:
+            if self.algo not in IMITATION_ALGOS:
+                raise ValueError(f"imitation fits a Gaussian actor-critic policy: algo must be one of "
+                                 f"{IMITATION_ALGOS}, got {self.algo!r}")
+            if self.init_model is not None:
+                raise ValueError("imitate starts a fresh policy from the expert; init_model trains a saved one "
+                                 "further: give one of them")
+            if not 0.0 <= self.imitate_noise < np.inf:
+                raise ValueError(f"imitate_noise must be a finite standard deviation >= 0, got {self.imitate_noise!r}")
+        for name in ("timesteps", "envs", "eval_grids", "imitate_episodes"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
@@ -580,6 +611,45 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
     return model
 
 
+def _clone_expert(config: TrainConfig, model, out: Path, console, progress: bool) -> None:
+    """Fit the fresh ``model`` to ``config.imitate``'s driving (collected once, then kept in
+    ``demonstrations.npz``), save it as ``imitation.zip`` and evaluate it as at 0 steps."""
+    from experiments.imitation import Demonstrations, clone, collect_demonstrations
+
+    started = time.perf_counter()
+    path = out / DEMONSTRATIONS
+    if path.exists():
+        demonstrations = Demonstrations.load(path)
+        console.print(f"cloning {config.imitate} from {path} ({demonstrations.episodes} episodes)")
+    else:
+        envs = [_RaceCopy(config, copy)() for copy in range(config.envs)]
+        try:
+            demonstrations = collect_demonstrations(envs, make_agent(config.imitate), config.imitate_episodes,
+                                                    DEMONSTRATION_SEED + 10_000 * config.seed, config.imitate_noise,
+                                                    progress)
+        finally:
+            for env in envs:
+                env.close()
+        replace_atomically(lambda tmp: demonstrations.save(tmp), path)
+    collected = time.perf_counter() - started
+    fit = clone(model, demonstrations, seed=config.seed)
+    save_policy(model, model.get_env(), out / IMITATION_MODEL)
+    kept = [e for e in read_jsonl(out / EVALUATIONS) if e["timesteps"] > 0]  # an earlier attempt's, if any
+    replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EVALUATIONS)
+    record = evaluate(config, out / IMITATION_MODEL, 0)
+    append_jsonl(out / EVALUATIONS, record)
+    write_json_atomically({"expert": config.imitate, "episodes": demonstrations.episodes,
+                           "steps": len(demonstrations.actions),
+                           "expert_finished": int(demonstrations.finished.sum()), "collect_s": collected,
+                           "fit": fit, "evaluation": record}, out / IMITATION_REPORT)
+    after = fit["after"]["held_out"] or fit["after"]["fitted"]
+    console.print(f"cloned {config.imitate} from {len(demonstrations.actions):,} steps "
+                  f"({demonstrations.episodes} episodes, {int(demonstrations.finished.sum())} finished): action "
+                  f"error {after['action_rmse']:.3f} on the {'held-out' if fit['after']['held_out'] else 'fitted'} "
+                  f"steps, action std {', '.join(f'{s:.2f}' for s in fit['action_std'])}")
+    console.print(_evaluation_line(record))
+
+
 def _init_model_widening(config: TrainConfig, saved, venv) -> Widening | None:
     """How the ``saved`` init model's observation fits this race (None: it fits as it is)."""
     race = config.race_config()
@@ -595,12 +665,13 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     from rich.console import Console
 
     console = Console(stderr=True)
-    check_specs(config.opponents)
+    check_specs(config.opponents + ((config.imitate,) if config.imitate else ()))
     config_path = out / CONFIG
     if fresh and out.exists():
-        for name in (CONFIG, EPISODES, EVALUATIONS, MODEL, WIDENED_MODEL, "learning_curve.png"):
+        for name in (CONFIG, EPISODES, EVALUATIONS, MODEL, WIDENED_MODEL, "learning_curve.png", DEMONSTRATIONS,
+                     IMITATION_MODEL, IMITATION_REPORT):
             (out / name).unlink(missing_ok=True)
-        for name in (MODEL, WIDENED_MODEL):
+        for name in (MODEL, WIDENED_MODEL, IMITATION_MODEL):
             vecnormalize_path(out / name).unlink(missing_ok=True)
         shutil.rmtree(out / CHECKPOINTS, ignore_errors=True)
     wanted = _config_json(config)
@@ -620,6 +691,8 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
         _drop_episodes_after(out, resume_from[0])
     write_json_atomically(report, config_path)
     drop_cut_line(out / EVALUATIONS)
+    if resume_from is None and config.imitate is not None:
+        _clone_expert(config, model, out, console, progress)
     remaining = config.timesteps - model.num_timesteps
     started = time.perf_counter()
     recorder = _training_callback(config, out, console)

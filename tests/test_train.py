@@ -153,6 +153,10 @@ def test_interrupted_training_process_resumes(tmp_path, subprocesses):
     (dict(pool=True, pool_cars=1), "pool_cars"),
     (dict(seed=-1), r"seed \(--seed\) must be an integer >= 0"),
     (dict(start="pitlane"), r"start must be one of \('grid', 'anywhere', 'mixed'\), got 'pitlane'"),
+    (dict(imitate="ilqr", algo="sac"), r"algo must be one of \('ppo', 'a2c'\), got 'sac'"),
+    (dict(imitate="ilqr", init_model="tests/conftest.py"), "give one of them"),
+    (dict(imitate="ilqr", imitate_noise=-0.1), "imitate_noise must be a finite standard deviation >= 0"),
+    (dict(imitate="ilqr", imitate_episodes=0), "imitate_episodes must be an integer >= 1"),
 ])
 def test_bad_settings_are_refused(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -169,6 +173,7 @@ def test_bad_command_lines_fail_before_training(tmp_path, capsys):
         (["--track", str(tmp_path / "nowhere.csv")], "nowhere.csv"),
         (["--time-trial", "--opponents", "ilqr"], "--time-trial races the learner alone: give no --opponents"),
         (["--reward", "pace=-1"], "unknown reward term 'pace'"),
+        (["--imitate", "wizard"], "unknown agent spec 'wizard'"),
     ]
     for extra, message in cases:
         out = tmp_path / "out"

@@ -1,0 +1,134 @@
+"""Behaviour cloning (`racing train --imitate`): the demonstrations, the returns and statistics
+the fit uses, and a clone of the lane keeper that laps the trefoil as the lane keeper does."""
+
+from __future__ import annotations
+
+import json
+
+import gymnasium
+import numpy as np
+import pytest
+
+from experiments.cli import main
+from experiments.imitation import (Demonstrations, _split, collect_demonstrations, discounted_returns,
+                                   fit_normalizer, running_returns)
+from experiments.jsonl import read_jsonl
+from experiments.train_rl import TrainConfig
+from experiments.tournament import race_lineup
+from planners.agents import make_agent
+from racing_env.single_agent import RaceEnv
+
+REWARDS = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+EPISODE = np.array([0, 0, 0, 1, 1])
+
+
+def test_returns_sum_within_each_episode():
+    # gamma 0.5, by hand: episode 0 ahead 1 + 0.5 (2 + 0.5 * 3), 2 + 0.5 * 3, 3; episode 1 ahead 4 + 0.5 * 5, 5
+    assert discounted_returns(REWARDS, EPISODE, 0.5) == pytest.approx([2.75, 3.5, 3.0, 6.5, 5.0], abs=1e-12)
+    # so far: 1, 0.5 * 1 + 2, 0.5 * 2.5 + 3; 4, 0.5 * 4 + 5
+    assert running_returns(REWARDS, EPISODE, 0.5) == pytest.approx([1.0, 2.5, 4.25, 4.0, 7.0], abs=1e-12)
+
+
+def test_the_normaliser_takes_the_demonstrations_statistics():
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    venv = VecNormalize(DummyVecEnv([lambda: gymnasium.make("Pendulum-v1")]), gamma=0.5)
+    observations = np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32)
+    demonstrations = Demonstrations(observations=observations, actions=np.zeros((5, 1), np.float32),
+                                    rewards=REWARDS, episode=EPISODE, finished=np.array([True, False]))
+    fit_normalizer(venv, demonstrations)
+    mean, std = observations.astype(float).mean(axis=0), observations.astype(float).std(axis=0)
+    assert venv.normalize_obs(observations) == pytest.approx((observations - mean) / np.sqrt(std**2 + venv.epsilon),
+                                                              abs=1e-6)  # float32 observations
+    # rewards are divided by the spread of the running returns 1, 2.5, 4.25, 4, 7 (gamma 0.5)
+    spread = np.sqrt(np.var([1.0, 2.5, 4.25, 4.0, 7.0]) + venv.epsilon)
+    assert venv.normalize_reward(REWARDS) == pytest.approx(REWARDS / spread, rel=1e-7)  # returned in float32
+
+
+def test_the_last_tenth_of_the_episodes_is_held_out():
+    for episodes, held in [(1, 0), (2, 1), (10, 1), (11, 2)]:
+        episode = np.repeat(np.arange(episodes), 3)
+        demonstrations = Demonstrations(np.zeros((len(episode), 1)), np.zeros((len(episode), 2)),
+                                        np.zeros(len(episode)), episode, np.zeros(episodes, bool))
+        fitted, holdout = _split(demonstrations)
+        assert set(episode[holdout]) == set(range(episodes - held, episodes)) and not (fitted & holdout).any()
+
+
+def test_demonstrations_survive_a_save_under_any_name(tmp_path):
+    rng = np.random.default_rng(1)
+    demonstrations = Demonstrations(rng.normal(size=(4, 3)).astype(np.float32), rng.normal(size=(4, 2)),
+                                    rng.normal(size=4), np.array([0, 0, 1, 1]), np.array([True, False]))
+    path = tmp_path / "demonstrations.npz.partial"  # as written before its atomic rename
+    demonstrations.save(path)
+    loaded = Demonstrations.load(path)
+    for name in ("observations", "actions", "rewards", "episode", "finished"):
+        assert np.array_equal(getattr(loaded, name), getattr(demonstrations, name)), name
+
+
+class _Logged:
+    """Wraps an agent (or an env's step) and keeps what went through it."""
+
+    def __init__(self, inner):
+        self.inner, self.log = inner, []
+        self.name = getattr(inner, "name", "logged")
+
+    def reset(self, *args):
+        self.inner.reset(*args)
+
+    def __call__(self, observation, state):
+        action = np.asarray(self.inner(observation, state), dtype=np.float32)
+        self.log.append(action)
+        return action
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.3])
+def test_the_expert_drives_with_noise_and_its_own_actions_are_recorded(noise):
+    env = RaceEnv(opponents=[], learner=0, num_agents=1, track="trefoil", race_distance=150.0, max_steps=400)
+    stepped = []
+    step = env.step
+    env.step = lambda action: (stepped.append(np.array(action)), step(action))[1]
+    expert = _Logged(make_agent("lane-keeping"))
+    demonstrations = collect_demonstrations([env], expert, episodes=2, seed=7, noise=noise, progress=False)
+
+    assert np.array_equal(demonstrations.actions, np.clip(np.array(expert.log), -1, 1))
+    assert demonstrations.finished.tolist() == [True, True]  # the lane keeper finishes 150 m, noise or not
+    first = [np.flatnonzero(demonstrations.episode == k)[0] for k in (0, 1)]
+    for k, start in enumerate(first):  # episode k starts from reset(seed=7 + k)
+        assert np.array_equal(demonstrations.observations[start], env.reset(seed=7 + k)[0])
+    difference = np.array(stepped) - demonstrations.actions
+    if noise == 0.0:
+        assert not difference.any()
+    else:  # hundreds of draws: their spread within 15% (several standard errors) of the noise asked for
+        assert difference.size > 200 and np.std(difference) == pytest.approx(noise, rel=0.15)
+
+
+def test_a_clone_of_the_lane_keeper_laps_the_trefoil_as_it_does(tmp_path):
+    """The lane keeper's driving (3 noisy laps) cloned into a fresh PPO policy: the fit cuts
+    the action error on the held-out lap at least five-fold, and the clone laps the
+    evaluation grid without leaving the track within 2% of the lane keeper's own time."""
+    command = ["train", "--time-trial", "--imitate", "lane-keeping", "--imitate-episodes", "3", "--timesteps", "512",
+               "--eval-every", "0", "--eval-grids", "1", "--hyperparameter", "n_steps=256", "--hyperparameter",
+               "batch_size=64", "--hyperparameter", "n_epochs=2", "--no-compile-cache", "--out", str(tmp_path)]
+    assert main(command) == 0
+    report = json.loads((tmp_path / "imitation.json").read_text())
+    assert report["expert"] == "lane-keeping" and report["episodes"] == 3 and report["expert_finished"] == 3
+    fit = report["fit"]
+    assert fit["steps_fitted"] + fit["steps_held_out"] == report["steps"] and fit["steps_held_out"] > 0
+    assert fit["after"]["held_out"]["action_rmse"] * 5 <= fit["before"]["held_out"]["action_rmse"]
+    assert fit["after"]["held_out"]["value_rmse"] < fit["before"]["held_out"]["value_rmse"]
+    assert fit["action_std"] == pytest.approx([1.0, 1.0])  # PPO's initial spread, not fitted
+
+    evaluations = read_jsonl(tmp_path / "evaluations.jsonl")
+    assert [e["timesteps"] for e in evaluations] == [0, 512] and evaluations[0] == report["evaluation"]
+    config = TrainConfig(opponents=(), eval_grids=1)
+    expert, _ = race_lineup(config.race_config(training=False), ["lane-keeping"], seed=1_000_000)
+    lap = expert["cars"][0]["finish_time"]
+    assert evaluations[0]["finished"] == 1 and evaluations[0]["time_off_track_s"] == 0.0
+    assert evaluations[0]["mean_finish_time_s"] == pytest.approx(lap, rel=0.02)
+    saved = json.loads((tmp_path / "train.json").read_text())["config"]
+    assert (saved["imitate"], saved["imitate_episodes"], saved["imitate_noise"]) == ("lane-keeping", 3, 0.2)
+
+    # the same command again finds the run complete: nothing is collected or cloned again
+    before = {name: (tmp_path / name).stat().st_mtime_ns for name in ("demonstrations.npz", "imitation.zip")}
+    assert main(command) == 0
+    assert {name: (tmp_path / name).stat().st_mtime_ns for name in before} == before
