@@ -10,8 +10,11 @@ reinforcement learning starts:
   have measured them while driving those episodes itself;
 * the Gaussian policy's mean is fitted to the expert's actions (least squares: the maximum
   likelihood of the mean for any fixed spread). Its state-independent standard deviation is
-  left as the policy was built (SB3's ``log_std_init``): fitted too, it would shrink to the
-  clone's tiny error, and reinforcement learning would have nothing left to explore with;
+  not fitted (it would shrink to the clone's tiny error, and reinforcement learning would
+  have nothing left to explore with) but set to the noise the demonstrations were driven
+  with (below): the policy then explores the states the demonstrations cover. Left at
+  PPO's initial 1.0, five times that noise, the first rollouts leave the track and the
+  first updates undo the clone;
 * the value function is fitted to the discounted sum of the normalised rewards that follow
   each step, so that those first updates start from advantages that mean something.
 
@@ -154,14 +157,16 @@ def _split(demonstrations: Demonstrations) -> tuple[np.ndarray, np.ndarray]:
     return ~holdout, holdout
 
 
-def clone(model: Any, demonstrations: Demonstrations, epochs: int = 30, batch_size: int = 256,
-          learning_rate: float = 1e-3, value_weight: float = 0.5, seed: int = 0) -> dict[str, Any]:
+def clone(model: Any, demonstrations: Demonstrations, spread: float | None = None, epochs: int = 30,
+          batch_size: int = 256, learning_rate: float = 1e-3, value_weight: float = 0.5,
+          seed: int = 0) -> dict[str, Any]:
     """Fit ``model`` (an SB3 actor-critic: PPO or A2C, whose env is a ``VecNormalize`` or
     not normalised) to ``demonstrations``: normaliser statistics, the policy's mean action
     by least squares on the expert's actions, the value by least squares on the discounted
     normalised returns (``model.gamma``), the two losses summed with ``value_weight`` on the
     second. Adam, minibatches of ``batch_size``, ``epochs`` passes over the fitted steps.
-    The policy's standard deviation is not fitted.
+    The policy's standard deviation is not fitted: it is set to ``spread`` for every action
+    (normalised units), or kept as the policy was built when ``spread`` is None.
 
     Returns the fit's report: steps fitted and held out, and for each split, before and
     after the fit, the root-mean-square error of the policy's deterministic action (clipped
@@ -170,6 +175,8 @@ def clone(model: Any, demonstrations: Demonstrations, epochs: int = 30, batch_si
     import torch
     from stable_baselines3.common.vec_env import VecNormalize
 
+    if spread is not None and not 0.0 < spread < np.inf:
+        raise ValueError(f"spread must be a finite standard deviation > 0, got {spread}")
     if epochs < 1 or batch_size < 1 or not learning_rate > 0:
         raise ValueError(f"epochs and batch_size must be >= 1 and learning_rate > 0, "
                          f"got {epochs}, {batch_size}, {learning_rate}")
@@ -218,6 +225,9 @@ def clone(model: Any, demonstrations: Demonstrations, epochs: int = 30, batch_si
             total, batches = total + loss.item(), batches + 1
         losses.append(total / batches)
     policy.set_training_mode(False)
+    if spread is not None:
+        with torch.no_grad():
+            policy.log_std.fill_(float(np.log(spread)))
     report["after"] = {"fitted": measure(fitted), "held_out": measure(held)}
     report["action_std"] = [float(s) for s in torch.exp(policy.log_std.detach())]
     report["loss_per_epoch"] = losses

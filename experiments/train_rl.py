@@ -141,7 +141,8 @@ class TrainConfig:
         imitate_episodes: the expert's episodes, taken from the copies of the race in turn.
         imitate_noise: standard deviation of the noise added to the expert's actions
             (normalised units) while it drives for the demonstrations, so that they show it
-            recovering from the errors a clone makes; 0 for the expert's own line only.
+            recovering from the errors a clone makes, and the cloned policy's spread; 0 for
+            the expert's own line only (the policy's spread then stays PPO's initial one).
     """
 
     opponents: tuple[str, ...] = ("lane-keeping",)
@@ -632,7 +633,7 @@ def _clone_expert(config: TrainConfig, model, out: Path, console, progress: bool
                 env.close()
         replace_atomically(lambda tmp: demonstrations.save(tmp), path)
     collected = time.perf_counter() - started
-    fit = clone(model, demonstrations, seed=config.seed)
+    fit = clone(model, demonstrations, spread=config.imitate_noise or None, seed=config.seed)
     save_policy(model, model.get_env(), out / IMITATION_MODEL)
     kept = [e for e in read_jsonl(out / EVALUATIONS) if e["timesteps"] > 0]  # an earlier attempt's, if any
     replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EVALUATIONS)

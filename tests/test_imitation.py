@@ -116,7 +116,7 @@ def test_a_clone_of_the_lane_keeper_laps_the_trefoil_as_it_does(tmp_path):
     assert fit["steps_fitted"] + fit["steps_held_out"] == report["steps"] and fit["steps_held_out"] > 0
     assert fit["after"]["held_out"]["action_rmse"] * 5 <= fit["before"]["held_out"]["action_rmse"]
     assert fit["after"]["held_out"]["value_rmse"] < fit["before"]["held_out"]["value_rmse"]
-    assert fit["action_std"] == pytest.approx([1.0, 1.0])  # PPO's initial spread, not fitted
+    assert fit["action_std"] == pytest.approx([0.2, 0.2], rel=1e-6)  # the demonstrations' noise, not fitted
 
     evaluations = read_jsonl(tmp_path / "evaluations.jsonl")
     assert [e["timesteps"] for e in evaluations] == [0, 512] and evaluations[0] == report["evaluation"]
@@ -132,3 +132,22 @@ def test_a_clone_of_the_lane_keeper_laps_the_trefoil_as_it_does(tmp_path):
     before = {name: (tmp_path / name).stat().st_mtime_ns for name in ("demonstrations.npz", "imitation.zip")}
     assert main(command) == 0
     assert {name: (tmp_path / name).stat().st_mtime_ns for name in before} == before
+
+
+def test_the_clone_spread_is_the_noise_or_the_policys_own():
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from experiments.imitation import clone
+
+    rng = np.random.default_rng(2)
+    demonstrations = Demonstrations(rng.normal(size=(40, 3)).astype(np.float32),
+                                    rng.uniform(-1, 1, size=(40, 1)).astype(np.float32), rng.normal(size=40),
+                                    np.repeat(np.arange(4), 10), np.zeros(4, bool))
+    for spread, expected in [(None, 1.0), (0.3, 0.3)]:  # None: PPO's initial log_std = 0
+        model = PPO("MlpPolicy", VecNormalize(DummyVecEnv([lambda: gymnasium.make("Pendulum-v1")])), seed=0,
+                    device="cpu")
+        report = clone(model, demonstrations, spread=spread, epochs=2)
+        assert report["action_std"] == pytest.approx([expected], rel=1e-6)
+    with pytest.raises(ValueError, match="spread must be a finite standard deviation > 0, got 0.0"):
+        clone(model, demonstrations, spread=0.0)
