@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -51,6 +51,8 @@ class Demonstrations:
             plus the collection's noise).
         episode: ``(M,)`` the episode (0..E-1) each step belongs to.
         finished: ``(E,)`` whether the expert finished the race in that episode.
+        source: what drove, and in which race (free text, e.g. JSON settings; "" when
+            unknown), so that a run can tell whether saved demonstrations are its own.
     """
 
     observations: np.ndarray
@@ -58,10 +60,18 @@ class Demonstrations:
     rewards: np.ndarray
     episode: np.ndarray
     finished: np.ndarray
+    source: str = ""
 
     @property
     def episodes(self) -> int:
         return len(self.finished)
+
+    def first(self, episodes: int) -> "Demonstrations":
+        """The first ``episodes`` episodes (all of them when there are no more)."""
+        keep = self.episode < episodes
+        return dataclasses.replace(self, observations=self.observations[keep], actions=self.actions[keep],
+                                   rewards=self.rewards[keep], episode=self.episode[keep],
+                                   finished=self.finished[:episodes])
 
     def save(self, path: Path) -> None:
         with open(path, "wb") as sink:  # a file object: numpy would add ".npz" to a name without it
@@ -70,11 +80,16 @@ class Demonstrations:
     @classmethod
     def load(cls, path: Path) -> "Demonstrations":
         with np.load(path) as data:
-            return cls(**{f.name: data[f.name] for f in dataclasses.fields(cls)})
+            fields = {f.name: data[f.name] for f in dataclasses.fields(cls) if f.name in data}
+        if "source" in fields:
+            fields["source"] = str(fields["source"])  # saved as a 0-d string array
+        return cls(**fields)
 
 
 def collect_demonstrations(envs: Sequence[Any], expert: Any, episodes: int, seed: int, noise: float = 0.0,
-                           progress: bool = True) -> Demonstrations:
+                           progress: bool = True, collected: Demonstrations | None = None,
+                           on_episode: Callable[[Demonstrations], None] | None = None,
+                           source: str = "") -> Demonstrations:
     """Let ``expert`` drive the learner's car of ``envs`` (Gymnasium views of the race,
     :class:`racing_env.single_agent.RaceEnv`, possibly wrapped) for ``episodes`` episodes,
     taking the envs in turn; episode ``k`` is reset with seed ``seed + k``. The expert
@@ -82,23 +97,40 @@ def collect_demonstrations(envs: Sequence[Any], expert: Any, episodes: int, seed
     on ``(observation, joint state)``. The car is driven by the expert's action plus
     Gaussian noise of standard deviation ``noise`` (normalised action units, clipped to
     ``[-1, 1]``; drawn from a generator seeded by ``seed``), and the expert's action is
-    recorded."""
+    recorded. ``source`` is kept with the demonstrations (:attr:`Demonstrations.source`).
+
+    ``collected``: episodes of an earlier, interrupted collection with the same arguments
+    and ``source``; driving goes on from the next episode, and the result equals an
+    uninterrupted collection (the noise generator is moved past the draws those episodes
+    used). With ``episodes`` or more collected, their first ``episodes`` are returned.
+    ``on_episode`` is called with everything collected so far after every episode, e.g.
+    to save it, so that an interruption loses at most the episode being driven."""
     from rich.progress import track
 
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if not 0.0 <= noise < np.inf:
         raise ValueError(f"noise must be a finite standard deviation >= 0, got {noise}")
+    if collected is not None and collected.source != source:
+        raise ValueError(f"the collected demonstrations come from {collected.source!r}, not {source!r}")
     rng = np.random.default_rng(seed)
-    observations, actions, rewards, episode_of, finished = [], [], [], [], []
-    for k in track(range(episodes), description=f"{getattr(expert, 'name', 'expert')} drives",
+    if collected is not None and collected.episodes >= episodes:
+        return collected.first(episodes)
+    done = collected if collected is not None else Demonstrations(
+        np.zeros((0, 0), np.float32), np.zeros((0, 0), np.float32), np.zeros(0), np.zeros(0, np.int64),
+        np.zeros(0, bool), source)
+    if done.episodes:
+        rng.standard_normal(done.actions.size)  # one draw per action entry of every step driven so far
+    observations, actions, rewards = list(done.observations), list(done.actions), list(done.rewards)
+    episode_of, finished = list(done.episode), list(done.finished)
+    for k in track(range(done.episodes, episodes), description=f"{getattr(expert, 'name', 'expert')} drives",
                    disable=not progress, transient=True):
         env = envs[k % len(envs)]
         race = env.unwrapped
         observation, _ = env.reset(seed=seed + k)
         expert.reset(seed + k, race.race.possible_agents.index(race.learner), race.race)
-        done, info = False, {}
-        while not done:
+        done_episode, info = False, {}
+        while not done_episode:
             action = np.clip(np.asarray(expert(observation, race.race.state()), dtype=np.float32), -1.0, 1.0)
             observations.append(observation)
             actions.append(action)
@@ -106,13 +138,16 @@ def collect_demonstrations(envs: Sequence[Any], expert: Any, episodes: int, seed
             observation, reward, terminated, truncated, info = env.step(driven)
             rewards.append(reward)
             episode_of.append(k)
-            done = terminated or truncated
+            done_episode = terminated or truncated
         finished.append(bool(info.get("finished", False)))
-    return Demonstrations(observations=np.asarray(observations, dtype=np.float32),
-                          actions=np.asarray(actions, dtype=np.float32),
-                          rewards=np.asarray(rewards, dtype=np.float64),
-                          episode=np.asarray(episode_of, dtype=np.int64),
-                          finished=np.asarray(finished, dtype=bool))
+        done = Demonstrations(observations=np.asarray(observations, dtype=np.float32),
+                              actions=np.asarray(actions, dtype=np.float32),
+                              rewards=np.asarray(rewards, dtype=np.float64),
+                              episode=np.asarray(episode_of, dtype=np.int64),
+                              finished=np.asarray(finished, dtype=bool), source=done.source)
+        if on_episode is not None:
+            on_episode(done)
+    return done
 
 
 def discounted_returns(rewards: np.ndarray, episode: np.ndarray, gamma: float) -> np.ndarray:

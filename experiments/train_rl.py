@@ -72,6 +72,10 @@ DEMONSTRATION_SEED = 2_000_000
 _CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
 # the fields of TrainConfig that may change between a run and its resumption
 _RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses")
+# the fields of TrainConfig that do not change how the imitated expert drives: demonstrations
+# saved by a run that differed only in these are reused (``demonstrations_source``)
+_NOT_IN_DEMONSTRATIONS = _RESUMABLE_CHANGES + ("imitate_episodes", "algo", "hyperparameters", "normalize",
+                                               "eval_off_track", "eval_grids", "init_model")
 TRAINING_STARTS = ("grid", "anywhere", "mixed")  # where training episodes may start (TrainConfig.start)
 # fields added to TrainConfig after runs were saved, with the value those runs had
 _ADDED_LATER = {"start": "grid", "imitate": None, "imitate_episodes": 20, "imitate_noise": 0.2}
@@ -612,31 +616,58 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
     return model
 
 
+def demonstrations_source(config: TrainConfig) -> str:
+    """The settings that decide how ``config.imitate`` drives its demonstrations (JSON):
+    saved demonstrations of a run whose source differs are not its own."""
+    settings = _config_json(config)
+    return json.dumps({k: v for k, v in settings.items() if k not in _NOT_IN_DEMONSTRATIONS}, sort_keys=True)
+
+
 def _clone_expert(config: TrainConfig, model, out: Path, console, progress: bool) -> None:
-    """Fit the fresh ``model`` to ``config.imitate``'s driving (collected once, then kept in
-    ``demonstrations.npz``), save it as ``imitation.zip`` and evaluate it as at 0 steps."""
+    """Fit the fresh ``model`` to ``config.imitate``'s driving, save it as ``imitation.zip``
+    and evaluate it as at 0 steps. The driving is kept in ``demonstrations.npz`` after
+    every episode: after an interruption the same command drives only the episodes
+    still missing (none once all are there)."""
     from experiments.imitation import Demonstrations, clone, collect_demonstrations
 
     started = time.perf_counter()
-    path = out / DEMONSTRATIONS
-    if path.exists():
-        demonstrations = Demonstrations.load(path)
-        console.print(f"cloning {config.imitate} from {path} ({demonstrations.episodes} episodes)")
+    path, source = out / DEMONSTRATIONS, demonstrations_source(config)
+    saved = Demonstrations.load(path) if path.exists() else None
+    if saved is not None and saved.source != source:
+        console.print(f"{path} was driven in other settings: driving the demonstrations again")
+        saved = None
+    if saved is not None and saved.episodes >= config.imitate_episodes:
+        demonstrations = saved.first(config.imitate_episodes)
+        console.print(f"cloning {config.imitate} from {path} ({demonstrations.episodes} of its "
+                      f"{saved.episodes} episodes)")
     else:
+        if saved is not None:
+            console.print(f"{path} holds {saved.episodes} of {config.imitate_episodes} episodes: "
+                          f"{config.imitate} drives the other {config.imitate_episodes - saved.episodes}")
         envs = [_RaceCopy(config, copy)() for copy in range(config.envs)]
+        kept = [saved.episodes if saved is not None else 0]
+
+        def keep(so_far: Demonstrations) -> None:
+            replace_atomically(so_far.save, path)
+            kept[0] = so_far.episodes
+
         try:
             demonstrations = collect_demonstrations(envs, make_agent(config.imitate), config.imitate_episodes,
                                                     DEMONSTRATION_SEED + 10_000 * config.seed, config.imitate_noise,
-                                                    progress)
+                                                    progress, collected=saved, on_episode=keep, source=source)
+        except KeyboardInterrupt:
+            console.print(f"interrupted while {config.imitate} drove: {kept[0]} of {config.imitate_episodes} "
+                          f"episodes kept in {path}")
+            raise
         finally:
             for env in envs:
                 env.close()
-        replace_atomically(lambda tmp: demonstrations.save(tmp), path)
     collected = time.perf_counter() - started
     fit = clone(model, demonstrations, spread=config.imitate_noise or None, seed=config.seed)
     save_policy(model, model.get_env(), out / IMITATION_MODEL)
-    kept = [e for e in read_jsonl(out / EVALUATIONS) if e["timesteps"] > 0]  # an earlier attempt's, if any
-    replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EVALUATIONS)
+    kept_evaluations = [e for e in read_jsonl(out / EVALUATIONS) if e["timesteps"] > 0]  # an earlier attempt's
+    replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept_evaluations)),
+                       out / EVALUATIONS)
     record = evaluate(config, out / IMITATION_MODEL, 0)
     append_jsonl(out / EVALUATIONS, record)
     write_json_atomically({"expert": config.imitate, "episodes": demonstrations.episodes,
@@ -693,7 +724,14 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     write_json_atomically(report, config_path)
     drop_cut_line(out / EVALUATIONS)
     if resume_from is None and config.imitate is not None:
-        _clone_expert(config, model, out, console, progress)
+        try:
+            _clone_expert(config, model, out, console, progress)
+        except KeyboardInterrupt:  # what was driven is kept; the clone is fitted again next time
+            report["status"] = "interrupted"
+            write_json_atomically(report, config_path)
+            console.print("interrupted before training: run the same command to clone again and train")
+            _close(model.get_env(), interrupted=True)
+            return report
     remaining = config.timesteps - model.num_timesteps
     started = time.perf_counter()
     recorder = _training_callback(config, out, console)

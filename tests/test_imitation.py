@@ -3,6 +3,7 @@ the fit uses, and a clone of the lane keeper that laps the trefoil as the lane k
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import gymnasium
@@ -13,10 +14,12 @@ from experiments.cli import main
 from experiments.imitation import (Demonstrations, _split, collect_demonstrations, discounted_returns,
                                    fit_normalizer, running_returns)
 from experiments.jsonl import read_jsonl
-from experiments.train_rl import TrainConfig
+from experiments.train_rl import TrainConfig, demonstrations_source
 from experiments.tournament import race_lineup
 from planners.agents import make_agent
 from racing_env.single_agent import RaceEnv
+
+from interrupting import ctrl_c_when, start_racing
 
 REWARDS = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
 EPISODE = np.array([0, 0, 0, 1, 1])
@@ -58,11 +61,17 @@ def test_demonstrations_survive_a_save_under_any_name(tmp_path):
     rng = np.random.default_rng(1)
     demonstrations = Demonstrations(rng.normal(size=(4, 3)).astype(np.float32), rng.normal(size=(4, 2)),
                                     rng.normal(size=4), np.array([0, 0, 1, 1]), np.array([True, False]))
+    demonstrations = dataclasses.replace(demonstrations, source='{"imitate": "ilqr"}')
     path = tmp_path / "demonstrations.npz.partial"  # as written before its atomic rename
     demonstrations.save(path)
     loaded = Demonstrations.load(path)
-    for name in ("observations", "actions", "rewards", "episode", "finished"):
-        assert np.array_equal(getattr(loaded, name), getattr(demonstrations, name)), name
+    _assert_same(loaded, demonstrations)
+    assert loaded.source == '{"imitate": "ilqr"}' and isinstance(loaded.source, str)
+
+
+def _assert_same(found: Demonstrations, expected: Demonstrations) -> None:
+    for field in dataclasses.fields(Demonstrations):
+        assert np.array_equal(getattr(found, field.name), getattr(expected, field.name)), field.name
 
 
 class _Logged:
@@ -151,3 +160,72 @@ def test_the_clone_spread_is_the_noise_or_the_policys_own():
         assert report["action_std"] == pytest.approx([expected], rel=1e-6)
     with pytest.raises(ValueError, match="spread must be a finite standard deviation > 0, got 0.0"):
         clone(model, demonstrations, spread=0.0)
+
+
+def test_an_interrupted_collection_goes_on_as_if_it_had_not_stopped():
+    """Episodes collected in two goes (the second from the first's saved episodes) equal one
+    uninterrupted collection bit for bit, noise included; every episode is handed over to be
+    saved as it ends."""
+    env = RaceEnv(opponents=[], learner=0, num_agents=1, track="trefoil", race_distance=60.0, max_steps=200)
+    expert = make_agent("lane-keeping")
+    kwargs = dict(seed=3, noise=0.3, progress=False, source="lane keeper, 60 m")
+    whole = collect_demonstrations([env], expert, episodes=3, **kwargs)
+    saved = []
+    first = collect_demonstrations([env], expert, episodes=1, on_episode=saved.append, **kwargs)
+    rest = collect_demonstrations([env], expert, episodes=3, collected=first, on_episode=saved.append, **kwargs)
+    assert whole.episodes == 3 and whole.source == "lane keeper, 60 m"
+    _assert_same(rest, whole)
+    assert [d.episodes for d in saved] == [1, 2, 3]
+    _assert_same(saved[-1], whole)
+    _assert_same(collect_demonstrations([env], expert, episodes=2, collected=whole, **kwargs), whole.first(2))
+    assert whole.first(2).episodes == 2 and set(whole.first(2).episode) == {0, 1}
+    with pytest.raises(ValueError, match="come from 'lane keeper, 60 m', not 'ilqr'"):
+        collect_demonstrations([env], expert, episodes=3, collected=first, **{**kwargs, "source": "ilqr"})
+
+
+def test_saved_demonstrations_belong_to_the_settings_that_drive_them():
+    base = TrainConfig(opponents=(), imitate="ilqr")
+    same = [dict(timesteps=5), dict(imitate_episodes=3), dict(algo="a2c"), dict(eval_grids=4),
+            dict(hyperparameters=(("learning_rate", 1e-4),)), dict(subprocesses=True)]
+    for change in same:
+        assert demonstrations_source(dataclasses.replace(base, **change)) == demonstrations_source(base), change
+    other = [dict(imitate="lane-keeping"), dict(imitate_noise=0.5), dict(seed=1), dict(track="oval"),
+             dict(start="anywhere"), dict(reward=(("time", -1.0),)), dict(max_steps=10), dict(envs=1)]
+    for change in other:
+        assert demonstrations_source(dataclasses.replace(base, **change)) != demonstrations_source(base), change
+
+
+def test_ctrl_c_while_the_expert_drives_keeps_its_episodes(tmp_path):
+    """Ctrl-C on a real `racing train --imitate` while the expert drives: exit 130 with the
+    finished episodes saved; the same command then drives only the missing ones, and keeps
+    the saved ones as they were. Demonstrations saved in other settings are driven again."""
+    def command(out, episodes):
+        return ["train", "--time-trial", "--imitate", "lane-keeping", "--imitate-episodes", str(episodes),
+                "--race-distance", "60", "--max-steps", "200", "--timesteps", "256", "--eval-every", "0",
+                "--eval-grids", "1", "--hyperparameter", "n_steps=128", "--hyperparameter", "batch_size=64",
+                "--hyperparameter", "n_epochs=1", "--no-compile-cache", "--out", str(out)]
+
+    out = tmp_path / "run"
+    path = out / "demonstrations.npz"
+    process = start_racing(command(out, 100_000))
+    err = ctrl_c_when(process, path.exists)
+    assert process.returncode == 130, err
+    assert "interrupted while lane-keeping drove" in err
+    assert json.loads((out / "train.json").read_text())["status"] == "interrupted"
+    interrupted = Demonstrations.load(path)
+    kept = interrupted.episodes
+    assert 1 <= kept < 100_000 and set(interrupted.episode) == set(range(kept))
+
+    assert main(command(out, kept + 1)) == 0
+    went_on = Demonstrations.load(path)
+    assert went_on.episodes == kept + 1 and went_on.source == interrupted.source
+    _assert_same(went_on.first(kept), interrupted)
+    assert json.loads((out / "imitation.json").read_text())["episodes"] == kept + 1
+
+    other = tmp_path / "other"  # a folder holding another run's demonstrations (zero actions, another source)
+    other.mkdir()
+    foreign = interrupted.first(1)
+    dataclasses.replace(foreign, actions=np.zeros_like(foreign.actions), source="another run").save(
+        other / "demonstrations.npz")
+    assert main(command(other, 1)) == 0
+    _assert_same(Demonstrations.load(other / "demonstrations.npz"), foreign)  # driven again, as the first run did
