@@ -48,6 +48,7 @@ import numpy as np
 
 from experiments.bench import replace_atomically, write_json_atomically
 from experiments.formatting import or_dash
+from experiments.imitation import Demonstrations, clone, collect_demonstrations
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
 from experiments.tournament import won_race
 from experiments.widen_policy import (Widening, measure_new_features, observation_widening, widen_normalizer,
@@ -623,45 +624,47 @@ def demonstrations_source(config: TrainConfig) -> str:
     return json.dumps({k: v for k, v in settings.items() if k not in _NOT_IN_DEMONSTRATIONS}, sort_keys=True)
 
 
-def _clone_expert(config: TrainConfig, model, out: Path, console, progress: bool) -> None:
-    """Fit the fresh ``model`` to ``config.imitate``'s driving, save it as ``imitation.zip``
-    and evaluate it as at 0 steps. The driving is kept in ``demonstrations.npz`` after
-    every episode: after an interruption the same command drives only the episodes
-    still missing (none once all are there)."""
-    from experiments.imitation import Demonstrations, clone, collect_demonstrations
-
-    started = time.perf_counter()
-    path, source = out / DEMONSTRATIONS, demonstrations_source(config)
+def _demonstrations(config: TrainConfig, path: Path, console, progress: bool) -> Demonstrations:
+    """``config.imitate``'s driving for the clone, kept in ``path`` after every episode:
+    after an interruption the same command drives only the episodes still missing (none
+    once all are there); episodes driven in other settings are driven again."""
+    source = demonstrations_source(config)
     saved = Demonstrations.load(path) if path.exists() else None
     if saved is not None and saved.source != source:
         console.print(f"{path} was driven in other settings: driving the demonstrations again")
         saved = None
     if saved is not None and saved.episodes >= config.imitate_episodes:
-        demonstrations = saved.first(config.imitate_episodes)
-        console.print(f"cloning {config.imitate} from {path} ({demonstrations.episodes} of its "
+        console.print(f"cloning {config.imitate} from {path} ({config.imitate_episodes} of its "
                       f"{saved.episodes} episodes)")
-    else:
-        if saved is not None:
-            console.print(f"{path} holds {saved.episodes} of {config.imitate_episodes} episodes: "
-                          f"{config.imitate} drives the other {config.imitate_episodes - saved.episodes}")
-        envs = [_RaceCopy(config, copy)() for copy in range(config.envs)]
-        kept = [saved.episodes if saved is not None else 0]
+        return saved.first(config.imitate_episodes)
+    if saved is not None:
+        console.print(f"{path} holds {saved.episodes} of {config.imitate_episodes} episodes: "
+                      f"{config.imitate} drives the other {config.imitate_episodes - saved.episodes}")
+    kept = [saved.episodes if saved is not None else 0]  # episodes saved so far
 
-        def keep(so_far: Demonstrations) -> None:
-            replace_atomically(so_far.save, path)
-            kept[0] = so_far.episodes
+    def keep(so_far: Demonstrations) -> None:
+        replace_atomically(so_far.save, path)
+        kept[0] = so_far.episodes
 
-        try:
-            demonstrations = collect_demonstrations(envs, make_agent(config.imitate), config.imitate_episodes,
-                                                    DEMONSTRATION_SEED + 10_000 * config.seed, config.imitate_noise,
-                                                    progress, collected=saved, on_episode=keep, source=source)
-        except KeyboardInterrupt:
-            console.print(f"interrupted while {config.imitate} drove: {kept[0]} of {config.imitate_episodes} "
-                          f"episodes kept in {path}")
-            raise
-        finally:
-            for env in envs:
-                env.close()
+    envs = [_RaceCopy(config, copy)() for copy in range(config.envs)]
+    try:
+        return collect_demonstrations(envs, make_agent(config.imitate), config.imitate_episodes,
+                                      DEMONSTRATION_SEED + 10_000 * config.seed, config.imitate_noise, progress,
+                                      collected=saved, on_episode=keep, source=source)
+    except KeyboardInterrupt:
+        console.print(f"interrupted while {config.imitate} drove: {kept[0]} of {config.imitate_episodes} "
+                      f"episodes kept in {path}")
+        raise
+    finally:
+        for env in envs:
+            env.close()
+
+
+def _clone_expert(config: TrainConfig, model, out: Path, console, progress: bool) -> None:
+    """Fit the fresh ``model`` to ``config.imitate``'s driving (:func:`_demonstrations`),
+    save it as ``imitation.zip`` and evaluate it as at 0 steps."""
+    started = time.perf_counter()
+    demonstrations = _demonstrations(config, out / DEMONSTRATIONS, console, progress)
     collected = time.perf_counter() - started
     fit = clone(model, demonstrations, spread=config.imitate_noise or None, seed=config.seed)
     save_policy(model, model.get_env(), out / IMITATION_MODEL)
