@@ -138,6 +138,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         eval_every=args.eval_every, eval_grids=args.eval_grids,
         reward=tuple(parse_reward_weight(text) for text in args.reward or ()), init_model=args.init_model,
         imitate=args.imitate, imitate_episodes=args.imitate_episodes, imitate_noise=args.imitate_noise,
+        imitate_spread=args.imitate_spread,
         hyperparameters=tuple(parse_hyperparameter(text) for text in args.hyperparameter or ()),
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
     )
@@ -408,6 +409,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="standard deviation of the noise added to the expert's actions (normalised, in [-1, 1]) "
                        "while it drives for --imitate, so that the demonstrations show it recovering (default: 0.2; "
                        "0: its own line only)")
+    train.add_argument("--imitate-spread", type=float, default=None,
+                       help="the cloned policy's standard deviation per action (normalised), which training "
+                       "explores with (default: --imitate-noise; with no noise, PPO's initial 1.0)")
     train.add_argument("--out", default="runs/train", help="output folder (default: runs/train)")
     train.add_argument("--fresh", action="store_true", help="discard an earlier run in --out and start over")
     train.set_defaults(func=_cmd_train)

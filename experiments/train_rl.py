@@ -75,11 +75,12 @@ _CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
 _RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses")
 # the fields of TrainConfig that do not change how the imitated expert drives: demonstrations
 # saved by a run that differed only in these are reused (``demonstrations_source``)
-_NOT_IN_DEMONSTRATIONS = _RESUMABLE_CHANGES + ("imitate_episodes", "algo", "hyperparameters", "normalize",
-                                               "eval_off_track", "eval_grids", "init_model")
+_NOT_IN_DEMONSTRATIONS = _RESUMABLE_CHANGES + ("imitate_episodes", "imitate_spread", "algo", "hyperparameters",
+                                               "normalize", "eval_off_track", "eval_grids", "init_model")
 TRAINING_STARTS = ("grid", "anywhere", "mixed")  # where training episodes may start (TrainConfig.start)
 # fields added to TrainConfig after runs were saved, with the value those runs had
-_ADDED_LATER = {"start": "grid", "imitate": None, "imitate_episodes": 20, "imitate_noise": 0.2}
+_ADDED_LATER = {"start": "grid", "imitate": None, "imitate_episodes": 20, "imitate_noise": 0.2,
+                "imitate_spread": None}
 # steps (all copies) over which a widened init_model's new observation features are measured
 WIDENING_MEASURE_STEPS = 2048
 
@@ -146,8 +147,10 @@ class TrainConfig:
         imitate_episodes: the expert's episodes, taken from the copies of the race in turn.
         imitate_noise: standard deviation of the noise added to the expert's actions
             (normalised units) while it drives for the demonstrations, so that they show it
-            recovering from the errors a clone makes, and the cloned policy's spread; 0 for
-            the expert's own line only (the policy's spread then stays PPO's initial one).
+            recovering from the errors a clone makes; 0 for the expert's own line only.
+        imitate_spread: the cloned policy's standard deviation per action (normalised
+            units), which the reinforcement learning that follows explores with; None: the
+            ``imitate_noise`` (with no noise, PPO's initial one).
     """
 
     opponents: tuple[str, ...] = ("lane-keeping",)
@@ -177,6 +180,7 @@ class TrainConfig:
     imitate: str | None = None
     imitate_episodes: int = 20
     imitate_noise: float = 0.2
+    imitate_spread: float | None = None
 
     def __post_init__(self) -> None:
         if self.pool and not self.opponents:
@@ -198,6 +202,9 @@ class TrainConfig:
                                  "further: give one of them")
             if not 0.0 <= self.imitate_noise < np.inf:
                 raise ValueError(f"imitate_noise must be a finite standard deviation >= 0, got {self.imitate_noise!r}")
+            if self.imitate_spread is not None and not 0.0 < self.imitate_spread < np.inf:
+                raise ValueError(f"imitate_spread must be a finite standard deviation > 0 (or None: the "
+                                 f"imitate_noise), got {self.imitate_spread!r}")
         for name in ("timesteps", "envs", "eval_grids", "imitate_episodes"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
@@ -238,6 +245,12 @@ class TrainConfig:
     def time_trial(self) -> bool:
         """The learner races alone (no opponents)."""
         return self.cars == 1
+
+    @property
+    def clone_spread(self) -> float | None:
+        """The cloned policy's standard deviation per action with ``imitate`` (normalised
+        units; None: the algorithm's initial one)."""
+        return self.imitate_spread or self.imitate_noise or None
 
     def description(self) -> str:
         """What the learner races, for titles: ``vs ilqgame-fb``, ``vs a pool of ...``, ``time trial``."""
@@ -666,7 +679,7 @@ def _clone_expert(config: TrainConfig, model, out: Path, console, progress: bool
     started = time.perf_counter()
     demonstrations = _demonstrations(config, out / DEMONSTRATIONS, console, progress)
     collected = time.perf_counter() - started
-    fit = clone(model, demonstrations, spread=config.imitate_noise or None, seed=config.seed)
+    fit = clone(model, demonstrations, spread=config.clone_spread, seed=config.seed)
     save_policy(model, model.get_env(), out / IMITATION_MODEL)
     kept_evaluations = [e for e in read_jsonl(out / EVALUATIONS) if e["timesteps"] > 0]  # an earlier attempt's
     replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept_evaluations)),

@@ -143,6 +143,13 @@ def test_a_clone_of_the_lane_keeper_laps_the_trefoil_as_it_does(tmp_path):
     assert {name: (tmp_path / name).stat().st_mtime_ns for name in before} == before
 
 
+def test_the_clone_explores_with_the_spread_asked_for_or_the_noise():
+    assert TrainConfig(imitate="ilqr").clone_spread == 0.2  # the default noise
+    assert TrainConfig(imitate="ilqr", imitate_noise=0.5, imitate_spread=0.05).clone_spread == 0.05
+    assert TrainConfig(imitate="ilqr", imitate_noise=0.0, imitate_spread=0.1).clone_spread == 0.1
+    assert TrainConfig(imitate="ilqr", imitate_noise=0.0).clone_spread is None  # PPO's own
+
+
 def test_the_clone_spread_is_the_noise_or_the_policys_own():
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
@@ -216,11 +223,12 @@ def test_ctrl_c_while_the_expert_drives_keeps_its_episodes(tmp_path):
     kept = interrupted.episodes
     assert 1 <= kept < 100_000 and set(interrupted.episode) == set(range(kept))
 
-    assert main(command(out, kept + 1)) == 0
+    assert main([*command(out, kept + 1), "--imitate-spread", "0.3"]) == 0  # the spread is not the driving's
     went_on = Demonstrations.load(path)
     assert went_on.episodes == kept + 1 and went_on.source == interrupted.source
     _assert_same(went_on.first(kept), interrupted)
-    assert json.loads((out / "imitation.json").read_text())["episodes"] == kept + 1
+    report = json.loads((out / "imitation.json").read_text())
+    assert report["episodes"] == kept + 1 and report["fit"]["action_std"] == pytest.approx([0.3, 0.3], rel=1e-6)
 
     other = tmp_path / "other"  # a folder holding another run's demonstrations (zero actions, another source)
     other.mkdir()

@@ -157,6 +157,7 @@ def test_interrupted_training_process_resumes(tmp_path, subprocesses):
     (dict(imitate="ilqr", init_model="tests/conftest.py"), "give one of them"),
     (dict(imitate="ilqr", imitate_noise=-0.1), "imitate_noise must be a finite standard deviation >= 0"),
     (dict(imitate="ilqr", imitate_episodes=0), "imitate_episodes must be an integer >= 1"),
+    (dict(imitate="ilqr", imitate_spread=0.0), r"imitate_spread must be a finite standard deviation > 0"),
 ])
 def test_bad_settings_are_refused(bad, message):
     with pytest.raises(ValueError, match=message):
