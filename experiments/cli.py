@@ -402,7 +402,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="before training, clone a fresh policy from this agent's driving (e.g. ilqr): it drives "
                        "the learner's car for --imitate-episodes seeded episodes of the training race; the policy, "
                        "its value and the normaliser are fitted to them, and the clone (imitation.zip) is evaluated "
-                       "at 0 steps. PPO and A2C; not with --init-model")
+                       "at 0 steps. PPO and A2C; not with --init-model. PPO's default learning rate undid a clone "
+                       "of iLQR on Monza by 53,248 steps; --hyperparameter learning_rate=3e-5 improved on it")
     train.add_argument("--imitate-episodes", type=int, default=20,
                        help="the expert's episodes for --imitate (default: 20)")
     train.add_argument("--imitate-noise", type=float, default=0.2,
