@@ -11,10 +11,11 @@ reinforcement learning starts:
 * the Gaussian policy's mean is fitted to the expert's actions (least squares: the maximum
   likelihood of the mean for any fixed spread). Its state-independent standard deviation is
   not fitted (it would shrink to the clone's tiny error, and reinforcement learning would
-  have nothing left to explore with) but set to the noise the demonstrations were driven
-  with (below): the policy then explores the states the demonstrations cover. Left at
-  PPO's initial 1.0, five times that noise, the first rollouts leave the track and the
-  first updates undo the clone;
+  have nothing left to explore with) but set (`racing train`: by default to the noise the
+  demonstrations were driven with, below): the policy then explores the states the
+  demonstrations cover. Left at PPO's initial 1.0, five times that noise, every early
+  rollout of a Monza clone left the track. (Whatever the spread, PPO at its default
+  learning rate undid that clone; at a tenth of it, it improved on it: see the README.)
 * the value function is fitted to the discounted sum of the normalised rewards that follow
   each step, so that those first updates start from advantages that mean something.
 
