@@ -8,7 +8,6 @@ the solver iterations and the batches are timed in turns with what they are comp
 
 from __future__ import annotations
 
-import json
 import platform
 import time
 import timeit
@@ -17,7 +16,7 @@ from typing import Any, Callable, Iterator, NamedTuple
 
 import numpy as np
 
-from experiments.jsonl import replace_atomically
+from experiments.files import write_json_atomically
 
 
 def _median_rate(run: Callable[[], int], repeats: int) -> tuple[float, list[float]]:
@@ -140,21 +139,21 @@ def _interleaved_ms(parts: dict[str, tuple[Callable, Any]], rounds: int = 9, cal
 
 def _component_times(game, x0) -> dict[str, float]:
     """Milliseconds per call of the parts of one feedback iteration (:func:`_interleaved_ms`)."""
-    from planners import ilq, lq_game
+    from planners import ilq, lq_game, race_problem
 
-    problem = ilq.problem_from_race_game(game)
+    problem = race_problem.problem_from_race_game(game)
     res = ilq.solve(game, x0, mode="feedback", max_iterations=5, tolerance=0.0)
     xs, us = res.xs.reshape(res.xs.shape[0], -1), res.us
-    A, B = ilq._linearize(problem, xs, us)
+    A, B = ilq.linearize(problem, xs, us)
     curvature = ilq.SolverOptions().dynamics_curvature  # as the solver quadratises by default
-    Q, q, Rii, rii = ilq._quadratize(problem, xs, us, True, curvature)
+    Q, q, Rii, rii = ilq.quadratize(problem, xs, us, True, curvature)
     parts = {
-        "linearize": lambda xs: ilq._linearize(problem, xs, us),
-        "quadratize_gauss_newton": lambda xs: ilq._quadratize(problem, xs, us, True, curvature),
-        "quadratize_exact_eig": lambda xs: ilq._regularize(
-            *ilq._quadratize(problem, xs, us, False, curvature)[::2], ilq.SolverOptions(), "eig"),
+        "linearize": lambda xs: ilq.linearize(problem, xs, us),
+        "quadratize_gauss_newton": lambda xs: ilq.quadratize(problem, xs, us, True, curvature),
+        "quadratize_exact_eig": lambda xs: ilq.regularize(
+            *ilq.quadratize(problem, xs, us, False, curvature)[::2], ilq.SolverOptions(), "eig"),
         "lq_feedback": lambda xs: lq_game.solve_feedback_own(A + 0.0 * xs[0, 0], B, Q, q, Rii, rii),
-        "forward_pass": lambda xs: ilq._forward(problem, xs, us, res.K, res.k, 0.5),
+        "forward_pass": lambda xs: ilq.forward(problem, xs, us, res.K, res.k, 0.5),
     }
     return _interleaved_ms({name: (fn, xs) for name, fn in parts.items()})
 
@@ -254,18 +253,18 @@ def _machine_reference_dgemm(repeats: int = 5, n: int = 1000) -> dict[str, Any]:
 
 def _iteration_flops(game, x0: np.ndarray, mode: str) -> int:
     """Flops of one iteration of :func:`planners.ilq.solve` on ``game`` from zero inputs,
-    counted from its jaxpr (:mod:`experiments.flops`; a step-size search of one trial).
+    counted from its jaxpr (:mod:`planners.flops`; a step-size search of one trial).
     The count depends on the shapes only (N, T, the state size), not on ``x0``'s values."""
     import jax.numpy as jnp
 
-    from experiments.flops import count_flops
-    from planners import ilq
+    from planners import ilq, race_problem
+    from planners.flops import count_flops
 
-    problem = ilq.problem_from_race_game(game)
+    problem = race_problem.problem_from_race_game(game)
     options = ilq.SolverOptions(mode=mode)
     us0 = jnp.zeros((game.horizon, game.num_players, problem.input_dim))
-    carry = ilq._initial_carry(problem, jnp.asarray(x0).reshape(-1), us0, options)
-    flops = count_flops(lambda c: ilq._iterate(problem, c, options), carry)
+    carry = ilq.initial_carry(problem, jnp.asarray(x0).reshape(-1), us0, options)
+    flops = count_flops(lambda c: ilq.iterate(problem, c, options), carry)
     if flops.uncounted:
         raise RuntimeError(f"the iteration calls {sorted(flops.uncounted)}, which the flop count cannot see into")
     return flops.total
@@ -613,8 +612,8 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
             "same_iterations": all(np.array_equal(iterations["lockstep"], it) for it in iterations.values())}
 
 
-# The agents' adaptive control regularization as the README measures it (lambda_u from 0.3,
-# the default factor 1.5).
+# The agents' adaptive control regularization in the agents bench (lambda_u from 0.3, the
+# default factor 1.5).
 _ADAPTIVE_REGULARIZATION = "control_regularization=0.3,adaptive_regularization=true"
 
 
@@ -724,11 +723,6 @@ def _verdict_text(row: dict[str, Any], verdict: tuple[str, bool], missed: str = 
         text += (f" (the target needs {row['gflop_per_s_at_target']:.3g} GFLOP/s,"
                  f" {row['dgemm_share_at_target']:.0%} of dgemm)")
     return text
-
-
-def write_json_atomically(report: dict[str, Any], path: Path) -> None:
-    """Write ``report`` as JSON to ``path`` with :func:`replace_atomically`."""
-    replace_atomically(lambda partial: partial.write_text(json.dumps(report, indent=2)), path)
 
 
 def run_bench(only: list[str] | None = None, out: Path | None = None) -> dict[str, Any]:

@@ -1,4 +1,8 @@
-"""The `racing` command line: demo, agents, paper, tournament, train, sweep, convergence, bench."""
+"""The `racing` command line: demo, agents, paper, tournament, convergence, train, sweep, bench.
+
+Each command's code is imported only when it runs: the RL layer (:mod:`experiments.rl`, torch
+and stable-baselines3) only by ``racing train``. Guide: README.md and docs/.
+"""
 
 from __future__ import annotations
 
@@ -8,10 +12,12 @@ import os
 import sys
 from pathlib import Path
 
-
+# Agent names (planners.methods, the registry planners.AGENTS), solver modes and SB3 algorithms
+# are written out here and in the choices below (importing planners loads JAX);
+# tests/test_library_surface.py checks them against their definitions.
 DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping")
 # racing_env.config.INCIDENT_MODES, racing_env.scenarios.SCENARIOS and
-# experiments.train_rl.TRAINING_STARTS (not imported here: JAX)
+# experiments.rl.train.TRAINING_STARTS (not imported here: JAX)
 INCIDENT_CHOICES = ("penalty", "terminate", "both", "ignore")
 SCENARIO_CHOICES = ("grid", "paper", "side_by_side", "anywhere")
 START_CHOICES = ("grid", "anywhere", "mixed")
@@ -40,7 +46,7 @@ def _cmd_paper(args: argparse.Namespace) -> int:
 
 def _cmd_tournament(args: argparse.Namespace) -> int:
     from experiments.tournament import TournamentConfig, run_tournament
-    from planners.agent_specs import split_spec_list
+    from planners.agents import split_spec_list
 
     config = TournamentConfig(
         agents=tuple(split_spec_list(args.agents)),
@@ -122,8 +128,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         import stable_baselines3  # noqa: F401
     except ImportError:
         raise ValueError("racing train needs stable-baselines3: pip install 'racing-games[rl]'") from None
-    from experiments.train_rl import TrainConfig, parse_hyperparameter, parse_reward_weight, run_training
-    from planners.agent_specs import split_spec_list
+    from experiments.rl.train import TrainConfig, parse_hyperparameter, parse_reward_weight, run_training
+    from planners.agents import split_spec_list
 
     if args.time_trial and args.opponents is not None:
         raise ValueError("--time-trial races the learner alone: give no --opponents")
@@ -195,17 +201,22 @@ def build_parser() -> argparse.ArgumentParser:
     backends = _backend_options()
     parser = argparse.ArgumentParser(
         prog="racing",
-        description="racing-games: race game-theoretic planners and RL agents on point-mass cars.",
+        description="racing-games: race game-theoretic planners (iLQR, open-loop and feedback iLQGame) and "
+        "RL agents on point-mass cars.",
+        epilog="Each command explains itself: racing COMMAND --help. Guides: README.md; docs/env.md (the race), "
+        "docs/agents.md (agent specs), docs/sweeps.md (tournaments, sweeps, Ray), docs/rl.md (training), "
+        "docs/solvers.md (paper, convergence), docs/performance.md (bench).",
     )
     sub = parser.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser(
         "demo", parents=[cache],
-        help="the main job: a short tournament of iLQR, open-loop and feedback iLQGame and a lane keeper",
+        help="a short tournament of iLQR, open-loop and feedback iLQGame and a lane keeper",
         description="A round robin (both starting orders, one start grid) of iLQR, open-loop iLQGame, feedback "
-        "iLQGame and the lane-keeping baseline over one lap (--laps, --race-distance) of a built-in circuit: "
-        "about 4 minutes on a 2-core laptop. Prints the leaderboard; writes results.jsonl, summary.csv, "
-        "head_to_head.png and race.gif. --scripted instead races two scripted cars (seconds).",
+        "iLQGame and the lane-keeping baseline over one lap (--laps, --race-distance) of a built-in circuit "
+        "(a few minutes, most of it compiling the planners). Prints the leaderboard; writes OUT/results.jsonl, "
+        "summary.csv, head_to_head.png and race.gif. --scripted instead races two scripted cars (seconds). "
+        "A fresh run each time; for a resumable one use racing tournament.",
     )
     demo.add_argument("--out", default="runs/demo", help="output folder (default: runs/demo)")
     demo.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps (default: a lap)")
@@ -223,19 +234,20 @@ def build_parser() -> argparse.ArgumentParser:
         "ilqgame-fb:max_iterations=100,replan_every=2. Planners also take their own cost weights (c_collision=1: "
         "private to the agent's plans; the other cars plan with the race's weights for it), weights by race "
         "position (leading.c_collision=10,trailing.c_collision=1) and beliefs about the other cars' weights "
-        "(belief.c_collision=100). This command lists every option with its type and default.",
+        "(belief.c_collision=100). This command lists every option with its type and default. Guide: "
+        "docs/agents.md.",
     )
     agents.add_argument("name", nargs="?", help="one agent (default: all)")
     agents.set_defaults(func=_cmd_agents)
 
     paper = sub.add_parser(
-        "paper", parents=[cache], help="reproduce the paper's Figures 1-2 and claims (PNG figures + paper.json)",
+        "paper", parents=[cache], help="reproduce the paper's figures and claims (PNG figures + paper.json)",
         description="Solve the scene of the paper's Figure 1 (two cars on a straight, inputs initialised at zero) "
         "with iLQR, open-loop and feedback iLQGame and the variants of Figure 2 and of the paper's claims; write "
         "fig1_methods.png, fig2_collision_weight.png, fig3_convergence.png and paper.json (per method: converged, "
         "iterations, solve time, each car's lateral extent, final gap, minimum distance, first-order Nash "
-        "residual, the convergence measure and step size of every iteration). About 30 s on a 2-core machine, "
-        "mostly compilation; less with the compilation cache filled.")
+        "residual, the convergence measure and step size of every iteration). Most of its time is compilation, "
+        "which the compilation cache saves on the next run. Guide: docs/experiments/paper.md.")
     paper.add_argument("--out", default="runs/paper", help="output folder (default: runs/paper)")
     paper.set_defaults(func=_cmd_paper)
 
@@ -245,8 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Every combination of --cars agents races on --grids start grids, once per rotation of "
         "the starting slots. Results are appended to OUT/results.jsonl as races end; rerunning the same "
         "command resumes. Races run here, on --workers local processes, or on Ray (--backend ray); the "
-        "leaderboard is the same. Agent specs: ilqr, ilqgame-ol, ilqgame-fb, lane-keeping, constant-speed, "
-        "rl:PATH.zip",
+        "leaderboard is the same. Prints the leaderboard; writes OUT/summary.csv, leaderboard.json, "
+        "head_to_head.png and race.gif (the first race). Agent specs: racing agents; guide: docs/sweeps.md.",
     )
     tour.add_argument("--agents", nargs="+", default=["ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping"],
                       help="agent specs (space- or comma-separated)")
@@ -260,12 +272,14 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--cars", type=int, default=2,
                       help="cars per race (default: 2); 1: a time trial, each agent alone on every grid, ranked by "
                       "mean finish time")
-    tour.add_argument("--seed", type=int, default=0, help="tournament seed (default: 0)")
-    tour.add_argument("--max-steps", type=int, default=3000, help="truncate races after this many steps")
+    tour.add_argument("--seed", type=int, default=0, help="tournament seed: it seeds the start grids (default: 0)")
+    tour.add_argument("--max-steps", type=int, default=3000,
+                      help="truncate races after this many steps of 0.1 s (default: 3000)")
     tour.add_argument("--step-budget", type=float, default=1.0, help="per-step time budget of an agent [s] (default: 1)")
     tour.add_argument("--jerk-weight", type=float, default=None,
-                      help="planners' jerk weight r in the race game (default: racing_env.costs.RACING_JERK_WEIGHT, "
-                      "measured to race well)")
+                      help="every car's jerk weight r (R = r I) in the race's game, which the planners plan with "
+                      "(default: 0.01, racing_env.costs.RACING_JERK_WEIGHT, the env's own default for races; "
+                      "CostWeights' default 1 is for single solves)")
     tour.add_argument("--scenario", default="grid", choices=SCENARIO_CHOICES,
                       help="the start: grid (a seeded rolling grid per --grids, the default), paper (the paper's "
                       "overtaking scene: the first slot's car, v_max 20 m/s, 10 m ahead of the second, v_max 25 m/s, "
@@ -291,8 +305,8 @@ def build_parser() -> argparse.ArgumentParser:
         "solver mode. Reports the converged fraction, the other outcomes, the iterations of the converged "
         "solves and, in open loop, how near an equilibrium every solve ended (its first-order Nash residual); "
         "writes OUT/convergence.json (after every row: Ctrl-C keeps what was measured) and "
-        "OUT/convergence.png (fraction converged within k iterations). Four circuits, two cars, both modes: "
-        "about 50 s on a 2-core machine, mostly compilation.",
+        "OUT/convergence.png (fraction converged within k iterations). Guides: docs/solvers.md, "
+        "docs/experiments/convergence.md.",
     )
     conv.add_argument("--track", nargs="+", default=["trefoil"],
                       help="built-in track names or TUMFTM CSV paths (default: trefoil)")
@@ -322,8 +336,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="any further planners.ilq.SolverOptions field, e.g. trust_radius=10 or "
                       "oscillation_damping=false (repeatable)")
     conv.add_argument("--jerk-weight", type=float, default=None,
-                      help="every car's jerk weight r (default: the CostWeights default, 1; the tournaments race "
-                      "with 0.01)")
+                      help="every car's jerk weight r (default: CostWeights' default 1, the solver's for single "
+                      "solves; races use 0.01, racing_env.costs.RACING_JERK_WEIGHT)")
     conv.add_argument("--out", default="runs/convergence", help="output folder (default: runs/convergence)")
     conv.set_defaults(func=_cmd_convergence)
 
@@ -336,8 +350,8 @@ def build_parser() -> argparse.ArgumentParser:
         "steps the policy is raced against the opponents under tournament rules (each starting slot, --eval-grids "
         "grids). Writes OUT/model.zip (race it with: racing tournament --agents rl:OUT/model.zip ...), "
         "checkpoints, episodes.jsonl, evaluations.jsonl, learning_curve.png and train.json. Ctrl-C saves a "
-        "checkpoint; the same command resumes, and a larger --timesteps trains further. Against the lane keeper "
-        "PPO runs about 1,200 steps/s on a 2-core machine; against a planner about 110 (160 with --subprocesses).",
+        "checkpoint; the same command resumes, and a larger --timesteps trains further. Needs the rl extra "
+        "(pip install 'racing-games[rl]'). Guide: docs/rl.md.",
     )
     train.add_argument("--opponents", nargs="+", default=None,
                        help="agent specs of the other cars (default: lane-keeping); e.g. ilqgame-fb, ilqr, "
@@ -355,7 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--track", default="trefoil", help="built-in track name or TUMFTM CSV path (default: trefoil)")
     train.add_argument("--laps", type=int, default=1, help="laps per episode on closed tracks (default: 1)")
     train.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
-    train.add_argument("--max-steps", type=int, default=3000, help="truncate episodes after this many steps")
+    train.add_argument("--max-steps", type=int, default=3000,
+                       help="truncate episodes after this many steps of 0.1 s (default: 3000)")
     train.add_argument("--start", default="grid", choices=START_CHOICES,
                        help="where training episodes start: grid (a rolling grid behind the line, the default) or "
                        "anywhere (a seeded close-quarters scene anywhere on the lap, racing to the same finish line, "
@@ -377,7 +392,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--collision", default="penalty", choices=INCIDENT_CHOICES,
                        help="what contact does in training (default: penalty)")
     train.add_argument("--jerk-weight", type=float, default=None,
-                       help="planner opponents' jerk weight r (default: the tournaments' RACING_JERK_WEIGHT)")
+                       help="every car's jerk weight r in the race's game, which planner opponents plan with "
+                       "(default: 0.01, racing_env.costs.RACING_JERK_WEIGHT, as in tournaments and sweeps)")
     train.add_argument("--checkpoint-every", type=int, default=20_000, help="steps between checkpoints (default: 20000)")
     train.add_argument("--eval-every", type=int, default=50_000,
                        help="steps between evaluations (default: 50000; 0: only at the end)")
@@ -402,8 +418,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="before training, clone a fresh policy from this agent's driving (e.g. ilqr): it drives "
                        "the learner's car for --imitate-episodes seeded episodes of the training race; the policy, "
                        "its value and the normaliser are fitted to them, and the clone (imitation.zip) is evaluated "
-                       "at 0 steps. PPO and A2C; not with --init-model. PPO's default learning rate undid a clone "
-                       "of iLQR on Monza by 53,248 steps; --hyperparameter learning_rate=3e-5 improved on it")
+                       "at 0 steps. PPO and A2C; not with --init-model. Fine-tune a clone with a learning rate "
+                       "below PPO's default (e.g. --hyperparameter learning_rate=3e-5), which can undo it: "
+                       "docs/rl.md")
     train.add_argument("--imitate-episodes", type=int, default=20,
                        help="the expert's episodes for --imitate (default: 20)")
     train.add_argument("--imitate-noise", type=float, default=0.2,
@@ -420,8 +437,8 @@ def build_parser() -> argparse.ArgumentParser:
     sweep = sub.add_parser(
         "sweep", parents=[cache, backends],
         help="races over a grid of settings from a TOML file, on local worker processes or a Ray cluster",
-        description="Race a lineup of agents at every combination of the parameters in a TOML file (see "
-        "experiments/sweep.py and the README for its keys), on --grids seeded grids per point, once per rotation "
+        description="Race a lineup of agents at every combination of the parameters in a TOML file (its keys: "
+        "docs/sweeps.md; examples: docs/sweeps/*.toml), on --grids seeded grids per point, once per rotation "
         "of the starting slots. Records go to OUT/results.jsonl as races end; rerunning the same command resumes. "
         "Prints a table per point and agent; writes summary.csv, summary.json and sweep.png. Backends: local "
         "(--workers processes; 1 runs in this process) or ray (--address of a running cluster, or a local one "
@@ -438,8 +455,8 @@ def build_parser() -> argparse.ArgumentParser:
         "compilation cache, so its compile times are real compilations (unless JAX_COMPILATION_CACHE_DIR is set; "
         "the report names the cache in use). Each row is printed as soon as it is measured; with --json the file "
         "is rewritten after every row, and Ctrl-C stops the run, keeps the rows measured so far (marked "
-        '"interrupted": true) and exits with status 130. Sections: env, solvers, agents (about 3.5 minutes in all '
-        "on a 2-core machine; the JSON records each section's seconds).",
+        '"interrupted": true) and exits with status 130. Sections: env, solvers, agents (the JSON records each '
+        "section's seconds). Guide: docs/performance.md.",
     )
     bench.add_argument("--only", action="append", help="section(s) to run, e.g. --only env (repeatable or comma-separated)")
     bench.add_argument("--json", help="also write the JSON report to this file")
@@ -469,8 +486,8 @@ def console_main() -> None:
     """The ``racing`` executable: :func:`main`, ending at once with status 130 on Ctrl-C.
 
     An interrupt can arrive while XLA compiles in native code, and a normal interpreter
-    shutdown after that can crash in XLA's teardown (seen here: SIGSEGV after an
-    interrupted ``racing bench``). What the commands keep on interruption is written
+    shutdown after that can crash in XLA's teardown (a SIGSEGV after an interrupted
+    ``racing bench``). What the commands keep on interruption is written
     before they return, so after one the process flushes its output and exits directly;
     atexit handlers do not run, so a command that starts workers (e.g. a local Ray
     cluster) must stop them itself on KeyboardInterrupt.

@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from experiments.bench import convergence_rows, solver_options_by_mode, write_json_atomically
+from experiments.bench import convergence_rows, solver_options_by_mode
+from experiments.files import write_json_atomically
 from experiments.formatting import or_dash
 from planners import ilq
 from racing_env.scenarios import check_scene_ranges

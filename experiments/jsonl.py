@@ -6,7 +6,9 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+
+from experiments.files import replace_atomically
 
 
 def read_jsonl(path: Path) -> list[dict[str, Any]]:
@@ -35,15 +37,6 @@ def drop_cut_line(path: Path) -> None:
     if data and not data.endswith(b"\n"):
         # not in place: a kill while rewriting would truncate the records before the cut line
         replace_atomically(lambda partial: partial.write_bytes(data[: data.rfind(b"\n") + 1]), path)
-
-
-def replace_atomically(write: Callable[[Path], Any], path: Path) -> None:
-    """``write(partial)`` to ``path`` + ``.partial`` in the same folder, then rename it onto
-    ``path``, so a reader (or an interrupted run) never finds a half-written file: the old
-    one stays."""
-    partial = path.with_name(path.name + ".partial")
-    write(partial)
-    partial.replace(path)
 
 
 def append_jsonl(path: Path, record: dict[str, Any]) -> None:

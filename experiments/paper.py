@@ -1,10 +1,11 @@
 """`racing paper`: the paper's Figures 1-2 and its open-loop-from-feedback claim, reproduced.
 
-Scenario (the paper's Section "Exemplary Results"): ego car_0 (v_max 20 m/s) ahead at
-20 m/s on the centre line, opponent car_1 (v_max 25 m/s) approaching at 23 m/s, 2 m to the
-left, on a straight; horizon 50 steps of 0.1 s; inputs initialised at zero. Methods: iLQR
-(opponent predicted at constant speed and offset), open-loop and feedback iLQGame, all with
-the same cost weights. Orchestration only: the math lives in ``planners``.
+Scenario (the paper's Section "Exemplary Results", :func:`racing_env.scenarios.paper_game`):
+ego car_0 (v_max 20 m/s) ahead at 20 m/s on the centre line, opponent car_1 (v_max 25 m/s)
+approaching at 23 m/s, 2 m to the left, on a straight; horizon 50 steps of 0.1 s; inputs
+initialised at zero. Methods: iLQR (opponent predicted at constant speed and offset),
+open-loop and feedback iLQGame, all with the same cost weights. Orchestration only: the math
+lives in ``planners``, the scene in ``racing_env.scenarios``. Results: docs/experiments/paper.md.
 """
 
 from __future__ import annotations
@@ -17,17 +18,10 @@ import numpy as np
 
 from experiments.timing import time_jax_call
 from planners import ilq, ilqr
-from racing_env.costs import CostWeights
 from racing_env.dynamics import N_LAT, S
 from racing_env.game import RaceGame
-from racing_env.scenarios import paper_overtake
-from racing_env.track import straight
+from racing_env.scenarios import PAPER_WEIGHTS, paper_game  # noqa: F401  (the scene; re-exported here)
 
-#: Weights of the reproduction. The paper does not publish its values; a search over 1,200
-#: sets (jerk weight, collision, track and gap weights, initial gap) found these converge for
-#: every method and keep the opponent inside the track in Figure 2 (with r = 1 it already
-#: sits at the track edge, so "swerves further left" cannot show).
-PAPER_WEIGHTS = CostWeights(r_jx=10.0, r_jy=10.0)
 #: Opponent collision weights c_c^2 of Figure 2, as multiples of the ego's c_c^1.
 FIG2_RATIOS = (1.0, 2.0, 5.0)
 
@@ -42,15 +36,6 @@ def left_guess(horizon: int = 50, amplitude: float = 2.0) -> np.ndarray:
     us[:10, 0, 1], us[10:20, 0, 1] = amplitude, -amplitude
     us[:10, 1, 1], us[10:20, 1, 1] = -amplitude, amplitude
     return us
-
-
-def paper_game(weights: CostWeights = PAPER_WEIGHTS, opponent_collision: float | None = None) -> tuple[RaceGame, np.ndarray]:
-    """The paper's game and start state; ``opponent_collision`` overrides c_c^2."""
-    track = straight(length=400.0, width_left=6.0, width_right=6.0)
-    scenario = paper_overtake(track)
-    opponent = weights if opponent_collision is None else weights.replace(c_collision=opponent_collision)
-    game = RaceGame.create(track, scenario.vehicles, [weights, opponent], dt=0.1, horizon=50)
-    return game, scenario.x0
 
 
 def trajectory_metrics(game: RaceGame, xs: np.ndarray) -> dict[str, Any]:

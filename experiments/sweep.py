@@ -20,7 +20,7 @@ Parameter names: the race's ``track``, ``laps``, ``race_distance``, ``max_steps`
 :class:`racing_env.vehicle.VehicleParams` field, for every car) and ``agent<i>.<field>`` (that field for agent ``i`` of the lineup: a cost
 weight or a car parameter of its car, known to every planner in the race, or an option of
 its agent spec such as ``max_iterations`` or ``trailing.c_collision``, see
-:mod:`planners.agent_specs`).
+:mod:`planners.agents.registry`).
 
 Each race is one job (:func:`run_job`, a pure function of the sweep and the job, so any
 process can run it). Backends: ``local`` (this process for one worker, else a pool of
@@ -43,12 +43,14 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from experiments.backends import check_backend, run_jobs
+from experiments.backends import check_backend
 from experiments.formatting import or_dash
-from experiments.jsonl import append_jsonl, open_run_log, read_jsonl, settings_json
-from planners.agent_specs import with_options
+from experiments.jsonl import read_jsonl, settings_json
+from experiments.race_spec import RACE_FIELDS, RaceSpec
+from experiments.runner import JobLog
+from planners.agents import with_options
 from racing_env.config import RaceConfig
-from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
+from racing_env.costs import CostWeights
 from racing_env.vehicle import VehicleParams
 
 if sys.version_info >= (3, 11):
@@ -58,7 +60,7 @@ else:  # pragma: no cover - Python 3.10
 
 RESULTS = "results.jsonl"
 CONFIG = "sweep.json"
-RACE_PARAMETERS = ("track", "laps", "race_distance", "max_steps", "jerk_weight", "on_collision", "on_off_track")
+RACE_PARAMETERS = RACE_FIELDS  # the race's fields a point may set (RaceSpec's)
 ADDED_LATER = ("on_collision", "on_off_track")  # left out of sweep.json at their defaults
 NUMBER_PARAMETERS = ("laps", "race_distance", "max_steps", "jerk_weight")
 WEIGHT_FIELDS = tuple(f.name for f in dataclasses.fields(CostWeights))
@@ -66,9 +68,10 @@ VEHICLE_FIELDS = tuple(f.name for f in dataclasses.fields(VehicleParams))
 CAR_FIELDS = WEIGHT_FIELDS + VEHICLE_FIELDS  # what ``weights.``/``vehicles.`` and ``agent<i>.`` set on a car
 
 
-@dataclasses.dataclass(frozen=True)
-class SweepConfig:
-    """A sweep: the lineup, the race, and the swept parameters with their values.
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SweepConfig(RaceSpec):
+    """A sweep: the lineup, the race (:class:`RaceSpec`), and the swept parameters with
+    their values.
 
     Attributes:
         lineup: agent specs by agent index (:func:`planners.agents.make_agent`); agent 0 is
@@ -84,16 +87,9 @@ class SweepConfig:
 
     lineup: tuple[str, ...]
     parameters: tuple[tuple[str, tuple[Any, ...]], ...]
-    track: str = "trefoil"
-    laps: int = 1
-    race_distance: float | None = None
-    max_steps: int = 3000
-    jerk_weight: float = RACING_JERK_WEIGHT
     grids: int = 2
     seed: int = 0
     step_budget_s: float | None = None
-    on_collision: str = "penalty"
-    on_off_track: str = "penalty"
 
     def __post_init__(self) -> None:
         if len(self.lineup) < 1:
@@ -115,13 +111,11 @@ class SweepConfig:
                 raise ValueError(f"parameter {name} needs a non-empty list of values, got {values!r}")
             if name in NUMBER_PARAMETERS or name.partition(".")[2] in CAR_FIELDS:
                 _check_numbers(name, values)
-        _check_numbers("jerk_weight", (self.jerk_weight,))
-        if self.race_distance is not None:
-            _check_numbers("race_distance", (self.race_distance,))
         tracks = [self.track, *dict(self.parameters).get("track", ())]
         bad = [track for track in tracks if not isinstance(track, str)]  # a Path would not go into sweep.json
         if bad:
             raise ValueError(f"track values must be strings, built-in track names or TUMFTM CSV paths, got {bad[0]!r}")
+        super().__post_init__()  # the race's fields
         from planners.agents import check_specs
 
         self.race_config({}, rotation=0)  # the top-level race settings, also those every point overrides
@@ -148,7 +142,7 @@ class SweepConfig:
         """The race of a point with the lineup rotated by ``rotation`` (slot k holds agent
         ``(k + rotation) % N``); per-agent weights and car parameters follow their agent
         into its slot."""
-        race = {name: point.get(name, getattr(self, name)) for name in RACE_PARAMETERS}
+        race = dataclasses.replace(self.race_spec(), **{k: v for k, v in point.items() if k in RACE_FIELDS})
         cars = len(self.lineup)
 
         def fields(prefix: str, names: tuple[str, ...]) -> dict[str, Any]:
@@ -158,15 +152,13 @@ class SweepConfig:
         weights, vehicles = [], []
         for slot in range(cars):
             agent = (slot + rotation) % cars
-            weights.append(CostWeights(r_jx=race["jerk_weight"], r_jy=race["jerk_weight"],
-                                       **{**fields("weights.", WEIGHT_FIELDS), **fields(f"agent{agent}.", WEIGHT_FIELDS)}))
+            weights.append(race.weights().replace(**{**fields("weights.", WEIGHT_FIELDS),
+                                                     **fields(f"agent{agent}.", WEIGHT_FIELDS)}))
             vehicles.append(VehicleParams(**{**fields("vehicles.", VEHICLE_FIELDS),
                                              **fields(f"agent{agent}.", VEHICLE_FIELDS)}))
         any_car = any(k.split(".", 1)[-1] in VEHICLE_FIELDS for k in point if "." in k)
-        return RaceConfig(track=race["track"], num_agents=cars, scenario="grid", laps=race["laps"],
-                          race_distance=race["race_distance"], max_steps=race["max_steps"], weights=weights,
-                          on_collision=race["on_collision"], on_off_track=race["on_off_track"],
-                          vehicles=vehicles if any_car else None)  # None: the scenario's cars, as before
+        return race.to_race_config(cars, "grid", weights=weights,
+                                   vehicles=vehicles if any_car else None)  # None: the scenario's cars
 
 
 def _check_numbers(name: str, values: tuple[Any, ...]) -> None:
@@ -187,8 +179,7 @@ def _is_number(value: Any) -> bool:
 
 def _spec_option_types(spec: str) -> dict[str, type]:
     """The options (other than the car's cost weights) a sweep may set on an agent spec."""
-    from planners.agent_specs import split_spec
-    from planners.agents import AGENT_SPECS
+    from planners.agents import AGENT_SPECS, split_spec
 
     if spec.strip().lower().startswith("rl:"):
         return {}
@@ -289,8 +280,8 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
     mean place, mean finish-time margin over the other cars (races all finished; None
     alone), mean and best finish time of its finished races, overtakes per race, contact steps,
     time off track, errors, and for planners the mean share of re-plans that converged
-    (results where it is low are the solver's, not the weights': see the README's sweep of
-    the gap weight)."""
+    (results where it is low are the solver's, not the weights': see
+    docs/experiments/sweep-aggression.md)."""
     from experiments.tournament import won_race
 
     cars = len(config.lineup)
@@ -345,7 +336,6 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
     """Run (or resume) a sweep into ``out``; returns ``{"rows": summary, "interrupted": bool}``
     and writes ``results.jsonl``, ``summary.csv``, ``summary.json`` and ``sweep.png``."""
     from rich.console import Console
-    from tqdm import tqdm
 
     from planners.agents import check_specs
     from racing_env.env import RacingParallelEnv
@@ -358,27 +348,16 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
     for point in config.points():
         RacingParallelEnv(config.race_config(point, rotation=0))
     console = Console(stderr=True, width=160)
-    done = open_run_log(out, RESULTS, CONFIG, settings_json(config, ADDED_LATER), fresh, "sweep")
-    jobs = schedule(config)
-    todo = [job for job in jobs if job["id"] not in done]
-    if done:
-        console.print(f"resuming: {len(done)} of {len(jobs)} races already in {out / RESULTS}")
-    records = run_jobs(functools.partial(run_job, config), todo, backend, workers, address)
-    interrupted = False
-    with tqdm(total=len(todo), desc="sweep", disable=not progress) as bar:
-        try:
-            for record in records:
-                append_jsonl(out / RESULTS, record)
-                done[record["id"]] = record
-                bar.update(1)
-        except KeyboardInterrupt:
-            records.close()  # stops the workers or the Ray tasks
-            interrupted = True
-    rows = summarize(config, [done[job["id"]] for job in jobs if job["id"] in done])
+    log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG, settings=settings_json(config, ADDED_LATER),
+                 what="sweep", fresh=fresh)
+    log.announce(console)
+    interrupted = log.run(functools.partial(run_job, config), backend, workers, address, progress=progress,
+                          desc="sweep")
+    rows = summarize(config, log.records())
     _write_summary(config, rows, out, console)
     if interrupted:
-        console.print(f"interrupted: {len(done)} of {len(jobs)} races in {out / RESULTS}; run the same command "
-                      "to resume")
+        console.print(f"interrupted: {len(log.done)} of {len(log.jobs)} races in {out / RESULTS}; run the same "
+                      "command to resume")
     return {"rows": rows, "interrupted": interrupted}
 
 

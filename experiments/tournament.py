@@ -27,11 +27,12 @@ from typing import Any
 
 import numpy as np
 
-from experiments.backends import check_backend, run_jobs
+from experiments.backends import check_backend
 from experiments.formatting import or_dash
-from experiments.jsonl import append_jsonl, open_run_log, read_jsonl, settings_json
-from racing_env.config import RETIRING_MODES, RaceConfig, check_incident_rules
-from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
+from experiments.jsonl import read_jsonl, settings_json
+from experiments.race_spec import RaceSpec
+from experiments.runner import JobLog
+from racing_env.config import RETIRING_MODES, RaceConfig
 from racing_env.env import RacingParallelEnv
 from racing_env.scenarios import FIXED_STARTS, SCENARIOS
 
@@ -41,17 +42,17 @@ GIF = "race.gif"
 ADDED_LATER = ("on_collision", "on_off_track", "scenario")  # left out of tournament.json at their defaults
 
 
-@dataclasses.dataclass(frozen=True)
-class TournamentConfig:
-    """What a tournament races. ``race_distance`` [m] overrides ``laps`` when given.
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TournamentConfig(RaceSpec):
+    """What a tournament races: the agents, and the race (:class:`RaceSpec`: ``track``,
+    ``laps`` or ``race_distance`` [m], ``max_steps``, ``jerk_weight``, ``on_collision``,
+    ``on_off_track``) on ``grids`` seeded starts of ``cars`` cars.
 
     ``versus`` (one of ``agents``) races every other agent against that one only (a gauntlet)
     instead of the full round robin.
 
-    ``jerk_weight`` is the planners' jerk weight r (R = r I) in the race's game. Racing wants
-    it small (see :data:`racing_env.costs.RACING_JERK_WEIGHT`, the default, for the
-    measurements behind it): with r = 1, the solver default tuned for single solves, a 5 s
-    horizon buys so little progress per unit of jerk that the planners barely accelerate.
+    ``jerk_weight`` is the planners' jerk weight r (R = r I) in the race's game; the default
+    is :data:`racing_env.costs.RACING_JERK_WEIGHT`, the env's own racing default.
 
     ``scenario``: the start (:data:`racing_env.scenarios.SCENARIOS`). ``"grid"``: a seeded
     rolling grid per grid seed. ``"paper"``: the paper's overtaking scene, one start: the
@@ -67,22 +68,15 @@ class TournamentConfig:
     """
 
     agents: tuple[str, ...]
-    track: str = "trefoil"
-    laps: int = 1
-    race_distance: float | None = None
     grids: int = 2
     cars: int = 2
     seed: int = 0
-    max_steps: int = 3000
     step_budget_s: float = 1.0
-    jerk_weight: float = RACING_JERK_WEIGHT
     versus: str | None = None
-    on_collision: str = "penalty"
-    on_off_track: str = "penalty"
     scenario: str = "grid"
 
     def __post_init__(self) -> None:
-        check_incident_rules(on_collision=self.on_collision, on_off_track=self.on_off_track)
+        super().__post_init__()  # the race's fields
         if self.scenario not in SCENARIOS:
             raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {sorted(SCENARIOS)}")
         if self.scenario in FIXED_STARTS and (self.cars != 2 or self.grids != 1):
@@ -102,8 +96,6 @@ class TournamentConfig:
             raise ValueError(f"grids must be >= 1, got {self.grids}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise ValueError(f"seed (--seed) must be an integer >= 0, got {self.seed!r}")
-        if not self.jerk_weight > 0:
-            raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight}")
         if self.versus is not None and self.versus not in self.agents:
             # the same agent written another way (name case, option order) is that agent
             same = [spec for spec in self.agents if normal_spec(spec) == normal_spec(self.versus)]
@@ -117,7 +109,7 @@ class TournamentConfig:
 def normal_spec(spec: str) -> tuple[str, frozenset[tuple[str, str]]]:
     """What makes two agent specs the same agent: the name (any case) and the options in any
     order; the path of an ``rl:`` spec is kept as written."""
-    from planners.agent_specs import split_spec
+    from planners.agents import split_spec
 
     head, sep, rest = spec.strip().partition(":")
     if head.strip().lower() == "rl":
@@ -163,11 +155,7 @@ def race_config(config: TournamentConfig, render: bool = False) -> RaceConfig:
     """The race a tournament's lineups run: its start (a seeded rolling grid by default) on
     its track, its length, step cap and incident rules, and the planners' jerk weight in
     the game."""
-    return RaceConfig(track=config.track, num_agents=config.cars, scenario=config.scenario, laps=config.laps,
-                      race_distance=config.race_distance, max_steps=config.max_steps,
-                      weights=CostWeights(r_jx=config.jerk_weight, r_jy=config.jerk_weight),
-                      on_collision=config.on_collision, on_off_track=config.on_off_track,
-                      render_mode="rgb_array" if render else None)
+    return config.to_race_config(config.cars, config.scenario, render_mode="rgb_array" if render else None)
 
 
 def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: float | None = None,
@@ -380,6 +368,15 @@ def _race_record(config: TournamentConfig, race: dict[str, Any]) -> dict[str, An
     return run_one_race(config, race)[0]
 
 
+def _drawn_race(config: TournamentConfig, out: Path, race: dict[str, Any]) -> dict[str, Any]:
+    """The record of one scheduled race, drawn into ``out/race.gif`` (every third step)."""
+    from racing_env.render import save_gif
+
+    record, frames = run_one_race(config, race, render_every=3)
+    save_gif(frames, out / GIF, fps=10.0 / 3)
+    return record
+
+
 def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progress: bool = True,
                    fresh: bool = False, backend: str = "local", workers: int = 1,
                    address: str | None = None) -> dict[str, Any]:
@@ -391,10 +388,8 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     schedule order, so it does not depend on where or in which order the races ran."""
     from rich.console import Console
     from rich.table import Table
-    from tqdm import tqdm
 
     from planners.agents import check_specs
-    from racing_env.render import save_gif
 
     console = Console(width=140)
     check_backend(backend, workers)
@@ -402,31 +397,16 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     # the race itself, so that one the env refuses (a finish line no start is behind, a
     # track file it cannot read) fails before anything is written
     RacingParallelEnv(race_config(config))
-    done = open_run_log(out, RESULTS, CONFIG, settings_json(config, ADDED_LATER), fresh,
-                        "tournament configuration", outputs=(GIF,))
-    races = schedule(config)
-    todo = [r for r in races if r["id"] not in done]
-    if done:
-        console.print(f"resuming: {len(done)} of {len(races)} races already in {out / RESULTS}")
-    with tqdm(total=len(todo), desc="tournament", disable=not progress) as bar:
-        # with no race recorded a GIF here is not this run's (e.g. results.jsonl deleted by hand): draw it
-        # again; a resumed run keeps the GIF of its first race
-        if todo and gif and (not done or not (out / GIF).exists()):
-            record, frames = run_one_race(config, todo[0], render_every=3)
-            append_jsonl(out / RESULTS, record)
-            done[record["id"]] = record
-            save_gif(frames, out / GIF, fps=10.0 / 3)
-            todo = todo[1:]
-            bar.update(1)
-        records = run_jobs(functools.partial(_race_record, config), todo, backend, workers, address)
-        try:
-            for record in records:
-                append_jsonl(out / RESULTS, record)
-                done[record["id"]] = record
-                bar.update(1)
-        finally:
-            records.close()  # at an interruption: stops the workers or the Ray tasks
-    records = [done[r["id"]] for r in races if r["id"] in done]
+    log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG, settings=settings_json(config, ADDED_LATER),
+                 what="tournament configuration", fresh=fresh, outputs=(GIF,))
+    log.announce(console)
+    # with no race recorded a GIF here is not this run's (e.g. results.jsonl deleted by hand): draw it
+    # again; a resumed run keeps the GIF of its first race
+    draw = gif and (not log.done or not (out / GIF).exists())
+    if log.run(functools.partial(_race_record, config), backend, workers, address, progress=progress,
+               desc="tournament", here_first=functools.partial(_drawn_race, config, out) if draw else None):
+        raise KeyboardInterrupt  # the races run so far are kept in results.jsonl; no leaderboard
+    records = log.records()
     board = leaderboard(config, records)
     with open(out / "summary.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=[k for k in board["rows"][0] if k != "win_rate_ci95"] + ["ci95_low", "ci95_high"])

@@ -19,11 +19,11 @@ def one_at_a_time(fn: Callable) -> Callable:
     so ``fn`` itself is only ever traced on unbatched arguments (derivatives are taken of
     ``fn`` directly, batched as usual). Two reasons on CPU:
 
-    * speed: measured on a 2-core CPU for the racing games (N = 2, n = 12, T = 50), the
-      fused single-game LQ recursions in a ``lax.map`` cost what one game costs alone,
-      while the vmapped formulations cost more per game (batched dots and LAPACK calls:
-      1.3-1.5x; the fused code vmapped, or with the batch as the innermost axis: worse
-      still), because XLA:CPU vectorises none of them across games;
+    * speed: for games as small as the racing games, the fused single-game LQ recursions
+      in a ``lax.map`` cost what one game costs alone, while the vmapped formulations
+      (batched dots and LAPACK calls, the fused code vmapped, or with the batch as the
+      innermost axis) cost more per game, because XLA:CPU vectorises none of them across
+      games (docs/performance.md);
     * no deadlock: jaxlib 0.10's CPU LAPACK kernels split a large batch of matrices over
       XLA's intra-op thread pool and wait for the parts. When every pool thread is itself
       running such a kernel (one per CPU device in a batch split across devices), nothing

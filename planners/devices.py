@@ -1,7 +1,7 @@
 """Use every CPU core for batched solves.
 
 JAX shows one CPU device by default, and one compiled solve runs on one core. With
-several CPU devices, :func:`planners.ilq.solve_batch` splits its batch across them and the
+several CPU devices, :func:`planners.ilq_batch.solve_batch` splits its batch across them and the
 parts run in parallel (one device per core). JAX fixes the number of CPU devices when its
 backend starts, i.e. at the first JAX computation of the process, so call
 :func:`use_cpu_cores` right after the imports::

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from planners import ilq
+from planners import ilq, race_problem
 from racing_env.dynamics import STATE_DIM, rk4_step
 
 Array = jax.Array
@@ -65,8 +65,8 @@ def predict_constant_velocity(game, x0) -> Array:
 
     ``s(t) = s_0 + V_0 t dt``, ``V = V_0``, ``n = n_0``, ``chi = ax = ay = 0``. A concrete
     ``x0`` is predicted in NumPy (the same IEEE operations as JAX op by op, so the same
-    numbers; op by op JAX took 1.3 ms, a third of an iLQR agent's re-plan), a traced one
-    in ``jax.numpy``.
+    numbers, without a device dispatch per operation inside an agent's re-plan), a traced
+    one in ``jax.numpy``.
     """
     xp = jnp if isinstance(x0, jax.core.Tracer) else np
     x0 = xp.asarray(x0)
@@ -109,19 +109,19 @@ def _ego_terminal_cost(params: _EgoParams, i, x):
 def _ego_stage_gauss_newton(params: _EgoParams, t, i, x, u_i):
     del i
     joint = _ego_joint(params, t, x).reshape(-1)
-    return ilq._race_stage_gauss_newton(params.game, t, params.ego, joint, u_i)
+    return race_problem.race_stage_gauss_newton(params.game, t, params.ego, joint, u_i)
 
 
 def _ego_stage_curvature(params: _EgoParams, t, i, x):
     del i
     joint = _ego_joint(params, t, x).reshape(-1)
-    return ilq._race_stage_curvature(params.game, t, params.ego, joint).reshape(-1, STATE_DIM)[params.ego]
+    return race_problem.race_stage_curvature(params.game, t, params.ego, joint).reshape(-1, STATE_DIM)[params.ego]
 
 
 def _ego_terminal_gauss_newton(params: _EgoParams, i, x):
     del i
     joint = _ego_joint(params, params.predicted.shape[0] - 1, x).reshape(-1)
-    return ilq._race_terminal_gauss_newton(params.game, params.ego, joint)
+    return race_problem.race_terminal_gauss_newton(params.game, params.ego, joint)
 
 
 def _checked_prediction(game, predicted) -> Array:
@@ -198,7 +198,7 @@ def solve_ilqr(game, x0, ego: int = 0, U0=None, *, predicted=None, options=None,
     problem = ego_problem(game, x0, ego, predicted)
     T = game.horizon
     if U0 is not None:
-        U0 = ilq._as_array(getattr(U0, "us", U0))  # NumPy stays NumPy: no eager device ops
+        U0 = ilq.as_array(getattr(U0, "us", U0))  # NumPy stays NumPy: no eager device ops
         if U0.shape == (T, game.num_players, game.input_dim) and game.num_players > 1:
             U0 = U0[:, ego]
         U0 = U0.reshape(T, 1, game.input_dim)

@@ -32,8 +32,8 @@ All solvers are pure JAX (``lax.scan`` over time), jitted (compiled once per sha
 composable with ``jit``/``vmap``/``grad``, and do no validation: call :func:`validate_lq_game`
 once, outside ``jit``, on the raw arrays. Under ``jax.vmap`` the game solvers run the games
 of the batch one after another (:func:`planners.batching.one_at_a_time`: the fastest batched
-form measured on CPU, and the one whose LAPACK calls cannot deadlock a batch split across
-CPU devices).
+form on CPU, docs/performance.md, and the one whose LAPACK calls cannot deadlock a batch
+split across CPU devices).
 
 The own-input solvers call no LAPACK routine for ``N m <= 8``: a loop without such a call
 can be compiled by XLA:CPU into a single kernel (:mod:`racing_env.xla_setup`), which
@@ -445,8 +445,8 @@ def solve_feedback_own(
     ``R^{ii} + B^i' P^i B^i`` as pivots) instead of a pivoting LAPACK solve, and small
     products are fused element-wise code: several times faster for the sizes of the
     racing games, where the per-operation overhead of XLA on CPU dominates. Under
-    ``jax.vmap`` the games of the batch are solved one after another (``lax.map``), which
-    is the fastest of the batched forms measured on CPU.
+    ``jax.vmap`` the games of the batch are solved one after another (``lax.map``), the
+    fastest of the batched forms on CPU.
 
     Requirements: ``Q_t^i >= 0`` and ``R_t^{ii} > 0`` (then every ``P_t^i >= 0`` and the
     pivots ``R^{ii} + B^i' P^i B^i`` are positive definite); a singular Schur complement

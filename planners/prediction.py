@@ -1,9 +1,9 @@
-"""Predictions of the other cars for the sequential planner (iLQR).
+"""Predictions of the other cars for the sequential planner (iLQR); see docs/agents.md.
 
 The paper's iLQR predicts every opponent at constant speed and constant lateral offset
 (:func:`planners.ilqr.predict_constant_velocity`). A car that brakes for a chicane, or
-accelerates out of one, is then predicted tens of metres from where it will be within the
-5 s horizon. Two other kinds of prediction live here:
+accelerates out of one, is then predicted far from where it will be within a 5 s horizon.
+Two other kinds of prediction live here:
 
 * a *behaviour model* rolled forward (:class:`PolicyRollout`): each modelled car is driven
   by a policy through the environment's own physics (:func:`racing_env.physics.drive`),
@@ -18,8 +18,9 @@ accelerates out of one, is then predicted tens of metres from where it will be w
   best response to those trajectories, which separates the equilibrium as a *prediction*
   from the equilibrium as a *policy* (the iLQGame agents).
 
-A prediction named after an agent is exact against that agent when it drives as
-predicted: the lane keeper (which ignores the others), or an ``ilqr`` agent with the same
+Each prediction has the name of its method (:data:`planners.methods.PREDICTIONS`: the same
+strings as the agents'). A prediction named after an agent is exact against that agent when
+it drives as predicted: the lane keeper (which ignores the others), or an ``ilqr`` agent with the same
 weights and solver options (same start state, same warm start, same solve). Against any
 other driver it is a model error like the constant-velocity one, only a different one.
 """
@@ -32,6 +33,17 @@ import jax
 import numpy as np
 
 from planners import ilq, ilqr
+from planners.methods import (
+    CONSTANT_VELOCITY,
+    FEEDBACK,
+    FEEDBACK_GAME,
+    GAME_MODES,
+    ILQR,
+    LANE_KEEPING,
+    OPEN_LOOP_GAME,
+    PLANNERS,
+    PREDICTIONS,
+)
 from planners.scripted import LaneKeeping
 from racing_env.dynamics import STATE_DIM
 from racing_env.physics import drive
@@ -43,17 +55,6 @@ Predictor = Callable[[Any, np.ndarray, "np.ndarray | None"], "tuple[np.ndarray, 
 """``(game, x0 (N, 6), U0 (T, N, 2) or None) -> (xs (T+1, N, 6), us (T, N, 2) or None)``: the
 predicted joint trajectory from ``x0`` and, for a planner's prediction, the others' planned
 jerks [m/s^3] (``U0``: those of the previous prediction shifted to now, its warm start)."""
-
-CONSTANT_VELOCITY = "constant-velocity"
-LANE_KEEPING = "lane-keeping"
-ILQR = "ilqr"
-FEEDBACK_GAME = "ilqgame-fb"
-OPEN_LOOP_GAME = "ilqgame-ol"
-PREDICTIONS = (CONSTANT_VELOCITY, LANE_KEEPING, ILQR, FEEDBACK_GAME, OPEN_LOOP_GAME)
-"""The predictions an iLQR agent can plan against (its ``prediction`` option)."""
-
-_GAME_MODES = {FEEDBACK_GAME: "feedback", OPEN_LOOP_GAME: "open_loop"}  # game prediction -> solver mode
-_PLANNERS = (ILQR, *_GAME_MODES)  # the predictions a PlannerPrediction makes
 
 __all__ = ["CONSTANT_VELOCITY", "Driver", "FEEDBACK_GAME", "ILQR", "LANE_KEEPING", "OPEN_LOOP_GAME", "PREDICTIONS",
            "PlannerPrediction", "PolicyRollout", "Predictor", "check_levels", "check_prediction",
@@ -85,9 +86,9 @@ class PolicyRollout:
 
     Calling it with a joint state ``x0 (N, 6)`` returns ``(horizon + 1, N, 6)``, row 0 being
     ``x0``. Every driver sees the predicted joint state of its step. The rollout knows
-    nothing of the race's end (a finished car keeps driving) and takes about 20 us per
-    step plus the drivers' own time (Intel Xeon: 1.4-1.8 ms for 50 steps of one lane
-    keeper). The physics step is compiled at the first call.
+    nothing of the race's end (a finished car keeps driving). The physics step is compiled
+    at the first call; a step then costs little next to the drivers' own time
+    (docs/performance.md).
     """
 
     def __init__(self, game, drivers: Mapping[int, Driver]) -> None:
@@ -122,9 +123,9 @@ def check_solver_options(prediction: str, **solver_options: Any) -> None:
     """Refuse :class:`planners.ilq.SolverOptions` fields that the solves of a planned
     ``prediction`` (``"ilqr"`` or a game) cannot take, in the mode they use; other
     predictions solve nothing and take any."""
-    if prediction in _PLANNERS:
-        options = ilq.SolverOptions(**{**solver_options, "mode": _GAME_MODES.get(prediction, "feedback")})
-        ilq.check_adaptive_regularization(options, 2 if prediction in _GAME_MODES else 1)
+    if prediction in PLANNERS:
+        options = ilq.SolverOptions(**{**solver_options, "mode": GAME_MODES.get(prediction, FEEDBACK)})
+        ilq.check_adaptive_regularization(options, 2 if prediction in GAME_MODES else 1)
 
 
 class PlannerPrediction:
@@ -144,8 +145,8 @@ class PlannerPrediction:
             the others' level-``levels`` plans (``1``: each against constant velocity).
             Every level above the first also plans the predicting car. Where the levels
             settle, they settle on an open-loop Nash equilibrium: a profile of trajectories
-            that are best responses to each other (in the paper's scene the distance to
-            it shrinks by a factor of about 0.58 per level).
+            that are best responses to each other (docs/agents.md shows them approach it in
+            the paper's scene).
         solver_options: :class:`planners.ilq.SolverOptions` fields of these solves
             (``max_iterations``, ``tolerance``, ...), e.g. those of the predicting agent.
 
@@ -157,8 +158,8 @@ class PlannerPrediction:
     """
 
     def __init__(self, planner: str, ego: int, levels: int = 1, **solver_options: Any) -> None:
-        if planner not in _PLANNERS:
-            raise ValueError(f"planner must be one of {list(_PLANNERS)}, got {planner!r}")
+        if planner not in PLANNERS:
+            raise ValueError(f"planner must be one of {list(PLANNERS)}, got {planner!r}")
         check_levels(planner, levels)
         check_solver_options(planner, **solver_options)  # now, not at the first solve
         self.planner = planner
@@ -168,8 +169,8 @@ class PlannerPrediction:
 
     def __call__(self, game, x0, U0=None) -> tuple[np.ndarray, np.ndarray]:
         x0 = np.asarray(x0, dtype=np.float64)
-        if self.planner in _GAME_MODES:
-            res = ilq.solve(game, x0, init=U0, **{**self.solver_options, "mode": _GAME_MODES[self.planner]})
+        if self.planner in GAME_MODES:
+            res = ilq.solve(game, x0, init=U0, **{**self.solver_options, "mode": GAME_MODES[self.planner]})
             return np.asarray(res.xs), np.asarray(res.us)
         xs = np.array(ilqr.predict_constant_velocity(game, x0))  # level 0
         us = np.zeros((game.horizon, game.num_players, game.input_dim)) if U0 is None else np.array(U0)
@@ -205,7 +206,7 @@ def make_predictor(name: str, game, ego: int, levels: int = 1, **solver_options:
     check_levels(name, levels)
     if name == CONSTANT_VELOCITY:
         return None
-    if name in _PLANNERS:
+    if name in PLANNERS:
         return PlannerPrediction(name, ego, levels=levels, **solver_options)
     others = [j for j in range(game.num_players) if j != ego]
     rollout = PolicyRollout(game, {j: _lane_keeper(game, j) for j in others})

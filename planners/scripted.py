@@ -1,7 +1,9 @@
 """Scripted baseline drivers: a lane-keeping controller and a constant-speed cruiser.
 
 They read the joint state (full information, like the planners) and return normalised
-jerk actions in ``[-1, 1]^2``. The lateral law makes the lateral offset behave like a
+jerk actions in ``[-1, 1]^2``. These are the control laws alone, callables
+``driver(observation, joint_state) -> action``: :mod:`planners.agents.scripted` makes them
+agents, and :mod:`planners.prediction` drives predicted opponents with them. The lateral law makes the lateral offset behave like a
 critically damped second-order system around a target offset; the longitudinal law tracks a
 target speed capped by the tightest curve in a preview window.
 """
@@ -10,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
+from planners.methods import CONSTANT_SPEED, LANE_KEEPING
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
 
@@ -34,8 +36,8 @@ def _preview_offsets(reach: float) -> np.ndarray:
 
 def _curvature_grid(track: Track) -> tuple[np.ndarray, np.ndarray]:
     """Arc lengths and curvatures for ``np.interp``; on a closed track, wrapped, sorted and
-    padded by one point each side, as ``np.interp(..., period=length)`` prepares them on
-    every call (about 60 us for a circuit's grid, a third of the controller's time)."""
+    padded by one point each side, once per controller, where ``np.interp(..., period=length)``
+    would prepare them again on every call."""
     s, kappa = np.asarray(track.s, dtype=np.float64), np.asarray(track.kappa, dtype=np.float64)
     if not track.closed:
         return s, kappa
@@ -66,7 +68,7 @@ class LaneKeeping:
         target_n: lateral offset to hold [m], positive to the left.
     """
 
-    name = "lane-keeping"
+    name = LANE_KEEPING
 
     def __init__(
         self,
@@ -91,8 +93,8 @@ class LaneKeeping:
         return np.interp(s, self._kappa_s, self._kappa_values)
 
     def __call__(self, observation: np.ndarray | None, joint_state: np.ndarray) -> np.ndarray:
-        # Scalar work in scalars: np.linspace and np.clip on a few numbers cost more than
-        # the arithmetic (33 -> 19 us per action); every value is computed as before.
+        # Scalar work in scalars: np.linspace and np.clip on a few numbers cost more than the
+        # arithmetic; every value equals the array form (tests/test_agents.py checks it).
         s, v, n, chi, ax, ay = np.asarray(joint_state, dtype=float)[self.index]
         v_pos = max(v, 0.0)
         reach = max(v_pos, 5.0) * PREVIEW_TIME
@@ -111,7 +113,7 @@ class LaneKeeping:
 class ConstantSpeed(LaneKeeping):
     """Cruises on the centre line at a constant ``target_speed`` (slowing only for curves)."""
 
-    name = "constant-speed"
+    name = CONSTANT_SPEED
 
     def __init__(self, track: Track, index: int, vehicle: VehicleParams = VehicleParams(), target_speed: float = 15.0):
         super().__init__(track, index, vehicle, target_speed=target_speed, target_n=0.0)

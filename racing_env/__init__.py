@@ -4,8 +4,12 @@ Importing the package switches JAX to 64-bit floats: the game solvers check Nash
 to 1e-8 and the env must be bit-for-bit deterministic, both of which want float64. It also
 lets XLA:CPU compile each of the solvers' sequential loops into one kernel, if JAX has not
 started yet (:mod:`racing_env.xla_setup`; ``RACING_XLA_LOOP_KERNELS=off`` opts out), and
-runs single-device CPU computations on the calling thread, which makes an env step
-1.3-1.6x as fast (``RACING_INLINE_DISPATCH=off`` keeps JAX's asynchronous dispatch).
+runs single-device CPU computations on the calling thread, which makes an env step faster
+(docs/performance.md; ``RACING_INLINE_DISPATCH=off`` keeps JAX's asynchronous dispatch).
+
+The envs: :func:`parallel_env` (PettingZoo) and :class:`RaceEnv` (Gymnasium, registered as
+``racing_env/Race-v0``), configured by :class:`RaceConfig`. Guides: docs/env.md (envs,
+rewards, incidents, scenarios) and docs/model.md (car model, game, costs, tracks).
 """
 
 import jax

@@ -7,7 +7,7 @@ from typing import Sequence
 
 import numpy as np
 
-from racing_env.costs import CostWeights
+from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
 from racing_env.scenarios import SCENARIOS
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
@@ -22,6 +22,22 @@ def check_incident_rules(**rules: str) -> None:
     for name, mode in rules.items():
         if mode not in INCIDENT_MODES:
             raise ValueError(f"{name} must be one of {INCIDENT_MODES}, got {mode!r}")
+
+
+def check_race_length(laps: int, race_distance: float | None, max_steps: int) -> None:
+    """Refuse a race length that is not one: ``laps`` and ``max_steps`` must be integers
+    >= 1, ``race_distance`` None or a finite number of metres > 0."""
+    if isinstance(laps, bool) or not isinstance(laps, (int, np.integer)) or laps < 1:
+        raise ValueError(f"laps must be an integer >= 1, got {laps!r}")
+    if race_distance is not None and not (_is_number(race_distance) and np.isfinite(race_distance)
+                                          and race_distance > 0):
+        raise ValueError(f"race_distance must be a finite number > 0 metres, got {race_distance!r}")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+        raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}")
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,7 +78,7 @@ class RewardConfig:
 
 @dataclasses.dataclass(frozen=True)
 class RaceConfig:
-    """Everything that defines a race.
+    """Everything that defines a race (guide: docs/env.md).
 
     Attributes:
         track: a ``Track``, a built-in track name (``straight``, ``trefoil``, ...) or a path to
@@ -70,7 +86,14 @@ class RaceConfig:
         num_agents: number of cars N (>= 1).
         scenario: start configuration, one of ``racing_env.scenarios.SCENARIOS``.
         vehicles: one ``VehicleParams`` for all cars, one per car, or None for the scenario's.
-        weights: cost weights the planners use (one for all, one per car, or None = defaults).
+        weights: cost weights of the game the env builds (``env.game``), which the planners
+            racing in it use: one ``CostWeights`` for all cars, one per car, or None: every car
+            ``CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT)``, the other weights
+            at their defaults. Racing wants the jerk weight small
+            (:data:`racing_env.costs.RACING_JERK_WEIGHT`, 0.01): at ``CostWeights``' own default
+            r = 1, the one for single solves, a 5 s horizon buys so little progress per unit of
+            jerk that the planners barely accelerate. Tournaments, sweeps and training race with
+            the same default (their ``jerk_weight``).
         laps: race length in laps on closed tracks.
         race_distance: finish line position [m] of arc length; overrides ``laps``. Default on
             open tracks: 20 m before the end of the track. The env refuses a finish line
@@ -111,12 +134,7 @@ class RaceConfig:
             raise ValueError(f"num_agents must be an integer >= 1, got {self.num_agents!r}")
         if self.scenario not in SCENARIOS:
             raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {sorted(SCENARIOS)}")
-        if not isinstance(self.laps, (int, np.integer)) or self.laps < 1:
-            raise ValueError(f"laps must be an integer >= 1, got {self.laps!r}")
-        if self.race_distance is not None and not (np.isfinite(self.race_distance) and self.race_distance > 0):
-            raise ValueError(f"race_distance must be a finite number > 0 metres, got {self.race_distance!r}")
-        if not isinstance(self.max_steps, (int, np.integer)) or self.max_steps < 1:
-            raise ValueError(f"max_steps must be an integer >= 1, got {self.max_steps!r}")
+        check_race_length(self.laps, self.race_distance, self.max_steps)
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"dt must be a positive number of seconds, got {self.dt!r}")
         check_incident_rules(on_collision=self.on_collision, on_off_track=self.on_off_track)
@@ -132,3 +150,10 @@ class RaceConfig:
             raise ValueError(f"got {len(self.vehicles)} VehicleParams for num_agents={self.num_agents}")
         if isinstance(self.weights, Sequence) and len(self.weights) != self.num_agents:
             raise ValueError(f"got {len(self.weights)} CostWeights for num_agents={self.num_agents}")
+
+    def game_weights(self) -> CostWeights | Sequence[CostWeights]:
+        """The cost weights of the game the env builds: ``weights``, or when None the racing
+        default, every car with jerk weight :data:`racing_env.costs.RACING_JERK_WEIGHT`."""
+        if self.weights is None:
+            return CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT)
+        return self.weights

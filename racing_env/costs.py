@@ -21,6 +21,14 @@ plan a way out of a standstill that the car cannot drive.
 
 Terminal cost: ``g_K^i = -s_K^i + c_g^i * sum_{j != i} s_K^j``.
 
+The stage costs are stated once, as residuals: :func:`stage_residuals` gives player i's
+``r_k`` (the proximities ``a_ij = (ds_ij / l_ij)^2 + (dn_ij / w_ij)^2``, the excesses ``z``
+inside the ``max(z, 0)^2`` terms, its input) and their weights, and the cost is
+``sum_k rho_k(r_k)`` with ``rho(a) = c exp(2 (1 - a))``, ``rho(z) = c max(z, 0)^2`` and
+``rho(u) = r u^2``. Every cost function here sums those, and the solvers' Gauss-Newton form
+(:mod:`planners.race_problem`) differentiates the same residuals. The terminal cost is
+linear in the arc lengths (:func:`terminal_weights`).
+
 Cars out of the race (``racing``, bool ``(N,)``; ``None``: all race) are ghosts: the collision
 terms of every pair with such a car are zero, and its ``s_K`` leaves the others' sums.
 """
@@ -28,7 +36,7 @@ terms of every pair with such a car are zero, and its ``s_K`` leaves the others'
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -57,8 +65,8 @@ class CostWeights:
     """
 
     # 1.0 keeps the iLQ games well scaled: with jerk almost free (0.01) the solvers'
-    # local models change fast between iterations, and cold solves take 2-5x the
-    # iterations (README, Convergence away from the paper's scene).
+    # local models change fast between iterations, and cold solves take several times the
+    # iterations (docs/solvers.md, Convergence).
     r_jx: ArrayLike = 1.0
     r_jy: ArrayLike = 1.0
     c_collision: ArrayLike = 10.0
@@ -94,16 +102,15 @@ jax.tree_util.register_dataclass(
 
 
 RACING_JERK_WEIGHT = 0.01
-"""Jerk weight r [s^6/m^2] of the planners in races (tournaments, the demo, the agents bench).
+"""Jerk weight r [s^6/m^2] of the planners in every race: the game ``parallel_env`` and the
+Gymnasium view build when no weights are given, tournaments, sweeps and training.
 
 In a race the terminal reward ``-s_K`` is the only incentive to go fast, and one metre of
 progress is worth one cost unit. With the solver default r = 1 (kept for the paper's single
 solves, where it keeps the iterations well scaled) a 5 s horizon buys so little progress per
-unit of jerk that the planners accelerate at a fraction of the car's limit: measured on the
-trefoil (1 lap, rolling start, grid seeds 0 and 1, both starting slots), feedback iLQGame
-lost to the lane keeper with r = 0.1 (by 0.3 s over 500 m) and beat it in 4 of 4 races by
-1.0-1.9 s with r = 0.01 (mean 1.42 s). Lower is not better: r = 0.003 also won 4 of 4 but
-by less (mean 1.32 s).
+unit of jerk that the planners accelerate at a fraction of the car's limit. At r = 0.01 the
+feedback iLQGame planner beats the lane keeper; a larger or a smaller weight does worse
+(docs/model.md, Costs).
 """
 
 
@@ -128,17 +135,123 @@ def racing_pairs(racing: jax.Array | None, num_cars: int, dtype) -> jax.Array:
     return (1.0 - jnp.eye(num_cars, dtype=dtype)) * flags[:, None] * flags[None, :]
 
 
+class StageResiduals(NamedTuple):
+    """Player i's stage cost as ``sum_k rho_k(r_k)``: its residuals ``r_k`` and weights.
+
+    The one statement of the racing stage costs: :func:`player_stage_cost` (and with it
+    :func:`state_cost_terms`, :func:`stage_costs`, ``RaceGame.stage_cost``) sums the outer
+    functions of these residuals, and the solvers' Gauss-Newton form
+    (:func:`planners.race_problem.race_stage_gauss_newton`) differentiates the same
+    residuals. Shapes for N cars and inputs of size m:
+
+    Attributes:
+        proximity: ``(N,)`` ``a_ij = (ds_ij / l_ij)^2 + (dn_ij / w_ij)^2`` to every car j;
+            ``rho(a) = c exp(2 (1 - a))`` (the paper's ``c exp(1 - a)^2``).
+        collision_weights: ``(N,)`` ``c_c^i`` for the rivals racing with i, 0 for i
+            itself and for pairs with a car out of the race.
+        limits: ``(6,)`` the excesses ``z`` of :data:`LIMITS` (track left and right, ax
+            limit, gg limit, turn limit, reversing); ``rho(z) = c max(z, 0)^2``.
+        limit_weights: ``(6,)`` ``c_w, c_w, c_ax, c_a, c_a, c_r`` of player i.
+        jerk: ``(m,)`` the input ``u_i``; ``rho(u) = r u^2``.
+        jerk_weights: ``(m,)`` ``r_jx, r_jy`` of player i.
+    """
+
+    proximity: jax.Array
+    collision_weights: jax.Array
+    limits: jax.Array
+    limit_weights: jax.Array
+    jerk: jax.Array
+    jerk_weights: jax.Array
+
+
+LIMITS = ("track_left", "track_right", "ax_limit", "gg_limit", "turn_limit", "reverse")
+"""The soft limits of :attr:`StageResiduals.limits`, in order."""
+
+
+def _of_player(value, i, num_cars: int) -> jax.Array:
+    """Player ``i``'s entry of a per-player field (a scalar is everybody's)."""
+    return jnp.broadcast_to(jnp.asarray(value), (num_cars,))[i]
+
+
+def stage_residuals(
+    i: int | jax.Array,
+    x: jax.Array,
+    u_i: jax.Array,
+    vehicles: VehicleParams,
+    weights: CostWeights,
+    track: Track,
+    racing: jax.Array | None = None,
+) -> StageResiduals:
+    """Player ``i``'s stage-cost residuals at joint state ``x (N, 6)`` with its input ``u_i``."""
+    N = x.shape[0]
+    s, v, n = x[:, S], x[:, V], x[:, N_LAT]
+    ds = track.wrap_ds(s - s[i])
+    dn = n - n[i]
+    lengths = jnp.broadcast_to(jnp.asarray(vehicles.length), (N,))
+    widths = jnp.broadcast_to(jnp.asarray(vehicles.width), (N,))
+    length = 0.5 * (lengths[i] + lengths)
+    width = 0.5 * (widths[i] + widths)
+    proximity = (ds / length) ** 2 + (dn / width) ** 2  # a_ii = 0
+    rivals = _of_player(weights.c_collision, i, N) * racing_pairs(racing, N, x.dtype)[i]
+    half_width = 0.5 * widths[i]
+    ax_i, ay_i = x[i, AX], x[i, AY]
+    limits = jnp.stack(
+        [
+            n[i] - (track.width_left_at(s[i]) - half_width),
+            -n[i] - (track.width_right_at(s[i]) - half_width),
+            ax_i - vehicles.ax_max(v)[i],
+            jnp.sqrt(ax_i**2 + ay_i**2 + _NORM_EPS) - vehicles.rho(v)[i],
+            jnp.sqrt(ay_i**2 + _NORM_EPS) - vehicles.ay_turn_max(v)[i],
+            -v[i],
+        ]
+    )
+    c_track, c_ax, c_acc, c_reverse = (
+        _of_player(w, i, N) for w in (weights.c_track, weights.c_ax, weights.c_acc, weights.c_reverse)
+    )
+    limit_weights = jnp.stack([c_track, c_track, c_ax, c_acc, c_acc, c_reverse])
+    jerk_weights = jnp.broadcast_to(jnp.asarray(weights.jerk_weights), (N, u_i.shape[-1]))[i]
+    return StageResiduals(proximity, rivals, limits, limit_weights, u_i, jerk_weights)
+
+
+def collision_costs(res: StageResiduals) -> jax.Array:
+    """``(N,)`` the collision cost ``c_c exp(2 (1 - a_ij))`` of player i to every car j."""
+    return res.collision_weights * jnp.exp(2.0 * (1.0 - res.proximity))
+
+
+def limit_costs(res: StageResiduals) -> jax.Array:
+    """``(6,)`` the soft-limit costs ``c max(z, 0)^2`` in the order of :data:`LIMITS`."""
+    return res.limit_weights * jnp.maximum(res.limits, 0.0) ** 2
+
+
+def _state_terms(res: StageResiduals) -> dict[str, jax.Array]:
+    """Player i's input-independent stage-cost terms (scalars) from its residuals."""
+    limit = limit_costs(res)
+    return {
+        "collision": jnp.sum(collision_costs(res)),
+        "track": limit[0] + limit[1],
+        "ax_limit": limit[2],
+        "gg_limit": limit[3],
+        "turn_limit": limit[4],
+        "reverse": limit[5],
+    }
+
+
+def player_stage_cost(res: StageResiduals) -> jax.Array:
+    """Player i's stage cost ``sum_k rho_k(r_k)`` of its residuals (a scalar)."""
+    return sum(_state_terms(res).values()) + jnp.sum(res.jerk_weights * res.jerk**2)
+
+
 def collision_proximity(
     x: jax.Array, vehicles: VehicleParams, track: Track, racing: jax.Array | None = None
 ) -> jax.Array:
     """Pairwise proximity ``exp(1 - (ds/l)^2 - (dn/w)^2)^2``, shape ``(N, N)``, zero on the
     diagonal and for pairs with a car out of the race."""
-    ds = track.wrap_ds(x[None, :, S] - x[:, None, S])
-    dn = x[None, :, N_LAT] - x[:, None, N_LAT]
-    length = 0.5 * (vehicles.length[:, None] + vehicles.length[None, :])
-    width = 0.5 * (vehicles.width[:, None] + vehicles.width[None, :])
-    proximity = jnp.exp(2.0 * (1.0 - (ds / length) ** 2 - (dn / width) ** 2))
-    return proximity * racing_pairs(racing, x.shape[0], x.dtype)
+    ones = CostWeights(c_collision=1.0)
+
+    def row(i):
+        return collision_costs(stage_residuals(i, x, jnp.zeros(2, x.dtype), vehicles, ones, track, racing))
+
+    return jax.vmap(row)(jnp.arange(x.shape[0]))
 
 
 def state_cost_terms(
@@ -149,22 +262,10 @@ def state_cost_terms(
     racing: jax.Array | None = None,
 ) -> dict[str, jax.Array]:
     """The input-independent stage-cost terms of every player, each of shape ``(N,)``."""
-    s, v, n = x[:, S], x[:, V], x[:, N_LAT]
-    ax, ay = x[:, AX], x[:, AY]
-    half_width = 0.5 * vehicles.width
-    beyond_left = jnp.maximum(n - (track.width_left_at(s) - half_width), 0.0)
-    beyond_right = jnp.maximum(-n - (track.width_right_at(s) - half_width), 0.0)
-    over_ax = jnp.maximum(ax - vehicles.ax_max(v), 0.0)
-    over_gg = jnp.maximum(jnp.sqrt(ax**2 + ay**2 + _NORM_EPS) - vehicles.rho(v), 0.0)
-    over_turn = jnp.maximum(jnp.sqrt(ay**2 + _NORM_EPS) - vehicles.ay_turn_max(v), 0.0)
-    return {
-        "collision": weights.c_collision * collision_proximity(x, vehicles, track, racing).sum(axis=1),
-        "track": weights.c_track * (beyond_left**2 + beyond_right**2),
-        "ax_limit": weights.c_ax * over_ax**2,
-        "gg_limit": weights.c_acc * over_gg**2,
-        "turn_limit": weights.c_acc * over_turn**2,
-        "reverse": weights.c_reverse * jnp.maximum(-v, 0.0) ** 2,
-    }
+    def player(i):
+        return _state_terms(stage_residuals(i, x, jnp.zeros(2, x.dtype), vehicles, weights, track, racing))
+
+    return jax.vmap(player)(jnp.arange(x.shape[0]))
 
 
 def input_cost(u: jax.Array, weights: CostWeights) -> jax.Array:
@@ -185,8 +286,15 @@ def stage_costs(
     return input_cost(u, weights) + sum(terms.values())
 
 
+def terminal_weights(weights: CostWeights, racing: jax.Array | None, num_cars: int, dtype) -> jax.Array:
+    """``(N, N)`` the linear terminal costs: ``g_K^i = sum_j W[i, j] s_K^j`` with
+    ``W[i, i] = -1`` and ``W[i, j] = c_g^i`` for the rivals ``j`` still racing (else 0)."""
+    c_gap = jnp.broadcast_to(jnp.asarray(weights.c_gap), (num_cars,))
+    rivals = c_gap[:, None] * racing_flags(racing, num_cars, dtype)[None, :]
+    return jnp.where(jnp.eye(num_cars, dtype=bool), -1.0, rivals).astype(dtype)
+
+
 def terminal_costs(x: jax.Array, weights: CostWeights, racing: jax.Array | None = None) -> jax.Array:
     """Terminal cost ``-s^i + c_g^i sum_{j != i, j racing} s^j`` of every player, ``(N,)``."""
     s = x[:, S]
-    rivals = s * racing_flags(racing, s.shape[0], s.dtype)
-    return -s + weights.c_gap * (jnp.sum(rivals) - rivals)
+    return jnp.sum(terminal_weights(weights, racing, s.shape[0], s.dtype) * s[None, :], axis=1)

@@ -178,7 +178,8 @@ class RacingParallelEnv(ParallelEnv):
     """N point-mass cars racing in a Frenet frame (PettingZoo Parallel API).
 
     ``state()`` returns the joint state ``(N, 6)`` (full information for planners);
-    ``game`` is the ``RaceGame`` the planners should use. ``infos[agent]`` holds ``s``,
+    ``game`` is the ``RaceGame`` the planners should use (its weights:
+    :meth:`RaceConfig.game_weights`, by default the racing jerk weight). ``infos[agent]`` holds ``s``,
     ``lap``, ``position`` (1 = leading), ``collided``, ``contact_with``, ``off_track``,
     ``finished``, ``finish_time`` [s] (None until finished), ``out`` (retired by an incident rule) and the
     ``reward_terms``.
@@ -201,11 +202,11 @@ class RacingParallelEnv(ParallelEnv):
         self.finish_s = _finish_line(config, self.track)
         scenario = make_scenario(config.scenario, self.track, num, config.vehicles, seed=0, finish_s=self.finish_s)
         self.game = RaceGame.create(
-            self.track, scenario.vehicles, config.weights, dt=config.dt, horizon=config.horizon
+            self.track, scenario.vehicles, config.game_weights(), dt=config.dt, horizon=config.horizon
         )
         _check_starts_behind(self.finish_s, scenario.x0, config.scenario)
         # on the device once, as one array: a step neither re-transfers them nor pays for
-        # their ~30 argument leaves
+        # their argument leaves (racing_env.packing)
         self._constants, self._layout = pack(
             _RaceConstants(
                 self.game,
@@ -436,5 +437,13 @@ class RacingParallelEnv(ParallelEnv):
 
 
 def parallel_env(**config: Any) -> RacingParallelEnv:
-    """Create a ``RacingParallelEnv`` from ``RaceConfig`` keyword arguments."""
+    """Create a ``RacingParallelEnv`` from :class:`racing_env.config.RaceConfig` keyword
+    arguments, e.g. ``parallel_env(track="trefoil", num_agents=2, laps=1)``.
+
+    ``env.game`` is the race's game, which planners racing in the env use. Its cost weights
+    are ``weights``; left out, every car has the racing jerk weight
+    :data:`racing_env.costs.RACING_JERK_WEIGHT` (0.01), as in tournaments, sweeps and
+    training, and the other ``CostWeights`` at their defaults. Pass
+    ``weights=CostWeights(...)`` (one for all cars, or one per car) to plan with others.
+    Guide: docs/env.md."""
     return RacingParallelEnv(RaceConfig(**config))

@@ -133,9 +133,12 @@ class RaceGame:
         Player i's stage cost depends on its own input only (the paper's structure), so the
         other players' inputs are not arguments.
         """
-        state_terms = _costs.state_cost_terms(x, self.vehicles, self.weights, self.track, self.racing)
-        r_i = self.weights.jerk_weights[i]
-        return sum(t[i] for t in state_terms.values()) + jnp.sum(r_i * u_i**2)
+        return _costs.player_stage_cost(self.stage_residuals(i, x, u_i))
+
+    def stage_residuals(self, i: int, x: jax.Array, u_i: jax.Array) -> _costs.StageResiduals:
+        """Player ``i``'s stage cost as residuals (:class:`racing_env.costs.StageResiduals`),
+        the form its cost and the solvers' Gauss-Newton terms are both computed from."""
+        return _costs.stage_residuals(i, x, u_i, self.vehicles, self.weights, self.track, self.racing)
 
     def terminal_costs(self, x: jax.Array) -> jax.Array:
         """Terminal cost of every player, ``(N,)``."""

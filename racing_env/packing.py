@@ -1,7 +1,7 @@
 """Pass a pytree of constants to a jitted function as one flat array.
 
-A jitted call costs about 0.6 us per argument leaf on this project's CPU before any work
-is done (33.7 us for the env step's 36 leaves against 12.7 us for one). The env's
+A jitted call pays a cost per argument leaf before any work is done (docs/performance.md),
+so a call with a few dozen leaves costs several times one with a single leaf. The env's
 per-race constants (the ``RaceGame``'s track and vehicle arrays, the finish line, the
 preview distances, the rules) are most of those leaves and never change during a race, so
 they travel as one float64 vector and are unpacked inside the compiled function, where the

@@ -2,11 +2,9 @@
 rewards, as pure JAX functions of ``(N,)`` arrays.
 
 The environment calls :func:`judge` inside the same jitted call as the physics, so a step
-crosses from Python to XLA once and reads back a few packed arrays. The formulas perform
-the same floating-point operations in the same order as the NumPy bookkeeping they
-replaced, so races are the same bit for bit, except that an incident term without an
-incident is now 0.0 where NumPy's ``weight * False`` gave -0.0, and that a lone car (N = 1)
-gets the whole finish weight where ``(N - place) / spread`` gave it nothing.
+crosses from Python to XLA once and reads back a few packed arrays. An incident term
+without an incident is 0.0, and a lone car (N = 1) that finishes gets the whole finish
+weight. Rewards and incidents: docs/env.md.
 """
 
 from __future__ import annotations

@@ -5,6 +5,8 @@ action in ``[-1, 1]^2``), so planners and trained models can be plugged in. The 
 registered as ``racing_env/Race-v0``::
 
     env = gymnasium.make("racing_env/Race-v0", opponents=[my_policy], track="trefoil")
+
+Guide: docs/env.md.
 """
 
 from __future__ import annotations
@@ -81,7 +83,9 @@ class RaceEnv(gymnasium.Env):
             learner). Their number fixes N = len(opponents) + 1 unless ``num_agents`` is
             given, in which case a single policy is reused for every opponent.
         learner: index of the learner's car.
-        **config: ``RaceConfig`` fields (track, scenario, laps, reward, ...).
+        **config: ``RaceConfig`` fields (track, scenario, laps, reward, ...); without
+            ``weights`` the game planner opponents plan with has the racing jerk weight
+            (:meth:`RaceConfig.game_weights`), as in :func:`racing_env.parallel_env`.
 
     An opponent that follows the agent protocol of :mod:`planners.agents` (it has
     ``reset(seed, index, env_info)`` besides being callable) is reset as its car at every

@@ -272,7 +272,7 @@ class Track:
         # Candidate segments: a window around each of a few nearest grid points (several,
         # so a point on one leg of a hairpin cannot be captured by the other leg).
         k_nn = min(4, m)
-        from scipy import spatial  # imported on use: SciPy adds ~0.5 s to `import racing_env`
+        from scipy import spatial  # imported on use: SciPy would slow down `import racing_env`
 
         _, nearest = spatial.cKDTree(xy[:m]).query(p, k=k_nn)
         nearest = nearest.reshape(len(p), k_nn)

@@ -8,15 +8,15 @@ whole loop into one function (its "small while loop" hoisting), but only for loo
 memory traffic per iteration is below ``xla_cpu_small_while_loop_byte_threshold``, which
 defaults to about a kilobyte, and that contain no library calls (LAPACK, and the YNNPACK
 fusions jaxlib 0.10 makes of dot products). Raising the limit to :data:`LOOP_KERNEL_BYTES`
-makes every loop of the two-car solvers a single kernel: a feedback iteration runs
-1.5-2.4x as fast (README, Loop kernels). The three-car recursions hold dot products, laid
-out so that YNNPACK does not take them (``planners.lq_game._sandwich``): their loops are
-single kernels too. Since the quadratisation's products became such a loop as well
-(``planners.ilq._stagewise_gauss_newton_products``), a single solve holds no library call
-at all, and its outer loop (the iterations) compiles into one kernel too: iterations
-1.1-1.6x faster, at a longer compile (one large function for LLVM; 7-10 s per game solver
-here, with the loops not unrolled, which inside a kernel saves nothing). A batched solve
-keeps batched products, so its outer loop stays with the runtime.
+makes every loop of the two-car solvers a single kernel, and a feedback iteration much
+faster (docs/performance.md, Loop kernels). The three-car recursions hold dot products,
+laid out so that YNNPACK does not take them (``planners.lq_game._sandwich``): their loops
+are single kernels too. The quadratisation's products are such a loop as well
+(``planners.ilq._stagewise_gauss_newton_products``), so a single solve holds no library
+call at all, and its outer loop (the iterations) compiles into one kernel too: faster
+iterations at a longer compile (one large function for LLVM; the loops are not unrolled,
+which inside a kernel saves nothing). A batched solve keeps batched products, so its outer
+loop stays with the runtime.
 ``RACING_XLA_LOOP_KERNELS=dots`` also turns every YNNPACK fusion off
 (:data:`YNN_FUSION_FLAG`, jaxlib 0.10 only), which makes the outer loop of batched solves
 one kernel as well. Results agree to rounding: the same operations (with ``dots``, XLA's
@@ -30,9 +30,9 @@ user has not set it. ``RACING_XLA_LOOP_KERNELS=off`` keeps XLA's default.
 :func:`configure_inline_dispatch` makes JAX run single-device CPU computations on the
 calling thread instead of handing them to a worker thread (``jax_cpu_enable_async_dispatch
 = False``, also read when the backend starts). An env step is one small jitted call whose
-result is needed at once, so the hand-off between threads is pure overhead: inline, a
-two-car PettingZoo step is 1.3-1.6x as fast, and the solvers, whose results are also used
-at once, are unchanged (README, Benchmarks). Computations over several devices
+result is needed at once, so the hand-off between threads is pure overhead: inline, an
+env step is faster and the solvers, whose results are also used at once, are unchanged
+(docs/performance.md). Computations over several devices
 (``solve_batch`` split across cores) stay asynchronous. ``RACING_INLINE_DISPATCH=off``
 keeps JAX's default, and so does ``jax.config.update("jax_cpu_enable_async_dispatch", True)``
 after the import and before the first computation.
@@ -56,7 +56,7 @@ LOOP_KERNEL_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 # jaxlib 0.10 hands dot products to YNNPACK as library fusions, which a single-kernel loop
 # cannot contain either; with no YNNPACK fusion types XLA emits the dots itself. Opt-in
 # (RACING_XLA_LOOP_KERNELS=dots): hoisted loops become large functions that compile
-# slowly. Set only for the jaxlib series it was measured on: XLA aborts on a flag its
+# slowly. Set only for the jaxlib series that has the flag: XLA aborts on a flag its
 # version does not know.
 YNN_FUSION_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
 _YNN_FLAG_JAXLIB = ("0.10.",)
@@ -128,7 +128,7 @@ def configure_loop_kernels() -> str:
     if _backend_started():
         warnings.warn(
             "JAX started before racing_env was imported, so XLA:CPU runs the solvers' loops "
-            "as many small kernels (about 1.5x slower iterations). Import racing_env or "
+            "as many small kernels (slower iterations). Import racing_env or "
             f"planners before the first JAX computation, or set XLA_FLAGS='{wanted}' "
             "(RACING_XLA_LOOP_KERNELS=off silences this).",
             RuntimeWarning,

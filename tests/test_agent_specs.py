@@ -1,4 +1,4 @@
-"""Agent specs with options (planners.agent_specs, make_agent): parsing, refusal of bad
+"""Agent specs with options (planners.agents.registry, make_agent): parsing, refusal of bad
 options, private cost weights, weights by race position, and `racing agents`."""
 
 from __future__ import annotations
@@ -9,7 +9,6 @@ import pytest
 import racing_env
 from experiments.cli import main
 from experiments.race import run_race
-from planners.agent_specs import split_spec, split_spec_list, with_options
 from planners.agents import (
     AGENT_SPECS,
     FeedbackGameAgent,
@@ -18,6 +17,9 @@ from planners.agents import (
     agent_options,
     make_agent,
     reset_agents,
+    split_spec,
+    split_spec_list,
+    with_options,
 )
 from racing_env.config import RaceConfig
 from racing_env.costs import CostWeights

@@ -215,7 +215,7 @@ def test_a_car_stopped_at_the_edge_facing_out_rejoins_in_recovery(spec):
 
 
 def test_a_car_stopped_across_monzas_first_chicane_rejoins_in_recovery(shared_tracks):
-    """The standstill of a Monza race (iLQR after a spin in the first chicane, 2026-11-24):
+    """The standstill of a Monza race (iLQR after a spin in the first chicane):
     at rest 3.5 m right of the centre line, heading 1.43 rad to the right of it, in the
     chicane's 12 m left-hand bend. Turning round needs metres of run-off: with the track
     term at 1e-3 of its weight standing still is still the best 5 s plan and the car

@@ -125,3 +125,36 @@ def test_convergence_figure_is_written(tmp_path):
                {"method": "b", "convergence": [2.0], "step_sizes": [1.0]}]
     paper.plot_convergence(records, 1e-6, tmp_path / "fig3.png")
     assert (tmp_path / "fig3.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_commands_other_than_train_never_import_the_rl_layer(tmp_path):
+    """`racing tournament` (and the parser of every command) runs without importing torch,
+    stable-baselines3 or experiments.rl: only `racing train` needs them."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys\n"
+        "from experiments.cli import build_parser, main\n"
+        "build_parser()\n"
+        f"code = main(['tournament', '--agents', 'lane-keeping', 'constant-speed', '--track', 'straight', "
+        f"'--race-distance', '60', '--grids', '1', '--no-gif', '--no-compile-cache', '--out', {str(tmp_path)!r}])\n"
+        "loaded = [m for m in ('torch', 'stable_baselines3', 'experiments.rl', 'experiments.rl.train') "
+        "if m in sys.modules]\n"
+        "print('loaded:', loaded)\n"
+        "sys.exit(code or bool(loaded))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "loaded: []" in done.stdout
+
+
+def test_the_jerk_weight_help_names_the_racing_default(capsys):
+    """`--jerk-weight`'s help states the default races use, which is the env's own."""
+    from racing_env.costs import RACING_JERK_WEIGHT
+
+    for command in ("tournament", "train"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args([command, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert f"(default: {RACING_JERK_WEIGHT}, racing_env.costs.RACING_JERK_WEIGHT" in text

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.flops import FlopCount, count_flops
+from planners.flops import FlopCount, count_flops
 
 
 def test_a_matrix_product_is_two_flops_per_multiply_add():

@@ -4,7 +4,7 @@ The paper's scenario is built here: a 300 m straight, 6 m wide on each side, dt 
 horizon 50; ego car 0 (v_max 20 m/s) at s = 10 m, V = 20 m/s on the centre line; opponent
 car 1 (v_max 25 m/s) at s = 0, V = 23 m/s, 2 m to the left.
 
-Weights: ``WEIGHTS`` pins the jerk weights r_jx = r_jy = 1 (today's defaults) so the tests
+Weights: ``WEIGHTS`` pins the jerk weights r_jx = r_jy = 1 (the defaults) so the tests
 do not move if the defaults change. With r = 0.01 the jerk is almost free and, without the
 progress curvature (``dynamics_curvature=False``), the problem is so flat laterally that
 neither iLQGame variant converges within 100 iterations; the step-rule tests use that
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import racing_env  # noqa: F401  (enables float64)
-from planners import ilq, lq_game
+from planners import ilq, ilq_batch, lq_game, nash, race_problem
 from planners.ilqr import ego_problem, predict_constant_velocity, solve_ilqr
 from racing_env import CostWeights, RaceGame, VehicleParams
 from racing_env.track import straight
@@ -119,7 +119,7 @@ def test_one_full_step_lands_on_the_lq_solution(mode):
     np.testing.assert_allclose(res.xs, xs_ref, atol=1e-9)
     np.testing.assert_allclose(res.us, us_ref, atol=1e-9)
     if mode == "open_loop":  # the LQ open-loop equilibrium is first-order Nash
-        assert np.all(np.asarray(ilq.nash_residual(problem, x0, res.us)) < 1e-9)
+        assert np.all(np.asarray(nash.nash_residual(problem, x0, res.us)) < 1e-9)
 
 
 def test_refuses_non_positive_definite_input_weight():
@@ -145,7 +145,7 @@ def test_validation_counts_only_the_regularization_that_every_step_adds():
         with pytest.raises(ValueError, match=r"player 1 .*not positive definite"):
             ilq.solve(singular, x0, mode=mode, **options)
         with pytest.raises(ValueError, match=r"player 1 .*not positive definite"):
-            ilq.solve_batch(singular, jnp.stack([x0, x0]), mode=mode, **options)
+            ilq_batch.solve_batch(singular, jnp.stack([x0, x0]), mode=mode, **options)
 
 
 # --------------------------------------------------------------------------------------
@@ -201,8 +201,8 @@ def test_open_loop_solution_is_first_order_nash(game, open_loop):
     assert bool(open_loop.converged), ilq.status_message(open_loop.status)
     assert np.all(np.isfinite(np.asarray(open_loop.xs)))
     assert open_loop.xs.shape == (51, 2, 6) and open_loop.us.shape == (50, 2, 2)
-    zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
-    res = np.asarray(ilq.nash_residual(game, X0, open_loop.us))
+    zero = np.asarray(nash.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
+    res = np.asarray(nash.nash_residual(game, X0, open_loop.us))
     assert np.all(res <= 1e-4 * zero), (res, zero)
     np.testing.assert_allclose(open_loop.costs, game.costs(open_loop.xs, open_loop.us))
     np.testing.assert_allclose(open_loop.xs, game.rollout(jnp.asarray(X0), open_loop.us))
@@ -218,8 +218,8 @@ def test_feedback_solution_has_vanishing_feedforward_and_is_not_open_loop_nash(
     assert float(jnp.max(jnp.abs(feedback.k))) <= 1e-5 * k_first
     assert float(feedback.k_history[it - 1]) <= 1e-5 * k_first
     assert np.all(np.isnan(np.asarray(feedback.history[it:])))
-    res_fb = np.asarray(ilq.nash_residual(game, X0, feedback.us))
-    res_ol = np.asarray(ilq.nash_residual(game, X0, open_loop.us))
+    res_fb = np.asarray(nash.nash_residual(game, X0, feedback.us))
+    res_ol = np.asarray(nash.nash_residual(game, X0, open_loop.us))
     # The players interact: the feedback equilibrium violates the open-loop condition.
     assert res_fb.max() > 1e-2 and res_fb.max() > 1e3 * res_ol.max(), (res_fb, res_ol)
     np.testing.assert_allclose(feedback.xs, game.rollout(jnp.asarray(X0), feedback.us))
@@ -286,14 +286,14 @@ def _merits_per_iteration(game, options):
     """``sum_i |dJ^i/du^i|^2`` after every iteration of a cold solve, from the public
     :func:`ilq.nash_residual` (through ``RaceGame.rollout``/``costs``, not the solver's
     own merit), and the accepted step sizes."""
-    problem, _ = ilq._as_problem(game)
-    iterate = jax.jit(lambda c: ilq._iterate(problem, c, options))
-    c = ilq._initial_carry(problem, jnp.asarray(X0).reshape(-1), jnp.zeros((50, 2, 2)), options)
-    merits = [float(np.sum(np.asarray(ilq.nash_residual(game, X0, c.us)) ** 2))]
+    problem = race_problem.problem_from_race_game(game)
+    iterate = jax.jit(lambda c: ilq.iterate(problem, c, options))
+    c = ilq.initial_carry(problem, jnp.asarray(X0).reshape(-1), jnp.zeros((50, 2, 2)), options)
+    merits = [float(np.sum(np.asarray(nash.nash_residual(game, X0, c.us)) ** 2))]
     carried = [float(c.merit)]
     while int(c.status) == ilq.RUNNING:
         c = iterate(c)
-        merits.append(float(np.sum(np.asarray(ilq.nash_residual(game, X0, c.us)) ** 2)))
+        merits.append(float(np.sum(np.asarray(nash.nash_residual(game, X0, c.us)) ** 2)))
         carried.append(float(c.merit))
     # The rule carries each accepted point's residual into the next iteration's test
     # instead of recomputing it: the carried value is that point's (also after the
@@ -328,8 +328,8 @@ def test_residual_step_control_converges_where_the_trust_region_cycles():
     assert int(trust_region.status) == ilq.MAX_ITERATIONS
     assert np.nanmin(np.asarray(trust_region.history[-20:])) > 1e-3  # still moving by millimetres
     assert bool(residual.converged), ilq.status_message(residual.status)
-    zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
-    assert np.all(np.asarray(ilq.nash_residual(game, X0, residual.us)) <= 1e-4 * zero)
+    zero = np.asarray(nash.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
+    assert np.all(np.asarray(nash.nash_residual(game, X0, residual.us)) <= 1e-4 * zero)
 
 
 ADAPTIVE = dict(control_regularization=0.3, adaptive_regularization=True, regularization_factor=1.5)
@@ -339,9 +339,9 @@ def test_adaptive_regularization_ends_near_the_equilibrium_where_the_trust_regio
     game = paper_game(CostWeights(r_jx=0.01, r_jy=0.01))  # the tournaments' jerk weight
     trust_region = ilq.solve(game, X0, mode="open_loop", **PLAIN)
     adaptive = ilq.solve(game, X0, mode="open_loop", **ADAPTIVE, **PLAIN)
-    zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
-    cycling = np.asarray(ilq.nash_residual(game, X0, trust_region.us))
-    near = np.asarray(ilq.nash_residual(game, X0, adaptive.us))
+    zero = np.asarray(nash.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
+    cycling = np.asarray(nash.nash_residual(game, X0, trust_region.us))
+    near = np.asarray(nash.nash_residual(game, X0, adaptive.us))
     assert int(trust_region.status) == ilq.MAX_ITERATIONS
     assert np.all(near <= 1e-4 * zero)
     assert near.max() < 1e-3 * cycling.max()  # measured: 2.8e-7 against 0.085
@@ -356,9 +356,9 @@ def test_adaptive_regularization_follows_its_rule_and_keeps_the_equilibrium(game
     within the tolerance, which only an undamped step may certify; it shortens steps but
     does not move the open-loop fixed point."""
     options = ilq.SolverOptions(mode="open_loop", **ADAPTIVE)
-    problem, _ = ilq._as_problem(game)
-    iterate = jax.jit(lambda c: ilq._iterate(problem, c, options))
-    c = ilq._initial_carry(problem, jnp.asarray(X0).reshape(-1), jnp.zeros((50, 2, 2)), options)
+    problem = race_problem.problem_from_race_game(game)
+    iterate = jax.jit(lambda c: ilq.iterate(problem, c, options))
+    c = ilq.initial_carry(problem, jnp.asarray(X0).reshape(-1), jnp.zeros((50, 2, 2)), options)
     lams, direction = [float(c.control_regularization)], np.zeros(c.xs.size)
     reversals = []
     while int(c.status) == ilq.RUNNING:
@@ -497,7 +497,7 @@ def test_batch_matches_individual_solves(game, mode, where, batching, monkeypatc
     x0s[1, 1, 2] = 1.0  # opponent closer to the centre line
     x0s[2, 1, 1] = 24.0  # faster opponent
     devices = jax.local_devices()[:1] if where == "one device" else None
-    batch = ilq.solve_batch(game, x0s, mode=mode, devices=devices, batching=batching)
+    batch = ilq_batch.solve_batch(game, x0s, mode=mode, devices=devices, batching=batching)
     assert batch.xs.shape == (3, 51, 2, 6) and batch.us.shape == (3, 50, 2, 2)
     for b in range(3):
         _assert_same_solution(batch, b, ilq.solve(game, x0s[b], mode=mode))
@@ -505,8 +505,8 @@ def test_batch_matches_individual_solves(game, mode, where, batching, monkeypatc
         def no_regrouping(*args, **kwargs):
             raise AssertionError("a mapped batch was regrouped")
 
-        monkeypatch.setattr(ilq, "_solve_regrouped", no_regrouping)
-        regrouped = ilq.solve_batch(game, x0s, mode=mode, devices=devices, regroup_every=2)
+        monkeypatch.setattr(ilq_batch, "_solve_regrouped", no_regrouping)
+        regrouped = ilq_batch.solve_batch(game, x0s, mode=mode, devices=devices, regroup_every=2)
         np.testing.assert_array_equal(regrouped.xs, batch.xs)
 
 
@@ -520,7 +520,7 @@ from planners.devices import use_cpu_cores
 devices = use_cpu_cores()
 import numpy as np
 from experiments.paper import paper_game
-from planners import ilq
+from planners import ilq, ilq_batch
 game, x0 = paper_game()
 x0s = np.repeat(x0[None], devices, axis=0)
 x0s[:, 1, 1] += 0.5 * np.arange(devices)  # a different opponent speed per member
@@ -528,7 +528,7 @@ options = dict(mode="open_loop", convexify="eig", max_iterations=3)
 singles = [np.asarray(ilq.solve(game, x0s[b], **options).xs) for b in range(devices)]
 gaps = []
 for batching in ("vmap", "map"):
-    batch = ilq.solve_batch(game, x0s, batching=batching, **options)
+    batch = ilq_batch.solve_batch(game, x0s, batching=batching, **options)
     gaps += [float(np.max(np.abs(np.asarray(batch.xs[b]) - singles[b]))) for b in range(devices)]
 print(json.dumps({"devices": devices, "gaps": gaps}))
 """
@@ -564,7 +564,7 @@ def test_regrouped_batch_matches_individual_solves(game):
     x0s[1, 1, 2] -= 0.5
     x0s[2, 1, 1] += 1.0  # a faster opponent
     # Measured: 13, 27 and 24 iterations: three different blocks.
-    batch = ilq.solve_batch(batched_game, x0s, mode="feedback", batching="vmap", regroup_every=4,
+    batch = ilq_batch.solve_batch(batched_game, x0s, mode="feedback", batching="vmap", regroup_every=4,
                             params_axes=params_axes)
     singles = [ilq.solve(g, x, mode="feedback") for g, x in zip(games, x0s)]
     blocks = {(int(s.iterations) - 1) // 4 for s in singles}
@@ -584,7 +584,7 @@ def test_batch_over_cost_weights_and_warm_starts(game, batching):
     batched_game = batched_game.replace(weights=second_axis)
     params_axes = params_axes.replace(weights=1)
     inits = np.random.default_rng(5).normal(scale=0.5, size=(3, 50, 2, 2))  # warm starts [m/s^3]
-    batch = ilq.solve_batch(batched_game, np.stack([X0] * 3), inits, mode="feedback", params_axes=params_axes,
+    batch = ilq_batch.solve_batch(batched_game, np.stack([X0] * 3), inits, mode="feedback", params_axes=params_axes,
                             batching=batching)
     for b, g in enumerate(games):
         _assert_same_solution(batch, b, ilq.solve(g, X0, inits[b], mode="feedback"))
@@ -596,14 +596,14 @@ def test_batch_over_cost_weights_and_warm_starts(game, batching):
 
 def test_batch_refuses_malformed_inputs(game):
     with pytest.raises(ValueError, match="batch"):
-        ilq.solve_batch(game, X0)  # one state, not a batch
+        ilq_batch.solve_batch(game, X0)  # one state, not a batch
     with pytest.raises(ValueError, match="init must have shape"):
-        ilq.solve_batch(game, np.stack([X0, X0]), np.zeros((3, 50, 2, 2)))
+        ilq_batch.solve_batch(game, np.stack([X0, X0]), np.zeros((3, 50, 2, 2)))
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match="regroup_every"):
-            ilq.solve_batch(game, np.stack([X0, X0]), regroup_every=bad)
+            ilq_batch.solve_batch(game, np.stack([X0, X0]), regroup_every=bad)
     with pytest.raises(ValueError, match="batching must be one of"):
-        ilq.solve_batch(game, np.stack([X0, X0]), batching="lockstep")
+        ilq_batch.solve_batch(game, np.stack([X0, X0]), batching="lockstep")
 
 
 def test_auto_batching_maps_on_cpu_and_vmaps_elsewhere():
@@ -611,10 +611,10 @@ def test_auto_batching_maps_on_cpu_and_vmaps_elsewhere():
         def __init__(self, platform):
             self.platform = platform
 
-    assert ilq._resolve_batching("auto", jax.local_devices()) == "map"  # this machine's CPUs
-    assert ilq._resolve_batching("auto", [Device("gpu")]) == "vmap"
-    assert ilq._resolve_batching("auto", [Device("cpu"), Device("gpu")]) == "vmap"
-    assert ilq._resolve_batching("vmap", jax.local_devices()) == "vmap"
+    assert ilq_batch.resolve_batching("auto", jax.local_devices()) == "map"  # this machine's CPUs
+    assert ilq_batch.resolve_batching("auto", [Device("gpu")]) == "vmap"
+    assert ilq_batch.resolve_batching("auto", [Device("cpu"), Device("gpu")]) == "vmap"
+    assert ilq_batch.resolve_batching("vmap", jax.local_devices()) == "vmap"
 
 
 # --------------------------------------------------------------------------------------
@@ -637,17 +637,17 @@ def _random_states(game, rng, count):
 @pytest.mark.parametrize("racing", [None, (True, False)], ids=["all_racing", "car_1_out"])
 def test_gauss_newton_hooks_give_exact_gradients_and_psd_hessians(game, racing):
     game = game.with_racing(racing)
-    problem = ilq.problem_from_race_game(game)
+    problem = race_problem.problem_from_race_game(game)
     n = problem.state_dim
     rng = np.random.default_rng(3)
 
     @jax.jit  # one compilation for all states and players (eager tracing took ~10 s)
     def terms_and_exact(z, i):
-        fun = lambda z: ilq._race_stage_gauss_newton(game, 0, i, z[:n], z[n:])
-        H, g = ilq._gauss_newton_terms(fun, z)
+        fun = lambda z: race_problem.race_stage_gauss_newton(game, 0, i, z[:n], z[n:])
+        H, g = ilq.gauss_newton_terms(fun, z)
         exact = jax.grad(lambda z: problem.stage_cost(game, 0, i, z[:n], z[n:]))(z)
         x = z[:n]
-        HT, gT = ilq._gauss_newton_terms(lambda x: ilq._race_terminal_gauss_newton(game, i, x), x)
+        HT, gT = ilq.gauss_newton_terms(lambda x: race_problem.race_terminal_gauss_newton(game, i, x), x)
         exact_T = jax.grad(lambda x: problem.terminal_cost(game, i, x))(x)
         return H, g, exact, HT, gT, exact_T
 
@@ -675,15 +675,15 @@ def test_gauss_newton_hooks_mask_a_ghost_among_three_cars(racing):
     the only pair): the hooks' gradients equal autodiff of the masked costs for every player."""
     game, base = _three_cars_on_the_trefoil()
     game = game.with_racing(racing)
-    problem = ilq.problem_from_race_game(game)
+    problem = race_problem.problem_from_race_game(game)
     n = problem.state_dim
 
     @jax.jit
     def gradients(z, i):
-        fun = lambda z: ilq._race_stage_gauss_newton(game, 0, i, z[:n], z[n:])
-        _, g = ilq._gauss_newton_terms(fun, z)
+        fun = lambda z: race_problem.race_stage_gauss_newton(game, 0, i, z[:n], z[n:])
+        _, g = ilq.gauss_newton_terms(fun, z)
         exact = jax.grad(lambda z: problem.stage_cost(game, 0, i, z[:n], z[n:]))(z)
-        _, gT = ilq._gauss_newton_terms(lambda x: ilq._race_terminal_gauss_newton(game, i, x), z[:n])
+        _, gT = ilq.gauss_newton_terms(lambda x: race_problem.race_terminal_gauss_newton(game, i, x), z[:n])
         exact_T = jax.grad(lambda x: problem.terminal_cost(game, i, x))(z[:n])
         return g, exact, gT, exact_T
 
@@ -714,11 +714,11 @@ def test_gauss_newton_hessian_is_exact_for_the_track_term(game):
     X[1, 0] = 150.0
     X[0, 1] = 15.0  # below v_max: the ax limit ax_max(V) > 0 = ax is inactive
     X[0, 2] = 6.5
-    problem = ilq.problem_from_race_game(game)
+    problem = race_problem.problem_from_race_game(game)
     n = problem.state_dim
     z = jnp.concatenate([jnp.asarray(X).reshape(-1), jnp.array([0.3, -0.2])])
-    fun = lambda z: ilq._race_stage_gauss_newton(game, 0, 0, z[:n], z[n:])
-    H, _ = jax.jit(lambda z: ilq._gauss_newton_terms(fun, z))(z)
+    fun = lambda z: race_problem.race_stage_gauss_newton(game, 0, 0, z[:n], z[n:])
+    H, _ = jax.jit(lambda z: ilq.gauss_newton_terms(fun, z))(z)
     exact = jax.jit(jax.hessian(lambda z: problem.stage_cost(game, 0, 0, z[:n], z[n:])))(z)
     np.testing.assert_allclose(H, exact, atol=1e-10)
     assert float(exact[2, 2]) > 0  # the track term is active
@@ -730,11 +730,11 @@ def test_quadratization_matches_the_gauss_newton_products_of_each_stage(game, sc
     three) equal ``J' diag(h) J`` and ``J' g`` formed in NumPy from each stage's factors."""
     game, problem, xs, us = _random_trajectory(game, scene, 8, np.array([3.0, 4.0, 5.0, 0.2, 8.0, 12.0]))
     n, N, T = problem.state_dim, game.num_players, game.horizon
-    Q, q, Rii, rii = jax.jit(lambda xs, us: ilq._quadratize(problem, xs, us, gauss_newton=True))(xs, us)
+    Q, q, Rii, rii = jax.jit(lambda xs, us: ilq.quadratize(problem, xs, us, gauss_newton=True))(xs, us)
 
     def factors(t, i):
-        fun = lambda z: ilq._race_stage_gauss_newton(game, t, i, z[:n], z[n:])
-        return ilq._gauss_newton_factors(fun, jnp.concatenate([xs[t], us[t, i]]))
+        fun = lambda z: race_problem.race_stage_gauss_newton(game, t, i, z[:n], z[n:])
+        return ilq.gauss_newton_factors(fun, jnp.concatenate([xs[t], us[t, i]]))
 
     factors = jax.jit(factors)
     for t in sorted({0, T // 2, T - 1}):
@@ -766,7 +766,7 @@ def _random_trajectory(game, scene: str, seed: int, scale: np.ndarray):
     rng = np.random.default_rng(seed)
     xs = np.stack([(base + rng.normal(size=base.shape) * scale).reshape(-1) for _ in range(game.horizon + 1)])
     us = rng.normal(size=(game.horizon, game.num_players, 2))
-    return game, ilq.problem_from_race_game(game), jnp.asarray(xs), jnp.asarray(us)
+    return game, race_problem.problem_from_race_game(game), jnp.asarray(xs), jnp.asarray(us)
 
 
 def _three_cars_on_the_trefoil() -> tuple[RaceGame, np.ndarray]:
@@ -783,10 +783,10 @@ def _three_cars_on_the_trefoil() -> tuple[RaceGame, np.ndarray]:
 def test_race_dynamics_jacobians_match_jacfwd(game, scene):
     """The per-car hook assembles the joint block-diagonal A and per-player B exactly."""
     game, base = _scene(game, scene)
-    problem = ilq.problem_from_race_game(game)
+    problem = race_problem.problem_from_race_game(game)
     rng = np.random.default_rng(4)
     scale = np.array([3.0, 4.0, 1.0, 0.2, 8.0, 12.0])
-    hook = jax.jit(lambda x, u: ilq._race_dynamics_jacobians(game, 0, x, u))
+    hook = jax.jit(lambda x, u: race_problem.race_dynamics_jacobians(game, 0, x, u))
     joint = jax.jit(jax.jacfwd(lambda x, u: problem.dynamics(game, 0, x, u), argnums=(0, 1)))
     for _ in range(3):
         X = base + rng.normal(size=base.shape) * scale
@@ -804,9 +804,9 @@ def test_gauss_newton_keeps_the_open_loop_fixed_point(game, open_loop):
     eig = ilq.solve(game, X0, mode="open_loop", convexify="eig")
     assert bool(eig.converged) and bool(open_loop.converged)
     np.testing.assert_allclose(open_loop.xs, eig.xs, atol=1e-5)
-    zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
+    zero = np.asarray(nash.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
     for res in (open_loop, eig):
-        assert np.all(np.asarray(ilq.nash_residual(game, X0, res.us)) <= 1e-4 * zero)
+        assert np.all(np.asarray(nash.nash_residual(game, X0, res.us)) <= 1e-4 * zero)
 
 
 def test_feedback_with_gauss_newton_and_eig_projection_agree_closely(game, feedback):
@@ -835,9 +835,9 @@ def test_ilqr_gauss_newton_hooks_match_the_ego_costs(game):
     @jax.jit  # one compilation for all states and stages
     def terms_and_exact(z, t):
         fun = lambda z: problem.stage_gauss_newton(params, t, 0, z[:6], z[6:])
-        H, g = ilq._gauss_newton_terms(fun, z)
+        H, g = ilq.gauss_newton_terms(fun, z)
         exact = jax.grad(lambda z: problem.stage_cost(params, t, 0, z[:6], z[6:]))(z)
-        gT = ilq._gauss_newton_terms(lambda x: problem.terminal_gauss_newton(params, 0, x), z[:6])[1]
+        gT = ilq.gauss_newton_terms(lambda x: problem.terminal_gauss_newton(params, 0, x), z[:6])[1]
         return H, g, exact, gT, jax.grad(lambda x: problem.terminal_cost(params, 0, x))(z[:6])
 
     for X in _random_states(game, rng, 5):
@@ -868,7 +868,7 @@ def test_stage_curvature_is_the_heading_curvature_of_each_cars_progress(game, sc
 
     game, base = _scene(game, scene)
     N = game.num_players
-    curvature = jax.jit(lambda x, i: ilq._race_stage_curvature(game, 0, i, x))
+    curvature = jax.jit(lambda x, i: race_problem.race_stage_curvature(game, 0, i, x))
 
     @jax.jit
     def exact(car):
@@ -903,7 +903,7 @@ def test_stage_curvature_is_the_progress_curvature_of_the_rk4_step_on_a_straight
     finite_difference = -(step(car[CHI] + e) - 2 * step(car[CHI]) + step(car[CHI] - e)) / e**2
     X = X0.copy()
     X[0] = car
-    d = ilq._race_stage_curvature(game, 0, 0, jnp.asarray(X).reshape(-1))
+    d = race_problem.race_stage_curvature(game, 0, 0, jnp.asarray(X).reshape(-1))
     np.testing.assert_allclose(float(d[CHI]), finite_difference, rtol=1e-6)
 
 
@@ -912,12 +912,12 @@ def test_stage_curvature_is_the_progress_curvature_of_the_rk4_step_on_a_straight
 def test_dynamics_curvature_adds_only_the_heading_diagonal_and_keeps_the_gradients(game, scene, gauss_newton):
     game, problem, xs, us = _random_trajectory(game, scene, 9, np.array([3.0, 2.0, 1.0, 0.1, 1.0, 1.0]))
     n, N, T = problem.state_dim, game.num_players, game.horizon
-    quadratize = jax.jit(lambda xs, us, on: ilq._quadratize(problem, xs, us, gauss_newton, on), static_argnums=2)
+    quadratize = jax.jit(lambda xs, us, on: ilq.quadratize(problem, xs, us, gauss_newton, on), static_argnums=2)
     plain, curved = quadratize(xs, us, False), quadratize(xs, us, True)
     for a, b in zip(plain[1:], curved[1:]):  # q, Rii, rii: bit for bit
         np.testing.assert_array_equal(a, b)
     added = np.asarray(curved[0] - plain[0])
-    h = jax.vmap(lambda x: jax.vmap(lambda i: ilq._race_stage_curvature(game, 0, i, x))(jnp.arange(N)))(xs[:-1])
+    h = jax.vmap(lambda x: jax.vmap(lambda i: race_problem.race_stage_curvature(game, 0, i, x))(jnp.arange(N)))(xs[:-1])
     expected = np.zeros_like(added)
     for i in range(N):
         expected[:T, i, 6 * i + 3, 6 * i + 3] = np.asarray(h)[:, i, 6 * i + 3]
@@ -928,7 +928,7 @@ def test_dynamics_curvature_adds_only_the_heading_diagonal_and_keeps_the_gradien
 def test_dynamics_curvature_converges_the_straight_at_the_racing_jerk_weight():
     """One car on a straight at r = 0.01 with a small lateral acceleration: without the
     progress curvature only the jerk weight curves the lateral states of the local LQ
-    games, and the iterations cycle laterally to the cap (README, "Progress curvature")."""
+    games, and the iterations cycle laterally to the cap (docs/solvers.md, Progress curvature)."""
     track = straight(length=2000.0, width_left=6.0, width_right=6.0, ds=1.0)
     game = RaceGame.create(track, [VehicleParams(v_max=25.0)], CostWeights(r_jx=0.01, r_jy=0.01),
                            dt=0.1, horizon=50)
@@ -945,8 +945,8 @@ def test_dynamics_curvature_keeps_the_open_loop_fixed_point(game, open_loop):
     without = ilq.solve(game, X0, mode="open_loop", dynamics_curvature=False)
     assert bool(without.converged) and bool(open_loop.converged)
     np.testing.assert_allclose(open_loop.xs, without.xs, atol=1e-5)
-    zero = np.asarray(ilq.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
-    assert np.all(np.asarray(ilq.nash_residual(game, X0, without.us)) <= 1e-4 * zero)
+    zero = np.asarray(nash.nash_residual(game, X0, jnp.zeros((50, 2, 2))))
+    assert np.all(np.asarray(nash.nash_residual(game, X0, without.us)) <= 1e-4 * zero)
 
 
 @pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
@@ -960,12 +960,12 @@ def test_ilqr_ego_problem_has_the_games_own_heading_curvature(game, scene):
         t = 3
         joint = problem.params.predicted[t].at[ego].set(x_ego).reshape(-1)
         d = problem.stage_curvature(problem.params, t, 0, x_ego)
-        np.testing.assert_array_equal(d, ilq._race_stage_curvature(game, t, ego, joint)[6 * ego:6 * ego + 6])
+        np.testing.assert_array_equal(d, race_problem.race_stage_curvature(game, t, ego, joint)[6 * ego:6 * ego + 6])
         assert float(d[3]) > 0
         xs = jnp.tile(x_ego, (game.horizon + 1, 1))
         us = jnp.zeros((game.horizon, 1, 2))
-        Q_on = ilq._quadratize(problem, xs, us, True, True)[0]
-        Q_off = ilq._quadratize(problem, xs, us, True, False)[0]
+        Q_on = ilq.quadratize(problem, xs, us, True, True)[0]
+        Q_off = ilq.quadratize(problem, xs, us, True, False)[0]
         added = np.asarray(Q_on - Q_off)[:, 0]
         assert np.count_nonzero(added[:-1, 3, 3]) == game.horizon and np.count_nonzero(added) == game.horizon
 
@@ -978,3 +978,23 @@ def test_cpu_device_count_is_fixed_once_jax_runs():
         use_cpu_cores(3)
     with pytest.raises(ValueError, match=">= 1"):
         use_cpu_cores(0)
+
+
+def test_the_generic_solver_imports_nothing_of_the_racing_game():
+    """ilq, ilq_batch, nash and the game protocol know only GameProblem; a RaceGame reaches
+    them through the game type that planners.race_problem registers."""
+    import ast
+    import inspect
+
+    from planners import game_problem
+
+    for module in (ilq, ilq_batch, nash, game_problem):
+        tree = ast.parse(inspect.getsource(module))
+        imported = [alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names]
+        imported += [node.module or "" for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)]
+        assert not any(name.startswith("racing_env") for name in imported), module.__name__
+    assert game_problem.game_type_of(paper_game()) is not None
+    # The names that moved out of planners.ilq stay reachable there.
+    assert ilq.solve_batch is ilq_batch.solve_batch
+    assert ilq.nash_residual is nash.nash_residual
+    assert ilq.problem_from_race_game is race_problem.problem_from_race_game

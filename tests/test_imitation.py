@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from experiments.cli import main
-from experiments.imitation import (Demonstrations, _split, collect_demonstrations, discounted_returns,
-                                   fit_normalizer, running_returns)
+from experiments.rl.imitation import (Demonstrations, _split, collect_demonstrations, discounted_returns,
+                                      fit_normalizer, running_returns)
 from experiments.jsonl import read_jsonl
-from experiments.train_rl import TrainConfig, demonstrations_source
+from experiments.rl.train import TrainConfig, demonstrations_source
 from experiments.tournament import race_lineup
 from planners.agents import make_agent
 from racing_env.single_agent import RaceEnv
@@ -154,7 +154,7 @@ def test_the_clone_spread_is_the_noise_or_the_policys_own():
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from experiments.imitation import clone
+    from experiments.rl.imitation import clone
 
     rng = np.random.default_rng(2)
     demonstrations = Demonstrations(rng.normal(size=(40, 3)).astype(np.float32),

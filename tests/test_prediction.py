@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 import racing_env
-from experiments.paper import paper_game
 from planners import ilq
 from planners.agents import make_agent, reset_agents
 from planners.ilqr import ego_problem, predict_constant_velocity, solve_ilqr
 from planners.prediction import PREDICTIONS, PlannerPrediction, PolicyRollout, make_predictor
 from planners.scripted import LaneKeeping
+from racing_env.scenarios import paper_game
 
 GAME, X0 = paper_game()  # the paper's scene: the opponent 10 m behind, 2 m to the left, faster
 
@@ -111,7 +111,8 @@ def test_ilqr_refuses_a_misshapen_or_non_finite_prediction():
 def _first_replan_against_the_lane_keeper(spec: str):
     """An agent made from ``spec`` as car 0 against the lane keeper on the trefoil, after
     its first action: ``(agent, keeper, env, start state)``."""
-    env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=20)
+    # CostWeights' jerk weight 1, not the env's racing default: the solves here converge with it
+    env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=20, weights=racing_env.CostWeights())
     agent = make_agent(spec)
     keeper = make_agent("lane-keeping")
     reset_agents([agent, keeper], env, 0)
@@ -139,7 +140,7 @@ def test_the_agent_plans_against_the_lane_keeping_rollout():
 
 
 def test_ilqr_with_the_lane_keeping_prediction_gets_through_monzas_chicane(shared_tracks):
-    """The trace behind the README's Monza lap: iLQR alongside the lane keeper into the
+    """The trace behind the Monza lap of docs/agents.md: iLQR alongside the lane keeper into the
     first chicane (s = 850-980 m), 3.5 m to its left and 1.3 m ahead, both at 25 m/s.
     Predicting the lane keeper at constant speed, iLQR yields and ends 20 s later behind
     it (measured: 25 m); predicting it by the lane keeper's own law, iLQR takes the

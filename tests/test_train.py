@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from experiments import train_rl
+from experiments.rl import evaluation
+from experiments.rl import train as train_rl
 from experiments.cli import main
 from experiments.jsonl import read_jsonl
 from experiments.tournament import race_lineup
-from experiments.train_rl import TrainConfig, run_training
+from experiments.rl.train import TrainConfig, run_training
 from racing_env.config import RewardConfig
 from interrupting import ctrl_c_when, start_racing
 from planners.agents import SB3Agent, make_agent, vecnormalize_path
@@ -323,7 +324,7 @@ def test_summarize_evaluation_counts_the_learner_slot():
         (0, {"cars": [car(2, 1, 60.0, 500.0, contact=2), car(1, 2, 61.5, 500.0)]}),  # from behind, wins by 1.5 s
         (1, {"cars": [car(2, 1, 59.0, 500.0), car(1, 2, None, 420.0, off=3.0)]}),    # from the front, not finished
     ]
-    record = train_rl.summarize_evaluation(races, timesteps=4096)
+    record = evaluation.summarize_evaluation(races, timesteps=4096)
     assert record == {"timesteps": 4096, "races": 2, "wins": 1, "win_rate": 0.5, "races_by_start_place": [1, 1],
                       "wins_by_start_place": [0, 1], "mean_place": 1.5,
                       "finished": 1, "mean_finish_time_s": 60.0, "mean_margin_s": 1.5, "mean_distance": 460.0,
@@ -335,7 +336,7 @@ def test_summarize_evaluation_of_a_time_trial_reports_finish_times_and_no_margin
         return {"cars": [{"start_place": 1, "place": 1, "finish_time": finish, "distance": distance,
                           "collision_steps": 0, "time_off_track": 0.0, "error": None}]}
 
-    record = train_rl.summarize_evaluation([(0, lap(56.0, 1427.0)), (0, lap(None, 300.0)), (0, lap(57.0, 1427.0))],
+    record = evaluation.summarize_evaluation([(0, lap(56.0, 1427.0)), (0, lap(None, 300.0)), (0, lap(57.0, 1427.0))],
                                            timesteps=10)
     assert record["mean_finish_time_s"] == 56.5 and record["mean_margin_s"] is None
     assert record["wins"] == record["finished"] == 2 and record["races_by_start_place"] == [3]

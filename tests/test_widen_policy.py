@@ -1,4 +1,4 @@
-"""Carrying a saved policy into a race with more cars (experiments.widen_policy): the layout
+"""Carrying a saved policy into a race with more cars (experiments.rl.widen): the layout
 arithmetic, and a real time-trial PPO policy trained further against an opponent."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from experiments import train_rl
-from experiments.train_rl import TrainConfig, run_training
-from experiments.widen_policy import Widening, observation_widening
+from experiments.rl import train as train_rl
+from experiments.rl.train import TrainConfig, run_training
+from experiments.rl.widen import Widening, observation_widening
 from planners.agents import make_agent
 from racing_env.observation import observation_size
 

@@ -116,18 +116,18 @@ def test_three_player_recursion_with_dot_products_is_one_kernel_too():
 def test_gauss_newton_quadratization_holds_no_library_call(cars):
     """The quadratisation's products run as a loop kernel with no YNNPACK fusion (fused code
     for two cars, XLA's own dots for three): a library call anywhere in a solver iteration
-    would keep the solver's outer loop from becoming one kernel (README, Loop kernels)."""
+    would keep the solver's outer loop from becoming one kernel (docs/performance.md, Loop kernels)."""
     import jax
     import jax.numpy as jnp
 
     from experiments.bench import _solver_game
-    from planners import ilq
+    from planners import ilq, race_problem
 
     game, x0 = _solver_game(cars)
-    problem = ilq.problem_from_race_game(game)
+    problem = race_problem.problem_from_race_game(game)
     xs = jnp.tile(jnp.asarray(x0).reshape(1, -1), (game.horizon + 1, 1))
     us = jnp.zeros((game.horizon, cars, 2))
-    quadratize = lambda xs, us: ilq._quadratize(problem, xs, us, gauss_newton=True, dynamics_curvature=True)
+    quadratize = lambda xs, us: ilq.quadratize(problem, xs, us, gauss_newton=True, dynamics_curvature=True)
     text = jax.jit(quadratize).lower(xs, us).compile().as_text()
     assert "__ynn_fusion" not in text
     assert "xla_cpu_small_call" in text  # the loop over the stages is one kernel

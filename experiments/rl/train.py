@@ -25,7 +25,7 @@ Output folder::
     episodes.jsonl        one line per finished training episode
     evaluations.jsonl     one line per evaluation
     learning_curve.png    episode return and evaluation results against timesteps
-    demonstrations.npz    with ``imitate``: the expert's driving (:mod:`experiments.imitation`)
+    demonstrations.npz    with ``imitate``: the expert's driving (:mod:`experiments.rl.imitation`)
     imitation.zip         with ``imitate``: the cloned policy RL starts from (+ statistics)
     imitation.json        with ``imitate``: the expert's episodes and the fit's errors
 """
@@ -33,7 +33,6 @@ Output folder::
 from __future__ import annotations
 
 import ast
-import contextlib
 import dataclasses
 import inspect
 import json
@@ -46,16 +45,15 @@ from typing import Any
 
 import numpy as np
 
-from experiments.bench import replace_atomically, write_json_atomically
-from experiments.formatting import or_dash
-from experiments.imitation import Demonstrations, clone, collect_demonstrations
+from experiments.files import replace_atomically, write_json_atomically
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
-from experiments.tournament import won_race
-from experiments.widen_policy import (Widening, measure_new_features, observation_widening, widen_normalizer,
-                                      widen_saved_model)
+from experiments.race_spec import RaceSpec
+from experiments.rl.evaluation import evaluate, evaluation_line, plot_learning_curve
+from experiments.rl.imitation import Demonstrations, clone, collect_demonstrations
+from experiments.rl.widen import (Widening, measure_new_features, observation_widening, widen_normalizer,
+                                  widen_saved_model)
 from planners.agents import SB3_ALGOS, check_specs, make_agent, vecnormalize_path
-from racing_env.config import INCIDENT_MODES, RaceConfig, RewardConfig
-from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
+from racing_env.config import RaceConfig, RewardConfig, check_incident_rules
 
 CONFIG = "train.json"
 EPISODES = "episodes.jsonl"
@@ -83,11 +81,13 @@ _ADDED_LATER = {"start": "grid", "imitate": None, "imitate_episodes": 20, "imita
                 "imitate_spread": None}
 # steps (all copies) over which a widened init_model's new observation features are measured
 WIDENING_MEASURE_STEPS = 2048
+EVALUATION_RULE = "penalty"  # what contact (and, unless eval_off_track is set, leaving the track) does in evaluations
 
 
-@dataclasses.dataclass(frozen=True)
-class TrainConfig:
-    """What to train, against whom, and how long.
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TrainConfig(RaceSpec):
+    """What to train, against whom, and how long, in which race (:class:`RaceSpec`; off
+    the track the training race's default rule is ``terminate``).
 
     Attributes:
         opponents: agent specs of the other cars (:func:`planners.agents.make_agent`); their
@@ -136,11 +136,11 @@ class TrainConfig:
         init_model: a saved model of the same algorithm to train further (its VecNormalize
             statistics too), e.g. one trained against the fast lane keeper, before a planner
             opponent; ``None`` starts from a fresh policy. A model of a race with fewer cars
-            (a time trial) is widened (:mod:`experiments.widen_policy`): zero weights on the
+            (a time trial) is widened (:mod:`experiments.rl.widen`): zero weights on the
             new cars' features, whose statistics are measured over
             ``WIDENING_MEASURE_STEPS`` steps of this race before training.
         imitate: an agent spec (e.g. ``ilqr``) whose driving a fresh policy is cloned from
-            before training (:mod:`experiments.imitation`): it drives the learner's car for
+            before training (:mod:`experiments.rl.imitation`): it drives the learner's car for
             ``imitate_episodes`` seeded episodes of the training race, and the policy, its
             value and the normaliser are fitted to them. PPO and A2C only; not with
             ``init_model``. The cloned policy is evaluated (at 0 steps) before training.
@@ -158,19 +158,13 @@ class TrainConfig:
     pool_cars: int = 2
     algo: str = "ppo"
     timesteps: int = 200_000
-    track: str = "trefoil"
-    laps: int = 1
-    race_distance: float | None = None
-    max_steps: int = 3000
     start: str = "grid"
     seed: int = 0
     envs: int = 2
     subprocesses: bool = False
     normalize: bool = True
     on_off_track: str = "terminate"
-    on_collision: str = "penalty"
     eval_off_track: str | None = None
-    jerk_weight: float = RACING_JERK_WEIGHT
     checkpoint_every: int = 20_000
     eval_every: int = 50_000
     eval_grids: int = 2
@@ -183,6 +177,7 @@ class TrainConfig:
     imitate_spread: float | None = None
 
     def __post_init__(self) -> None:
+        super().__post_init__()  # the race's fields
         if self.pool and not self.opponents:
             raise ValueError("a pool needs at least one opponent spec to draw from (e.g. lane-keeping)")
         if self.algo not in SB3_ALGOS:
@@ -213,13 +208,8 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 0:
                 raise ValueError(f"{name} must be an integer >= 0 (0: only at the end), got {value!r}")
-        for name in ("on_off_track", "on_collision", "eval_off_track"):
-            if name == "eval_off_track" and self.eval_off_track is None:
-                continue
-            if getattr(self, name) not in INCIDENT_MODES:
-                raise ValueError(f"{name} must be one of {INCIDENT_MODES}, got {getattr(self, name)!r}")
-        if not self.jerk_weight > 0:
-            raise ValueError(f"jerk_weight must be > 0, got {self.jerk_weight}")
+        if self.eval_off_track is not None:
+            check_incident_rules(eval_off_track=self.eval_off_track)
         terms = {f.name for f in dataclasses.fields(RewardConfig)}
         for name, value in self.reward:
             if name not in terms:
@@ -233,7 +223,7 @@ class TrainConfig:
         for name, _ in self.hyperparameters:
             if name not in known:
                 raise ValueError(f"{self.algo} has no hyperparameter {name!r}; it takes {sorted(known)}")
-        # the race itself (track name or file, laps, distance, steps) is checked by RaceConfig
+        # the race in every start the copies use (a scenario's own limits)
         for copy in range(min(self.envs, 2)):  # every start the copies use
             self.race_config(copy=copy)
 
@@ -275,14 +265,10 @@ class TrainConfig:
         """The race the learner trains in (``training``; copy ``copy`` of it) or is evaluated
         in (tournament rules, with ``eval_off_track`` if set)."""
         if training:
-            rules = dict(on_off_track=self.on_off_track, on_collision=self.on_collision,
-                         reward=RewardConfig(**dict(self.reward)))
-        else:
-            rules = {} if self.eval_off_track is None else dict(on_off_track=self.eval_off_track)
-        scenario = self.scenario(copy) if training else "grid"
-        return RaceConfig(track=self.track, num_agents=self.cars, scenario=scenario, laps=self.laps,
-                          race_distance=self.race_distance, max_steps=self.max_steps,
-                          weights=CostWeights(r_jx=self.jerk_weight, r_jy=self.jerk_weight), **rules)
+            return self.to_race_config(self.cars, self.scenario(copy), reward=RewardConfig(**dict(self.reward)))
+        # the tournaments' rules: incidents penalised, not retiring, unless eval_off_track says otherwise
+        return self.to_race_config(self.cars, "grid", on_collision=EVALUATION_RULE,
+                                   on_off_track=self.eval_off_track or EVALUATION_RULE)
 
 
 def algorithm_parameters(algo: str) -> set[str]:
@@ -416,84 +402,6 @@ def _with_float32_rewards(venv):
     return Float32Rewards(venv)
 
 
-def evaluate(config: TrainConfig, model_path: Path, timesteps: int) -> dict[str, Any]:
-    """Race the saved policy against the opponents under tournament rules: every starting
-    slot on ``eval_grids`` seeded grids. Returns one evaluation record."""
-    from experiments.tournament import race_lineup
-
-    learner = f"rl:{config.algo}:{model_path}"
-    race = config.race_config(training=False)
-    by_lineup = {}
-    with _global_rngs_kept():  # SB3Agent.reset seeds the global RNGs, which training draws from
-        for label, opponents in config.evaluation_lineups():
-            races = by_lineup.setdefault(label, [])
-            for grid in range(config.eval_grids):
-                seed = 1_000_000 + config.seed * 10_000 + grid  # seeds of their own: the training's are seed + copy
-                for slot in range(config.cars):
-                    lineup = list(opponents)
-                    lineup.insert(slot, learner)
-                    record, _ = race_lineup(race, lineup, seed)
-                    races.append((slot, record))
-    record = summarize_evaluation([race for races in by_lineup.values() for race in races], timesteps)
-    if config.pool:
-        keys = ("races", "wins", "win_rate", "wins_by_start_place", "finished", "mean_margin_s", "contact_steps",
-                "time_off_track_s")
-        record["by_opponent"] = {label: {k: v for k, v in summarize_evaluation(races, timesteps).items() if k in keys}
-                                 for label, races in by_lineup.items()}
-    return record
-
-
-@contextlib.contextmanager
-def _global_rngs_kept():
-    """Restore Python's, NumPy's and torch's global random states on exit."""
-    import random
-
-    import torch
-
-    states = random.getstate(), np.random.get_state(), torch.get_rng_state()
-    try:
-        yield
-    finally:
-        random.setstate(states[0])
-        np.random.set_state(states[1])
-        torch.set_rng_state(states[2])
-
-
-def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int) -> dict[str, Any]:
-    """The learner's results over ``(slot, race record)`` pairs: wins (a lone car wins the
-    races it finishes), places, its mean finish time over the races it finished, its mean
-    margin over the races every car finished (the others' mean finish time minus its own),
-    distance and incidents."""
-    places, margins, times, distances, contact, off_track, finished, errors = [], [], [], [], 0, 0.0, 0, []
-    for slot, record in races:
-        me = record["cars"][slot]
-        others = [c for k, c in enumerate(record["cars"]) if k != slot]
-        places.append(me["place"])
-        distances.append(me["distance"])
-        contact += me["collision_steps"]
-        off_track += me["time_off_track"]
-        if me["finish_time"] is not None:
-            finished += 1
-            times.append(me["finish_time"])
-        if me["error"]:
-            errors.append(me["error"])
-        if others and me["finish_time"] is not None and all(c["finish_time"] is not None for c in others):
-            margins.append(float(np.mean([c["finish_time"] for c in others])) - me["finish_time"])
-    won = [won_race(record["cars"][slot], len(record["cars"])) for slot, record in races]
-    wins = sum(won)
-    starts = [record["cars"][slot]["start_place"] for slot, record in races]
-    cars = len(races[0][1]["cars"])
-    races_from = [sum(s == k for s in starts) for k in range(1, cars + 1)]
-    wins_from = [sum(s == k and w for s, w in zip(starts, won)) for k in range(1, cars + 1)]
-    return {"timesteps": int(timesteps), "races": len(races), "wins": wins, "win_rate": wins / len(races),
-            "races_by_start_place": races_from, "wins_by_start_place": wins_from,
-            "mean_place": float(np.mean(places)), "finished": finished,
-            "mean_finish_time_s": float(np.mean(times)) if times else None,
-            "mean_margin_s": float(np.mean(margins)) if margins else None,
-            "mean_distance": float(np.mean(distances)), "contact_steps": contact,
-            "time_off_track_s": off_track, "errors": errors}
-
-
 def _drop_episodes_after(out: Path, timesteps: int) -> None:
     """Forget the episodes logged after ``timesteps``: their steps will be collected again."""
     kept = [e for e in read_jsonl(out / EPISODES) if e["timesteps"] <= timesteps]
@@ -522,7 +430,7 @@ def _training_callback(config: TrainConfig, out: Path, console):
             if self.next_eval is not None and self.num_timesteps >= self.next_eval:
                 record = evaluate(config, saved or checkpoint(self.model, out), self.num_timesteps)
                 append_jsonl(out / EVALUATIONS, record)
-                console.print(_evaluation_line(record))
+                console.print(evaluation_line(record))
                 self.next_eval = _next_multiple(self.num_timesteps, config.eval_every)
 
         def _on_step(self) -> bool:
@@ -554,25 +462,6 @@ def checkpoint(model, out: Path) -> Path:
         if old != _replay_buffer_path(path):
             old.unlink()
     return path
-
-
-def _evaluation_line(record: dict[str, Any]) -> str:
-    if len(record["races_by_start_place"]) == 1:  # a time trial: no one to win against
-        lap = or_dash(record["mean_finish_time_s"], "{:.2f} s")
-        return (f"[bold]evaluation at {record['timesteps']:,} steps[/]: finished {record['finished']}/"
-                f"{record['races']}, mean finish time {lap}, mean distance {record['mean_distance']:.0f} m, "
-                f"off track {record['time_off_track_s']:.1f} s")
-    margin = or_dash(record["mean_margin_s"], "{:+.2f} s")
-    by_start = ", ".join(f"{w}/{n}" for w, n in zip(record["wins_by_start_place"], record["races_by_start_place"]))
-    line = (f"[bold]evaluation at {record['timesteps']:,} steps[/]: won {record['wins']}/{record['races']} "
-            f"(starting 1st, 2nd, ...: {by_start}), "
-            f"finished {record['finished']}/{record['races']}, mean margin {margin}, "
-            f"mean distance {record['mean_distance']:.0f} m, contact steps {record['contact_steps']}, "
-            f"off track {record['time_off_track_s']:.1f} s")
-    for label, part in record.get("by_opponent", {}).items():
-        margin = or_dash(part["mean_margin_s"], "{:+.2f} s")
-        line += f"\n  vs {label}: won {part['wins']}/{part['races']}, mean margin {margin}"
-    return line
 
 
 def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] | None):
@@ -695,7 +584,7 @@ def _clone_expert(config: TrainConfig, model, out: Path, console, progress: bool
                   f"({demonstrations.episodes} episodes, {int(demonstrations.finished.sum())} finished): action "
                   f"error {after['action_rmse']:.3f} on the {'held-out' if fit['after']['held_out'] else 'fitted'} "
                   f"steps, action std {', '.join(f'{s:.2f}' for s in fit['action_std'])}")
-    console.print(_evaluation_line(record))
+    console.print(evaluation_line(record))
 
 
 def _init_model_widening(config: TrainConfig, saved, venv) -> Widening | None:
@@ -763,7 +652,7 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
         if not evaluations or evaluations[-1]["timesteps"] != model.num_timesteps:
             record = evaluate(config, out / MODEL, model.num_timesteps)
             append_jsonl(out / EVALUATIONS, record)
-            console.print(_evaluation_line(record))
+            console.print(evaluation_line(record))
         report["status"] = "completed"
     except KeyboardInterrupt:
         # the steps collected since the last update are not trained on: they are collected again
@@ -804,72 +693,3 @@ def _close(venv, interrupted: bool) -> None:
             process.join()
         return
     venv.close()
-
-
-def plot_learning_curve(episodes: list[dict[str, Any]], evaluations: list[dict[str, Any]], path: Path,
-                        title: str = "", time_trial: bool = False) -> None:
-    """Three panels against timesteps: training episode returns (with a moving mean); the
-    share of training episodes finished and the evaluations' win and finish rates; the
-    evaluations' mean finish-time margin over the opponents [s] (races all cars finished),
-    or with ``time_trial`` the evaluations' mean finish time [s] with the training
-    episodes' finish times."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    fig, (top, middle, bottom) = plt.subplots(3, 1, figsize=(8, 8.5), sharex=True)
-    if episodes:
-        steps = np.array([e["timesteps"] for e in episodes])
-        returns = np.array([e["return"] for e in episodes])
-        done = np.array([e["finished"] for e in episodes], dtype=float)
-        window = max(1, min(100, len(episodes) // 10))
-        kernel = np.ones(window) / window
-        top.plot(steps, returns, ".", ms=2, alpha=0.3, color="tab:blue", label="episode return")
-        top.plot(steps[window - 1:], np.convolve(returns, kernel, "valid"), color="tab:blue",
-                 label=f"mean of {window}")
-        middle.plot(steps[window - 1:], np.convolve(done, kernel, "valid"), color="tab:gray",
-                    label=f"training episodes finished (mean of {window})")
-        top.legend(loc="lower right", fontsize=8)
-    top.set_ylabel("return")
-    if time_trial and episodes:
-        laps = [(e["timesteps"], e["finish_time"]) for e in episodes if e["finish_time"] is not None]
-        if laps:
-            bottom.plot(*zip(*laps), ".", ms=2, alpha=0.3, color="tab:blue", label="training episode")
-    if evaluations:
-        steps = [e["timesteps"] for e in evaluations]
-        if not time_trial:  # alone, a finished race is a won one
-            middle.plot(steps, [e["win_rate"] for e in evaluations], "o-", color="tab:red", label="evaluation: won")
-        middle.plot(steps, [e["finished"] / e["races"] for e in evaluations], "s--", color="tab:green",
-                    label="evaluation: finished")
-        key = "mean_finish_time_s" if time_trial else "mean_margin_s"
-        timed = [(e["timesteps"], e.get(key)) for e in evaluations if e.get(key) is not None]
-        if timed:
-            bottom.plot(*zip(*timed), "o-", color="tab:purple",
-                        label=f"evaluation: mean {'finish time' if time_trial else 'margin'}")
-        labels = dict.fromkeys(label for e in evaluations for label in e.get("by_opponent", {}))
-        for label in labels:  # a pool: the margin against each of its drivers
-            part = [(e["timesteps"], e["by_opponent"][label]["mean_margin_s"]) for e in evaluations
-                    if e.get("by_opponent", {}).get(label, {}).get("mean_margin_s") is not None]
-            if part:
-                bottom.plot(*zip(*part), ".--", label=f"vs {label}")
-    if time_trial:
-        bottom.set_ylabel("finish time [s]")
-        times = [y for line in bottom.lines for y in line.get_ydata()]
-        if times:  # the first laps can take minutes: show the range of the fast ones
-            best = min(times)
-            bottom.set_ylim(best - 0.5, min(max(times), 1.2 * best) + 0.5)
-    else:
-        bottom.axhline(0.0, color="black", lw=0.8)
-        bottom.set_ylabel("finish margin [s]\n(> 0: ahead)")
-    bottom.set_xlabel("timesteps")
-    middle.set_ylim(-0.05, 1.05)
-    middle.set_ylabel("fraction")
-    if middle.lines:
-        middle.legend(loc="best", fontsize=8)
-    if len(bottom.lines) > (0 if time_trial else 1):  # more than the zero line
-        bottom.legend(loc="upper right" if time_trial else "lower right", fontsize=8)
-    top.set_title(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -13,9 +13,9 @@ reinforcement learning starts:
   not fitted (it would shrink to the clone's tiny error, and reinforcement learning would
   have nothing left to explore with) but set (`racing train`: by default to the noise the
   demonstrations were driven with, below): the policy then explores the states the
-  demonstrations cover. Left at PPO's initial 1.0, five times that noise, every early
-  rollout of a Monza clone left the track. (Whatever the spread, PPO at its default
-  learning rate undid that clone; at a tenth of it, it improved on it: see the README.)
+  demonstrations cover, where a spread of PPO's initial 1.0 drives a clone off them. How
+  fast the reinforcement learning that follows may change the clone is its learning rate's
+  to say: docs/rl.md and docs/experiments/rl-time-trial.md.
 * the value function is fitted to the discounted sum of the normalised rewards that follow
   each step, so that those first updates start from advantages that mean something.
 

@@ -1,0 +1,84 @@
+"""The race a tournament, a sweep or a training run races, declared once.
+
+:class:`RaceSpec` holds what the three configurations share about their race (track, length,
+step cap, the planners' jerk weight, incident rules) and checks it once; each
+configuration inherits its fields, so they stay flat keyword arguments
+(``TournamentConfig(agents=..., track="straight", laps=2)``) and flat keys in the
+``tournament.json``, ``sweep.json`` and ``train.json`` settings files.
+:meth:`RaceSpec.to_race_config` turns it into the env's :class:`racing_env.config.RaceConfig`
+for a number of cars and a start. Guide: docs/sweeps.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import numbers
+from typing import Any
+
+from racing_env.config import RaceConfig, check_incident_rules, check_race_length
+from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RaceSpec:
+    """The race's fields, shared by ``TournamentConfig``, ``SweepConfig`` and ``TrainConfig``.
+
+    Attributes:
+        track: a built-in track name (``straight``, ``trefoil``, ...) or the path of a
+            TUMFTM-format CSV file (a string: it goes into the run's JSON settings).
+        laps: race length in laps on closed tracks.
+        race_distance: finish line [m] of arc length; overrides ``laps`` when given.
+        max_steps: a race is truncated after this many steps.
+        jerk_weight: the planners' jerk weight r (``R = r I``, every car) in the race's game.
+            The default, :data:`racing_env.costs.RACING_JERK_WEIGHT`, is also the env's
+            when it is given no weights (``parallel_env``).
+        on_collision / on_off_track: what contact and leaving the track do
+            (:data:`racing_env.config.INCIDENT_MODES`): ``penalty`` (reward term only),
+            ``terminate`` (the car retires), ``both`` or ``ignore``.
+    """
+
+    track: str = "trefoil"
+    laps: int = 1
+    race_distance: float | None = None
+    max_steps: int = 3000
+    jerk_weight: float = RACING_JERK_WEIGHT
+    on_collision: str = "penalty"
+    on_off_track: str = "penalty"
+
+    def __post_init__(self) -> None:
+        check_race_spec(self)
+
+    def race_spec(self) -> "RaceSpec":
+        """The race's fields alone (of a configuration that inherits them)."""
+        return RaceSpec(**{name: getattr(self, name) for name in RACE_FIELDS})
+
+    def weights(self) -> CostWeights:
+        """Every car's cost weights in the race's game: the defaults with jerk weight
+        ``jerk_weight``."""
+        return CostWeights(r_jx=self.jerk_weight, r_jy=self.jerk_weight)
+
+    def to_race_config(self, num_agents: int, scenario: str = "grid", **fields: Any) -> RaceConfig:
+        """This race for ``num_agents`` cars from ``scenario``
+        (:data:`racing_env.scenarios.SCENARIOS`), every car's weights :meth:`weights`.
+        ``fields``: further :class:`RaceConfig` fields (``vehicles``, ``reward``,
+        ``render_mode``, ...), which override the spec's (e.g. per-car ``weights``)."""
+        race: dict[str, Any] = dict(track=self.track, laps=self.laps, race_distance=self.race_distance,
+                                    max_steps=self.max_steps, on_collision=self.on_collision,
+                                    on_off_track=self.on_off_track, weights=self.weights())
+        race.update(fields)
+        return RaceConfig(num_agents=num_agents, scenario=scenario, **race)
+
+
+RACE_FIELDS = tuple(field.name for field in dataclasses.fields(RaceSpec))
+"""The names of the race's fields, in declaration order."""
+
+
+def check_race_spec(spec: RaceSpec) -> None:
+    """Refuse race fields that no race has, saying what is allowed."""
+    if not isinstance(spec.track, str):
+        raise ValueError(f"track must be a string, a built-in track name or a TUMFTM CSV path, got {spec.track!r}")
+    check_race_length(spec.laps, spec.race_distance, spec.max_steps)
+    weight = spec.jerk_weight
+    if isinstance(weight, bool) or not isinstance(weight, numbers.Real) or not weight > 0:
+        raise ValueError(f"jerk_weight must be a number > 0, got {weight!r}")
+    check_incident_rules(on_collision=spec.on_collision, on_off_track=spec.on_off_track)

@@ -1,0 +1,89 @@
+"""Competitors: one small protocol for every driver (game planners, scripted drivers, RL policies).
+
+Every agent implements :class:`Agent` (``reset``, ``act``, ``diagnostics``) and is a callable
+``agent(observation, joint_state) -> action`` (:mod:`~planners.agents.protocol` shows the loop).
+
+The modules, one job each:
+
+* :mod:`~planners.agents.protocol`: :class:`Agent`, :class:`BaseAgent` (shared bookkeeping),
+  :func:`game_of`, :func:`reset_agents`;
+* :mod:`~planners.agents.receding_horizon`: :class:`RecedingHorizonAgent` and the planners
+  :class:`FeedbackGameAgent`, :class:`OpenLoopGameAgent`, :class:`ILQRAgent`
+  (:mod:`~planners.agents.weights`: their beliefs and private cost weights);
+* :mod:`~planners.agents.scripted`: :class:`LaneKeepingAgent`, :class:`ConstantSpeedAgent`;
+* :mod:`~planners.agents.sb3`: :class:`SB3Agent` (loaded on first use: the RL layer);
+* :mod:`~planners.agents.registry`: :data:`AGENTS` (name -> class), :func:`make_agent`,
+  :func:`check_specs`, :func:`agent_options`, the spec parser and the options' help text.
+
+See docs/agents.md.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from planners.agents.protocol import Agent, BaseAgent, game_of, reset_agents
+from planners.agents.receding_horizon import (
+    RECOVERED_SPEED,
+    REPLAN_TOLERANCE,
+    STOPPED_SPEED,
+    FeedbackGameAgent,
+    ILQRAgent,
+    OpenLoopGameAgent,
+    RecedingHorizonAgent,
+)
+from planners.agents.registry import (
+    AGENT_SPECS,
+    AGENT_SUMMARIES,
+    AGENTS,
+    agent_options,
+    check_specs,
+    make_agent,
+    split_spec,
+    split_spec_list,
+    with_options,
+)
+from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent
+
+_SB3_NAMES = ("SB3Agent", "SB3_ALGOS", "VECNORMALIZE_SUFFIX", "vecnormalize_path")
+
+__all__ = [
+    "AGENTS",
+    "AGENT_SPECS",
+    "AGENT_SUMMARIES",
+    "Agent",
+    "BaseAgent",
+    "ConstantSpeedAgent",
+    "FeedbackGameAgent",
+    "ILQRAgent",
+    "LaneKeepingAgent",
+    "OpenLoopGameAgent",
+    "RECOVERED_SPEED",
+    "REPLAN_TOLERANCE",
+    "RecedingHorizonAgent",
+    "SB3Agent",
+    "SB3_ALGOS",
+    "STOPPED_SPEED",
+    "VECNORMALIZE_SUFFIX",
+    "agent_options",
+    "check_specs",
+    "game_of",
+    "make_agent",
+    "reset_agents",
+    "split_spec",
+    "split_spec_list",
+    "vecnormalize_path",
+    "with_options",
+]
+
+
+def __getattr__(name: str) -> Any:
+    """The RL adapter's names, from :mod:`planners.agents.sb3` on first access."""
+    if name in _SB3_NAMES:
+        return getattr(importlib.import_module("planners.agents.sb3"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_SB3_NAMES))

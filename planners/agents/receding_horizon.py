@@ -1,0 +1,419 @@
+"""Receding-horizon planners: a game (or iLQR) solution re-planned from the current joint state.
+
+:class:`FeedbackGameAgent`, :class:`OpenLoopGameAgent` and :class:`ILQRAgent` re-solve the
+env's :class:`racing_env.RaceGame` from the current joint state every ``replan_every`` steps,
+warm-started from the previous solution shifted by the steps elapsed (the last input
+repeated, or zeros). Between re-plans the feedback agent applies
+``u = u_hat_t - K_t (x - x_hat_t)``, the others the planned ``u_hat_t``. A solve that raises
+or returns non-finite values falls back to the previous plan (shifted) or, without one, to a
+braking action with a lateral correction toward the centre line; actions are never NaN. Cars
+that the observation flags as no longer racing (finished or retired: frozen by the env, which
+no car collides with) are ghosts in the plan (``RaceGame.with_racing``): no collision cost
+with them, and their progress does not count. The state's ``s`` is cumulative on closed
+tracks; the game wraps it itself (curvature, widths and gaps), so the agents pass the joint
+state through unchanged. See docs/agents.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import time
+import traceback
+from typing import Any
+
+import numpy as np
+
+from planners import ilq, ilqr, prediction as prediction_models
+from planners.agents.protocol import BaseAgent, empty_record
+from planners.agents.weights import (
+    PLACE_PREFIXES,
+    WEIGHT_PREFIXES,
+    checked_weight_changes,
+    weight_names,
+    weights_for,
+    with_player_weights,
+)
+from planners.methods import CONSTANT_VELOCITY, FEEDBACK, FEEDBACK_GAME, GAME_MODES, ILQR, OPEN_LOOP_GAME
+from racing_env.dynamics import V
+from racing_env.observation import cars_racing
+
+__all__ = [
+    "FeedbackGameAgent",
+    "ILQRAgent",
+    "OpenLoopGameAgent",
+    "RECOVERED_SPEED",
+    "REPLAN_TOLERANCE",
+    "RecedingHorizonAgent",
+    "STOPPED_SPEED",
+]
+
+
+STOPPED_SPEED = 0.5  # [m/s] a car this slow at a re-plan is stuck: it plans in recovery (below)
+RECOVERED_SPEED = 5.0  # [m/s] and it plans normally again once this fast
+REPLAN_TOLERANCE = 1e-3
+"""Convergence tolerance of a re-plan [state units: m, m/s, ...]: a millimetre is plenty for
+a plan that is re-solved 0.1 s later, and more re-plans converge within their iteration cap
+than at the solver's default (docs/agents.md)."""
+
+
+def _finite(solution: tuple) -> bool:
+    """Whether a solver's ``(us, xs, K or None, result)`` plan arrays are all finite."""
+    return all(np.all(np.isfinite(part)) for part in solution[:3] if part is not None)
+
+
+class RecedingHorizonAgent(BaseAgent):
+    """Re-plans a game (or iLQR) solution from the current joint state.
+
+    Args:
+        max_iterations: solver iteration cap per re-plan.
+        replan_every: re-plan every this many steps (1: every step); in between the stored
+            plan is followed (with its feedback law for the feedback game).
+        belief_weights: the agent's belief of the cost weights (see
+            :func:`planners.agents.weights.weights_for`); default the game's true weights.
+        pad: how the shifted warm start is padded at the end: ``"repeat"`` the last input
+            or ``"zeros"``.
+        warm_start: warm start from the previous solution (else zeros every re-plan).
+        require_converged: treat a non-converged solve as a failure (fallback); by default
+            the last iterate is used (it is a dynamically feasible, finite plan).
+        recovery_track_scale: factor on the car's own track weight ``c_track`` in the
+            re-plans of a recovery: from a re-plan at which the car is slower than
+            :data:`STOPPED_SPEED` until one at which it is at least :data:`RECOVERED_SPEED`.
+            A car that has stopped at the edge facing out (it cannot reverse or turn on the
+            spot) can only rejoin across the boundary; over a 5 s horizon standing still is
+            cheaper at full weight, so without this it stands for good. ``0`` (the default)
+            drops the track term while recovering: a car stopped across the track in a
+            tight corner may need several metres of run-off to turn, which even a small
+            track weight prices above standing still. ``1`` turns it off.
+        own_weights: :class:`racing_env.CostWeights` fields ``{name: value}`` that replace
+            the agent's own weights in its plans. They are private: the other cars plan
+            with the race's weights for this car, as they would against an unknown driver.
+        leading_weights, trailing_weights: own weights used (on top of ``own_weights``) for
+            re-plans made while the car is ahead of every other car still racing (as the
+            observation's flags say) in race distance, or behind at least one (the paper's
+            outlook: aggression that depends on place).
+        opponent_weights: ``{name: value}`` changes to the race's weights of every other
+            car in this agent's plans: what it believes the others' costs are (e.g.
+            ``{"c_collision": 100.0}``: they will do much to avoid contact). Applied on top
+            of ``belief_weights``.
+        solver_options: further :class:`planners.ilq.SolverOptions` fields; the
+            ``tolerance`` defaults to :data:`REPLAN_TOLERANCE`. Checked here, so a bad
+            option fails when the agent is made.
+    """
+
+    name = "receding-horizon"
+    feedback = False
+    mode = FEEDBACK  # the solver mode of its plans (iLQR's is a one-player feedback solve)
+    planned_players = 1  # players of its own solve: 1 for iLQR, 2 (or more) for a game
+
+    def __init__(
+        self,
+        max_iterations: int = 30,
+        replan_every: int = 1,
+        belief_weights=None,
+        pad: str = "repeat",
+        warm_start: bool = True,
+        require_converged: bool = False,
+        recovery_track_scale: float = 0.0,
+        own_weights: dict[str, float] | None = None,
+        leading_weights: dict[str, float] | None = None,
+        trailing_weights: dict[str, float] | None = None,
+        opponent_weights: dict[str, float] | None = None,
+        **solver_options: Any,
+    ) -> None:
+        super().__init__()
+        if int(replan_every) < 1:
+            raise ValueError(f"replan_every must be >= 1, got {replan_every!r}")
+        if pad not in ("repeat", "zeros"):
+            raise ValueError(f"pad must be 'repeat' or 'zeros', got {pad!r}")
+        self.max_iterations = int(max_iterations)
+        self.replan_every = int(replan_every)
+        self.belief_weights = belief_weights
+        self.pad = pad
+        self.warm_start = bool(warm_start)
+        self.require_converged = bool(require_converged)
+        if not 0.0 <= float(recovery_track_scale) <= 1.0:
+            raise ValueError(f"recovery_track_scale must be in [0, 1], got {recovery_track_scale!r}")
+        self.recovery_track_scale = float(recovery_track_scale)
+        self.own_weights = checked_weight_changes("own_weights", own_weights)
+        self.leading_weights = checked_weight_changes("leading_weights", leading_weights)
+        self.trailing_weights = checked_weight_changes("trailing_weights", trailing_weights)
+        self.opponent_weights = checked_weight_changes("opponent_weights", opponent_weights)
+        self.solver_options = {"tolerance": REPLAN_TOLERANCE, **solver_options}
+        unknown = sorted(set(self.solver_options) - set(self._solver_option_types()) - {"mode"})
+        if unknown:
+            raise ValueError(f"unknown solver options {unknown}; allowed: {sorted(self._solver_option_types())}")
+        # refuses bad values (max_iterations too) now, not at the first solve
+        options = ilq.SolverOptions(**{"mode": self.mode, "max_iterations": self.max_iterations,
+                                       **self.solver_options})
+        ilq.check_adaptive_regularization(options, self.planned_players)
+
+    @staticmethod
+    def _solver_option_types() -> dict[str, type]:
+        return {f.name: type(f.default) for f in dataclasses.fields(ilq.SolverOptions)
+                if f.name not in ("mode", "max_iterations")}
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        options = {"max_iterations": int, "replan_every": int, "pad": str, "warm_start": bool,
+                   "require_converged": bool, "recovery_track_scale": float,
+                   **cls._solver_option_types()}
+        for name in weight_names():
+            options[name] = float
+            options.update({f"{prefix}.{name}": float for prefix in WEIGHT_PREFIXES})
+        return options
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        defaults = {f.name: f.default for f in dataclasses.fields(ilq.SolverOptions)}
+        loop = inspect.signature(RecedingHorizonAgent.__init__).parameters  # the loop's own defaults
+        defaults.update({name: loop[name].default for name in
+                         ("max_iterations", "replan_every", "pad", "warm_start", "require_converged",
+                          "recovery_track_scale")})
+        defaults["tolerance"] = REPLAN_TOLERANCE
+        for name in weight_names():
+            defaults[name] = "the race's"
+            defaults.update({f"{place}.{name}": name for place in PLACE_PREFIXES})
+            defaults[f"belief.{name}"] = "the race's"
+        return defaults
+
+    @classmethod
+    def from_spec_options(cls, options: dict[str, Any], **kwargs: Any) -> "RecedingHorizonAgent":
+        grouped: dict[str, Any] = {"own_weights": {}, **{name: {} for name in WEIGHT_PREFIXES.values()}}
+        for key, value in options.items():
+            prefix, dot, field = key.partition(".")
+            if dot:
+                grouped[WEIGHT_PREFIXES[prefix]][field] = value
+            elif key in weight_names():
+                grouped["own_weights"][key] = value
+            else:
+                grouped[key] = value
+        return cls(**{**grouped, **kwargs})
+
+    def reset(self, seed: int | None, index: int, env_info: Any) -> None:
+        super().reset(seed, index, env_info)
+        weights = weights_for(self.game, self.index, self.belief_weights)
+        others = [j for j in range(self.game.num_players) if j != self.index]
+        weights = with_player_weights(weights, others, self.opponent_weights)
+        weights = with_player_weights(weights, self.index, self.own_weights)
+        self.planning_game = self.game.replace(weights=weights)
+        self._games_by_place = None  # {leading?: game} when the weights depend on the place
+        if self.leading_weights or self.trailing_weights:
+            self._games_by_place = {
+                True: self.game.replace(weights=with_player_weights(weights, self.index, self.leading_weights)),
+                False: self.game.replace(weights=with_player_weights(weights, self.index, self.trailing_weights)),
+            }
+        self._plan: dict | None = None  # {"us": (T,N,2), "xs": (T+1,N,6), "K": (T,N,2,6N) | None}
+        self._age = 0  # steps since the stored plan was made
+        self._recovering = False  # from a standstill until RECOVERED_SPEED (recovery_track_scale)
+
+    def _is_leading(self, x: np.ndarray, racing: np.ndarray | None = None) -> bool:
+        """Ahead of every other car still racing in race distance (``s`` is cumulative, laps
+        included); ``racing (N,)`` bool, None: all. A car that finished or retired is out of
+        the contest: the others race for the places behind it."""
+        rivals = [j for j in range(x.shape[0]) if j != self.index and (racing is None or racing[j])]
+        return bool(np.all(x[self.index, 0] > x[rivals, 0]))
+
+    # the solve itself (subclasses) -> (us, xs, K or None, result)
+    def _solve(self, game, x0: np.ndarray, init: np.ndarray | None):
+        raise NotImplementedError
+
+    def _game_at_speed(self, x: np.ndarray, record: dict) -> Any:
+        """The planning game, with this car's own track weight scaled by
+        ``recovery_track_scale`` while it recovers from a standstill (recorded as
+        ``record["recovering"]`` when recovery is on)."""
+        game = self.planning_game
+        if self.recovery_track_scale >= 1.0:
+            return game
+        speed = x[self.index, V]
+        self._recovering = speed < STOPPED_SPEED or (self._recovering and speed < RECOVERED_SPEED)
+        record["recovering"] = self._recovering
+        if not self._recovering:
+            return game
+        c_track = float(np.broadcast_to(np.asarray(game.weights.c_track), (game.num_players,))[self.index])
+        changes = {"c_track": c_track * self.recovery_track_scale}
+        return game.replace(weights=with_player_weights(game.weights, self.index, changes))
+
+    def _shifted(self, us: np.ndarray, by: int) -> np.ndarray:
+        T = us.shape[0]
+        by = min(by, T)
+        out = np.empty_like(us)
+        out[: T - by] = us[by:]
+        fill = us[-1] if self.pad == "repeat" else np.zeros_like(us[-1])
+        out[T - by :] = fill
+        return out
+
+    def _follow(self, x: np.ndarray, t: int) -> np.ndarray | None:
+        """The ego's physical jerk at ``t`` steps into the stored plan (None if exhausted)."""
+        plan = self._plan
+        if plan is None or t >= plan["us"].shape[0]:
+            return None
+        u = plan["us"][t, self.index].copy()
+        if self.feedback and plan["K"] is not None:
+            dx = (x - plan["xs"][t]).reshape(-1)
+            if np.all(np.isfinite(dx)):
+                u = u - plan["K"][t, self.index] @ dx
+        return u
+
+    def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        self._require_reset()
+        x = np.asarray(joint_state, dtype=np.float64)
+        record = empty_record()
+        record["step"] = self._steps
+        if self._plan is None or self._age + 1 >= self.replan_every or self._age + 1 >= self._plan["us"].shape[0]:
+            record["replanned"] = True
+            init = None
+            if self.warm_start and self._plan is not None:
+                init = self._shifted(self._plan["us"], self._age + 1)
+            error = None
+            t0 = time.perf_counter()
+            try:
+                if x.shape != (self.game.num_players, 6):
+                    raise ValueError(f"joint state must have shape ({self.game.num_players}, 6), got {x.shape}")
+                racing = cars_racing(observation, self.index, self.game.num_players)
+                if self._games_by_place is not None:
+                    record["leading"] = self._is_leading(x, racing)
+                    self.planning_game = self._games_by_place[record["leading"]]
+                # cars that finished or retired are ghosts in the plan, as in the env
+                game = self._game_at_speed(x, record).with_racing(racing)
+                solution = self._solve(game, x, init)
+                us, xs, K, res = solution
+                record["iterations"] = int(res.iterations)
+                record["converged"] = bool(res.converged)
+                record["status"] = ilq.status_message(res.status)
+                if not _finite(solution):
+                    error = "solver returned non-finite values"
+                elif self.require_converged and not record["converged"]:
+                    error = f"solver did not converge ({record['status']})"
+            except Exception as exc:  # noqa: BLE001 - any solver failure becomes a fallback
+                error = f"{type(exc).__name__}: {exc}"
+                record["traceback"] = traceback.format_exc(limit=3)
+            record["solve_time"] = time.perf_counter() - t0
+            if error is None:
+                self._plan = {"us": us, "xs": xs, "K": K}
+                self._age = 0
+                u = self._follow(x, 0)
+            else:
+                record["fallback"] = True
+                record["error"] = error
+                self._age += 1
+                u = self._follow(x, self._age)
+                if u is not None and np.all(np.isfinite(u)):
+                    record["fallback_kind"] = "previous_plan"
+                else:
+                    self._plan = None
+                    record["fallback_kind"] = "brake"
+                    return self._finish(self._safe_action(x), x, record)
+        else:
+            self._age += 1
+            u = self._follow(x, self._age)
+        return self._finish(np.asarray(u) / self.jerk_max, x, record)
+
+
+class _GameAgent(RecedingHorizonAgent):
+    """A game method: the whole game solved by :func:`planners.ilq.solve` in the solver
+    mode that the method's name stands for (:data:`planners.methods.GAME_MODES`)."""
+
+    planned_players = 2  # at least: every car of the race
+
+    def _solve(self, game, x0, init):
+        res = ilq.solve(
+            game,
+            x0,
+            init=init,
+            mode=self.mode,
+            max_iterations=self.max_iterations,
+            **self.solver_options,
+        )
+        us, xs, K = (np.asarray(a) for a in (res.us, res.xs, res.K))
+        return us, xs, (K if self.feedback else None), res
+
+
+class FeedbackGameAgent(_GameAgent):
+    """Feedback Nash iLQGame; between re-plans ``u = u_hat_t - K_t (x - x_hat_t)``."""
+
+    spec = name = FEEDBACK_GAME
+    mode = GAME_MODES[FEEDBACK_GAME]
+    feedback = True
+
+
+class OpenLoopGameAgent(_GameAgent):
+    """Open-loop Nash iLQGame; applies the planned ``u_hat_t``."""
+
+    spec = name = OPEN_LOOP_GAME
+    mode = GAME_MODES[OPEN_LOOP_GAME]
+    feedback = False
+
+
+class ILQRAgent(RecedingHorizonAgent):
+    """iLQR against predictions of the opponents (``planners.ilqr``).
+
+    Args:
+        prediction: how the opponents are predicted (:data:`planners.methods.PREDICTIONS`):
+            ``"constant-velocity"`` (the paper's: constant speed and lateral offset),
+            ``"lane-keeping"`` (each opponent driven by the scripted lane keeper's law
+            through the environment's physics: exact against the lane keeper), ``"ilqr"``
+            (each opponent's own iLQR plan against constant-velocity predictions: exact
+            against an ``ilqr`` agent with the same weights and solver options), or
+            ``"ilqgame-fb"`` / ``"ilqgame-ol"`` (the opponents' trajectories of the feedback
+            / open-loop Nash equilibrium). The planned predictions use this agent's solver
+            options and beliefs of the opponents' weights, are warm-started from the last
+            prediction, and count in its ``solve_time``.
+        levels: levels of reasoning of the ``"ilqr"`` prediction (see
+            :class:`planners.prediction.PlannerPrediction`): ``1`` predicts each opponent's
+            plan against constant velocity, ``k`` its plan against everyone's level-``k - 1``
+            plans, this agent's included. The agent itself then plans at level ``k + 1``.
+        kwargs: as :class:`RecedingHorizonAgent`.
+    """
+
+    spec = name = ILQR
+    feedback = False
+
+    def __init__(self, prediction: str = CONSTANT_VELOCITY, levels: int = 1,
+                 **kwargs: Any) -> None:
+        prediction_models.check_prediction(prediction)  # when the agent is made, not at its reset
+        prediction_models.check_levels(prediction, levels)
+        super().__init__(**kwargs)
+        prediction_models.check_solver_options(prediction, max_iterations=self.max_iterations, **self.solver_options)
+        self.prediction = prediction
+        self.levels = int(levels)
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        return {**super().spec_options(), "prediction": str, "levels": int}
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        return {**super().spec_defaults(), "prediction": CONSTANT_VELOCITY, "levels": 1}
+
+    def reset(self, seed: int | None, index: int, env_info: Any) -> None:
+        super().reset(seed, index, env_info)
+        # A rollout predictor compiles its physics step at its first call: it is kept over
+        # resets in the same game as the same car (predictors are stateless).
+        made_for = getattr(self, "_predictor_for", None)
+        if made_for is None or made_for[0] is not self.game or made_for[1] != self.index:
+            self._predict = prediction_models.make_predictor(
+                self.prediction, self.game, self.index, levels=self.levels, max_iterations=self.max_iterations,
+                **self.solver_options)
+            self._predictor_for = (self.game, self.index)
+
+    def _solve(self, game, x0, init):
+        predicted = others_us = None
+        if self._predict is not None:
+            predicted, others_us = self._predict(game, x0, init)
+        res = ilqr.solve_ilqr(
+            game,
+            x0,
+            ego=self.index,
+            U0=init,
+            predicted=predicted,
+            max_iterations=self.max_iterations,
+            **self.solver_options,
+        )
+        us = np.asarray(res.us)
+        if others_us is not None:
+            # the opponents' rows of the stored plan carry their predicted jerks: shifted,
+            # they warm-start the next prediction (the ego follows only its own row)
+            us = np.array(others_us)
+            us[:, self.index] = np.asarray(res.us[:, self.index])
+        return us, np.asarray(res.xs), None, res

@@ -1,0 +1,333 @@
+"""The agent registry: one name per method, the specs that name a competitor, and their help text.
+
+A spec is the string that names a competitor on the command line, in config files and in
+Python (:func:`make_agent`): an agent name, optionally followed by ``:`` and comma-separated
+``option=value`` pairs::
+
+    ilqgame-fb                                       a planner with its defaults
+    ilqgame-fb:max_iterations=100,replan_every=2     constructor and solver options
+    ilqr:c_collision=1                               the agent's own cost weights
+    ilqgame-fb:leading.c_collision=10,trailing.c_collision=1    weights by race position
+    lane-keeping:target_speed=20,target_n=1.5
+    rl:path/to/model.zip                             a saved stable-baselines3 policy
+
+The names are those of :mod:`planners.methods`, and :data:`AGENTS` maps each to its class,
+whose ``spec`` attribute is that name. Values are converted to the option's type (``int``,
+``float``, ``bool`` as true/false) and checked by the agent's constructor, so a bad spec
+fails when the agent is made, before any race. The meaning of every option, for
+``racing agents`` and the docs, is :data:`OPTION_HELP`. See docs/agents.md.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Iterable, Mapping
+
+from planners.agents.protocol import Agent, BaseAgent
+from planners.agents.receding_horizon import (
+    RECOVERED_SPEED,
+    STOPPED_SPEED,
+    FeedbackGameAgent,
+    ILQRAgent,
+    OpenLoopGameAgent,
+)
+from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent
+from planners.agents.weights import PLACE_PREFIXES, weight_names
+from planners.methods import (
+    CONSTANT_SPEED,
+    CONSTANT_VELOCITY,
+    FEEDBACK_GAME,
+    ILQR,
+    LANE_KEEPING,
+    OPEN_LOOP_GAME,
+    RL,
+)
+
+__all__ = [
+    "AGENTS",
+    "AGENT_SPECS",
+    "AGENT_SUMMARIES",
+    "OPTION_HELP",
+    "agent_options",
+    "check_specs",
+    "convert_options",
+    "describe_options",
+    "make_agent",
+    "option_help",
+    "split_spec",
+    "split_spec_list",
+    "with_options",
+]
+
+# --------------------------------------------------------------------------------------
+# The registry.
+# --------------------------------------------------------------------------------------
+
+AGENTS: dict[str, type[BaseAgent]] = {
+    cls.spec: cls
+    for cls in (ILQRAgent, OpenLoopGameAgent, FeedbackGameAgent, LaneKeepingAgent, ConstantSpeedAgent)
+}
+"""Agent name -> class (each class's ``spec`` is its name). ``rl:`` specs are not in it: they
+name a saved model (:class:`planners.agents.sb3.SB3Agent`, loaded with stable-baselines3)."""
+
+AGENT_SPECS = AGENTS
+"""The same registry under its earlier name (the same dict)."""
+
+AGENT_SUMMARIES = {
+    ILQR: "iLQR against predictions of the opponents (the paper's: constant velocity and offset)",
+    OPEN_LOOP_GAME: "open-loop Nash iLQGame, re-planned every step",
+    FEEDBACK_GAME: "feedback Nash iLQGame, re-planned every step, its feedback law applied in between",
+    LANE_KEEPING: "scripted: holds a lateral offset at a cruise speed, slowing for curves within grip",
+    CONSTANT_SPEED: "scripted: the centre line at a constant speed (slowing only for curves)",
+}
+"""One line per agent name, for help text."""
+
+
+def make_agent(spec: str, **kwargs: Any) -> Agent:
+    """An agent from a spec: ``ilqr``, ``ilqgame-ol``, ``ilqgame-fb``, ``lane-keeping``,
+    ``constant-speed`` or ``rl:path/to/model.zip`` (``rl:sac:path`` names the algorithm).
+
+    A non-RL spec may carry options, ``name:option=value,...`` (see :func:`split_spec` and
+    :func:`agent_options`), e.g. ``ilqgame-fb:max_iterations=100,c_collision=1``. ``kwargs``
+    go to the agent's constructor and win over the spec's options. Raises ``ValueError`` for
+    an unknown spec, an unknown option or a bad value.
+    """
+    valid = list(AGENTS) + [f"{RL}:<path/to/model.zip>", f"{RL}:<algo>:<path>"]
+    if not isinstance(spec, str):
+        raise ValueError(f"agent spec must be a string, one of {valid}; got {spec!r}")
+    key = spec.strip()
+    if not key:
+        raise ValueError(f"agent spec is empty; valid specs: {', '.join(valid)}")
+    if key.lower().startswith(f"{RL}:"):
+        from planners.agents.sb3 import SB3_ALGOS, SB3Agent  # the RL layer, only for RL specs
+
+        rest = key[len(RL) + 1:]
+        head, sep, tail = rest.partition(":")
+        if sep and head.lower() in SB3_ALGOS:
+            kwargs.setdefault("algo", head.lower())
+            rest = tail
+        if not rest:
+            raise ValueError(
+                f"agent spec {spec!r} needs a model path (rl:path/to/model.zip); valid specs: {', '.join(valid)}"
+            )
+        return SB3Agent(rest, **kwargs)
+    name, raw = split_spec(key)
+    if name not in AGENTS:
+        raise ValueError(f"unknown agent spec {spec!r}; valid specs: {', '.join(valid)}")
+    cls = AGENTS[name]
+    return cls.from_spec_options(convert_options(name, raw, cls.spec_options()), **kwargs)
+
+
+def check_specs(specs: Iterable[str]) -> None:
+    """Make each distinct spec once, so an unknown spec, a bad option or a missing model
+    raises before any race or training step."""
+    for spec in dict.fromkeys(specs):
+        make_agent(spec)
+
+
+def agent_options(name: str) -> list[tuple[str, str, str, str]]:
+    """``(option, type, default, meaning)`` rows of the options a spec of agent ``name`` may set."""
+    if name not in AGENTS:
+        raise ValueError(f"unknown agent {name!r}; agents with options: {', '.join(AGENTS)}")
+    cls = AGENTS[name]
+    return describe_options(cls.spec_options(), cls.spec_defaults(), cls.spec_help())
+
+
+# --------------------------------------------------------------------------------------
+# Help text: what each option of a spec does.
+# --------------------------------------------------------------------------------------
+
+_LOOP_HELP = {
+    "max_iterations": "solver iterations per re-plan; the last iterate is used if it has not converged",
+    "replan_every": "re-plan every this many steps and follow the stored plan in between",
+    "pad": "end of the shifted warm start: repeat (the last input) or zeros",
+    "warm_start": "start each re-plan from the previous plan (false: from zero inputs)",
+    "require_converged": "treat a re-plan that did not converge as a failure (previous plan, else brake)",
+    "recovery_track_scale": f"factor on own c_track from a standstill (< {STOPPED_SPEED} m/s) until "
+                            f"{RECOVERED_SPEED} m/s, to rejoin across the edge (0: no track term then; 1: off)",
+}
+
+_SOLVER_HELP = {
+    "tolerance": "convergence: largest state change of a full step [m, m/s, ...]",
+    "step_control": (f"trust_region (shrink the step to stay inside trust_radius), residual ({OPEN_LOOP_GAME} "
+                     "only: also until the open-loop Nash residual decreases) or none (fixed step)"),
+    "trust_radius": "largest accepted change of the state trajectory per iteration",
+    "initial_step": "the first step size tried, in (0, 1]",
+    "step_decay": "factor by which the step size shrinks per trial, in (0, 1)",
+    "max_backtracks": "step-size trials after the first before the search gives up",
+    "oscillation_damping": "start shorter after a step that reverses the recent direction",
+    "damping_memory": "decay of the running sum of step directions, in [0, 1)",
+    "state_regularization": "added to the diagonal of every Q",
+    "control_regularization": ("added to the diagonal of every R^ii, or with feedforward_regularization "
+                               "to the feed-forward rows of the step (with adaptive_regularization: "
+                               "its start and floor after a reversal)"),
+    "adaptive_regularization": ("shrink control_regularization while the iterates keep their "
+                                f"direction, raise it when they reverse ({FEEDBACK_GAME}: with "
+                                "feedforward_regularization only)"),
+    "feedforward_regularization": (f"{FEEDBACK_GAME} and {ILQR} (not {OPEN_LOOP_GAME}): control_regularization "
+                                   "damps the feed-forward terms only, so the plans stay feedback "
+                                   "equilibria"),
+    "regularization_factor": "factor of each change of the adaptive regularization, > 1",
+    "convexify": "auto, gauss_newton, eig, diag or none: how the cost Hessians are made convex",
+    "dynamics_curvature": ("give each car's local game the curvature of its progress in its "
+                           "heading, which linearising the dynamics drops (false: the plain iLQ model)"),
+}
+
+_PREDICTION_HELP = {
+    "prediction": (f"how the opponents are predicted: {CONSTANT_VELOCITY} (the paper's), "
+                   f"{LANE_KEEPING} (driven by the scripted lane keeper's law), {ILQR} (each one's own "
+                   f"iLQR plan), {FEEDBACK_GAME} or {OPEN_LOOP_GAME} (the game's feedback / open-loop Nash "
+                   "equilibrium)"),
+    "levels": (f"levels of reasoning of prediction={ILQR}: each opponent's plan against everyone's plans "
+               "one level down, level 0 being constant velocity"),
+}
+
+_SCRIPTED_HELP = {"target_speed": "cruise speed [m/s]", "target_n": "lateral offset to hold [m], positive left"}
+
+_WEIGHT_MEANINGS = {
+    "r_jx": "longitudinal jerk weight",
+    "r_jy": "lateral jerk weight",
+    "c_collision": "collision weight c_c",
+    "c_track": "track-boundary weight c_w",
+    "c_ax": "weight on exceeding ax_max(V)",
+    "c_acc": "weight on exceeding the gg radius and the turn limit",
+    "c_gap": "weight c_g of the others' progress at the horizon",
+    "c_reverse": "weight on negative speed (the cars have no reverse gear)",
+}
+
+
+def _weight_help() -> dict[str, str]:
+    lines = {name: f"{_WEIGHT_MEANINGS.get(name, name)} of this car in its own plans only" for name in weight_names()}
+    for place in PLACE_PREFIXES:
+        lines.update({f"{place}.{name}": f"{name} in re-plans made while the car is {place}" for name in weight_names()})
+    lines.update({f"belief.{name}": f"the {name} this agent believes every other car has" for name in weight_names()})
+    return lines
+
+
+OPTION_HELP: dict[str, str] = {**_LOOP_HELP, **_SOLVER_HELP, **_PREDICTION_HELP, **_SCRIPTED_HELP, **_weight_help()}
+"""Spec option -> one line on what it does, for every option of the registered agents."""
+
+
+def option_help(options: Iterable[str]) -> dict[str, str]:
+    """The lines of :data:`OPTION_HELP` for ``options`` (an option it lacks is left out)."""
+    return {key: OPTION_HELP[key] for key in options if key in OPTION_HELP}
+
+
+# --------------------------------------------------------------------------------------
+# Parsing specs.
+# --------------------------------------------------------------------------------------
+
+_TRUE, _FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
+
+
+def split_spec(spec: str) -> tuple[str, dict[str, str]]:
+    """``"name:key=value,..."`` -> ``(name, {key: value})`` with the raw value strings.
+
+    Raises ``ValueError`` for an option without ``=``, an empty name or value, or an option
+    given twice. ``rl:`` specs are not split here (their remainder is a path).
+    """
+    name, sep, rest = spec.strip().partition(":")
+    name = name.strip().lower()
+    if not name:
+        raise ValueError(f"agent spec {spec!r} has no agent name before ':'")
+    options: dict[str, str] = {}
+    if not sep:
+        return name, options
+    if not rest.strip():
+        raise ValueError(f"agent spec {spec!r} ends in ':' with no options after it")
+    for item in rest.split(","):
+        key, eq, value = (part.strip() for part in item.partition("="))
+        if not eq or not key or not value:
+            raise ValueError(f"agent spec {spec!r}: option {item.strip()!r} is not key=value")
+        if key in options:
+            raise ValueError(f"agent spec {spec!r} sets {key!r} twice")
+        options[key] = value
+    return name, options
+
+
+def split_spec_list(parts: list[str]) -> list[str]:
+    """Specs from command-line words, each of which may hold several comma-separated specs.
+
+    A comma also separates a spec's options, so a piece with ``=`` and no ``:`` continues
+    the spec before it: ``["ilqr,ilqgame-fb:max_iterations=100,pad=zeros", "lane-keeping"]``
+    is ``["ilqr", "ilqgame-fb:max_iterations=100,pad=zeros", "lane-keeping"]``.
+    """
+    specs: list[str] = []
+    for part in parts:
+        for piece in (p.strip() for p in part.split(",")):
+            if not piece:
+                continue
+            if specs and "=" in piece and ":" not in piece and ":" in specs[-1] and not specs[-1].startswith("rl:"):
+                specs[-1] = f"{specs[-1]},{piece}"
+            elif "=" in piece and ":" not in piece:
+                raise ValueError(f"{piece!r} is an option with no agent spec before it; "
+                                 "write options after the agent name, e.g. ilqgame-fb:max_iterations=100")
+            else:
+                specs.append(piece)
+    return specs
+
+
+def with_options(spec: str, options: Mapping[str, Any]) -> str:
+    """``spec`` with ``options`` added (replacing the spec's own value of an option).
+
+    ``with_options("ilqgame-fb:pad=zeros", {"max_iterations": 100})`` is
+    ``"ilqgame-fb:pad=zeros,max_iterations=100"``; no options returns ``spec`` unchanged.
+    """
+    if not options:
+        return spec
+    name, raw = split_spec(spec)
+    raw.update({key: _format(value) for key, value in options.items()})
+    return f"{name}:" + ",".join(f"{key}={value}" for key, value in raw.items())
+
+
+def _format(value: Any) -> str:
+    return ("true" if value else "false") if isinstance(value, bool) else str(value)
+
+
+def _to_bool(text: str) -> bool:
+    lowered = text.lower()
+    if lowered in _TRUE:
+        return True
+    if lowered in _FALSE:
+        return False
+    raise ValueError(f"expected true or false, got {text!r}")
+
+
+def _to_int(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"expected an integer, got {text!r}") from None
+
+
+def _to_float(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"expected a number, got {text!r}") from None
+
+
+_CONVERTERS: dict[type, Callable[[str], Any]] = {bool: _to_bool, int: _to_int, float: _to_float, str: str}
+
+
+def convert_options(name: str, raw: Mapping[str, str], types: Mapping[str, type]) -> dict[str, Any]:
+    """Convert raw option strings to the types an agent declares; refuse unknown options."""
+    unknown = sorted(set(raw) - set(types))
+    if unknown:
+        plain = sorted(key for key in types if "." not in key)
+        prefixes = sorted({key.split(".", 1)[0] for key in types if "." in key})
+        allowed = ", ".join(plain + [f"{prefix}.<weight>" for prefix in prefixes]) or "none"
+        raise ValueError(f"agent {name!r} has no option {', '.join(map(repr, unknown))}; its options: {allowed}")
+    out = {}
+    for key, text in raw.items():
+        try:
+            out[key] = _CONVERTERS[types[key]](text)
+        except ValueError as err:
+            raise ValueError(f"agent {name!r}, option {key!r}: {err}") from None
+    return out
+
+
+def describe_options(types: Mapping[str, type], defaults: Mapping[str, Any],
+                     meanings: Mapping[str, str]) -> list[tuple[str, str, str, str]]:
+    """``(option, type name, default, meaning)`` rows for help text, sorted by option."""
+    return [(key, types[key].__name__, str(defaults.get(key, "-")), meanings.get(key, ""))
+            for key in sorted(types)]
