@@ -1,0 +1,209 @@
+"""The guide cannot rot: its code runs, its links resolve, its command table is the CLI's.
+
+* every ```python block of README.md and docs/**/*.md runs: a file's blocks in order, in one
+  namespace, in a fresh subprocess (the package's JAX settings need a fresh process). A block
+  opts out only with the HTML comment ``<!-- no-test: reason -->`` on the line before it, for
+  blocks that need a trained model or minutes;
+* README.md stays a guide: at most 400 lines;
+* no diary in the guide or the code: no "session", "scratch" or "/tmp/" (outside the few
+  legitimate uses listed in ``DIARY_ALLOWED``), and no date in a .py file of the packages;
+* the README's command table lists exactly the subcommands of ``racing --help``, with their
+  one-line helps;
+* relative links in README.md and docs/*.md point to files (and headings) that exist.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+DOC_FILES = sorted([README, *(ROOT / "docs").rglob("*.md")])
+PACKAGES = ("racing_env", "planners", "experiments")
+MAX_README_LINES = 400
+BLOCK_TIMEOUT_S = 300  # one file's blocks together; the slowest (a solve per file) take ~20 s
+
+OPT_OUT = re.compile(r"<!--\s*no-test:\s*\S.*-->")
+FENCE = re.compile(r"^(\s*)```(\w*)\s*$")
+
+# Lines the diary grep matches that are not diary: (path relative to the root, or "" for any
+# file; a regex the matching line must contain). Keep it narrow, one entry per legitimate use.
+# Python's own keyword `start_new_session` (subprocess.Popen: a new process group, so that
+# Ctrl-C can be sent to a command and its workers) is the only such use.
+DIARY_ALLOWED: list[tuple[str, str]] = [
+    ("", r"\bstart_new_session\b"),
+]
+DIARY = re.compile(r"session|scratch|/tmp/", re.IGNORECASE)
+DATE = re.compile(r"\b20[0-9]{2}-[01][0-9]-[0-3][0-9]\b")
+
+
+def _relative(path: Path) -> str:
+    return path.relative_to(ROOT).as_posix()
+
+
+def python_blocks(path: Path) -> list[tuple[int, str, bool]]:
+    """The ```python blocks of a Markdown file: (line of the opening fence, code, opted out)."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    blocks, i = [], 0
+    while i < len(lines):
+        match = FENCE.match(lines[i])
+        if not match:
+            i += 1
+            continue
+        indent, language = match.groups()
+        start = i
+        body = []
+        i += 1
+        while i < len(lines) and not re.match(rf"^{re.escape(indent)}```\s*$", lines[i]):
+            body.append(lines[i])
+            i += 1
+        i += 1
+        if language != "python":
+            continue
+        previous = next((lines[j] for j in range(start - 1, -1, -1) if lines[j].strip()), "")
+        code = textwrap.dedent("\n".join(body))
+        blocks.append((start + 1, code, bool(OPT_OUT.search(previous))))
+    return blocks
+
+
+def _files_with_code() -> list[Path]:
+    return [p for p in DOC_FILES if any(not skip for _, _, skip in python_blocks(p))]
+
+
+def _script(path: Path) -> str:
+    """One program running a file's blocks in order in one namespace, naming the failing one."""
+    parts = ["import sys, traceback", "__ns = {'__name__': '__main__'}"]
+    for line, code, skip in python_blocks(path):
+        if skip:
+            continue
+        parts.append(
+            "try:\n"
+            f"    exec(compile({code!r}, {f'{_relative(path)}:{line}'!r}, 'exec'), __ns)\n"
+            "except BaseException:\n"
+            "    traceback.print_exc()\n"
+            f"    sys.exit('FAILED: the python block at {_relative(path)} line {line}')"
+        )
+    return "\n".join(parts)
+
+
+@pytest.mark.parametrize("path", _files_with_code(), ids=_relative)
+def test_python_blocks_run(path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-c", _script(path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=BLOCK_TIMEOUT_S,
+        env={**os.environ, "RACING_COMPILE_CACHE": "off", "MPLBACKEND": "Agg"},
+    )
+    assert result.returncode == 0, (
+        f"{_relative(path)}: a python block failed\n{result.stderr[-4000:]}\n{result.stdout[-1000:]}"
+    )
+
+
+def test_opt_outs_give_a_reason_and_are_few() -> None:
+    for path in DOC_FILES:
+        blocks = python_blocks(path)
+        skipped = [line for line, _, skip in blocks if skip]
+        assert len(skipped) <= max(1, len(blocks) // 2), (
+            f"{_relative(path)}: too many blocks opted out of the test (lines {skipped})"
+        )
+
+
+def test_readme_is_a_guide_not_a_notebook() -> None:
+    lines = README.read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= MAX_README_LINES, f"README.md has {len(lines)} lines (at most {MAX_README_LINES})"
+
+
+def _diary_targets() -> list[Path]:
+    files = [README, *(ROOT / "docs").rglob("*.md")]
+    for package in PACKAGES:
+        files += [p for p in (ROOT / package).rglob("*") if p.is_file() and p.suffix in (".py", ".md", ".toml")]
+    return sorted(files)
+
+
+def _allowed(path: str, line: str) -> bool:
+    return any((not prefix or path == prefix) and re.search(pattern, line) for prefix, pattern in DIARY_ALLOWED)
+
+
+def test_no_diary_lines() -> None:
+    found = []
+    for path in _diary_targets():
+        rel = _relative(path)
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            if DIARY.search(line) and not _allowed(rel, line):
+                found.append(f"{rel}:{number}: {line.strip()}")
+    assert not found, "diary lines (session / scratch / /tmp/):\n" + "\n".join(found)
+
+
+def test_no_dates_in_code() -> None:
+    found = []
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+                if DATE.search(line):
+                    found.append(f"{_relative(path)}:{number}: {line.strip()}")
+    assert not found, "dates in code:\n" + "\n".join(found)
+
+
+def _cli_commands() -> dict[str, str]:
+    from experiments.cli import build_parser
+
+    parser = build_parser()
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return {choice.dest: choice.help for choice in action._choices_actions}
+    raise AssertionError("racing has no subcommands")
+
+
+def _readme_commands() -> dict[str, str]:
+    rows = {}
+    for line in README.read_text(encoding="utf-8").splitlines():
+        match = re.match(r"^\|\s*`racing (\w[\w-]*)`\s*\|\s*(.*?)\s*\|\s*$", line)
+        if match:
+            rows[match.group(1)] = match.group(2)
+    return rows
+
+
+def test_readme_command_table_is_the_cli() -> None:
+    cli, readme = _cli_commands(), _readme_commands()
+    assert sorted(readme) == sorted(cli), f"README lists {sorted(readme)}, `racing --help` {sorted(cli)}"
+    for name, help_text in cli.items():
+        assert readme[name] == help_text, f"racing {name}: README says {readme[name]!r}, --help {help_text!r}"
+
+
+LINK = re.compile(r"(?<!!)\[[^\]]*\]\(([^)\s]+)\)|!\[[^\]]*\]\(([^)\s]+)\)")
+
+
+def _anchors(path: Path) -> set[str]:
+    """GitHub's heading anchors of a Markdown file (lower case, punctuation dropped, spaces -> -)."""
+    text = re.sub(r"```.*?```", "", path.read_text(encoding="utf-8"), flags=re.DOTALL)
+    anchors = set()
+    for heading in re.findall(r"^#+\s+(.*?)\s*$", text, flags=re.MULTILINE):
+        anchors.add(re.sub(r"[^\w\- ]", "", heading.lower()).replace(" ", "-"))
+    return anchors
+
+
+def test_relative_links_resolve() -> None:
+    broken = []
+    for path in [README, *sorted((ROOT / "docs").glob("*.md"))]:
+        text = re.sub(r"```.*?```", "", path.read_text(encoding="utf-8"), flags=re.DOTALL)
+        for match in LINK.finditer(text):
+            target = match.group(1) or match.group(2)
+            if re.match(r"^[a-z]+:", target):
+                continue
+            file_part, _, anchor = target.partition("#")
+            linked = (path.parent / file_part) if file_part else path
+            if not linked.exists():
+                broken.append(f"{_relative(path)}: {target} (no such file)")
+            elif anchor and linked.suffix == ".md" and anchor not in _anchors(linked):
+                broken.append(f"{_relative(path)}: {target} (no such heading)")
+    assert not broken, "broken links:\n" + "\n".join(broken)
