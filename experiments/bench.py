@@ -139,19 +139,19 @@ def _interleaved_ms(parts: dict[str, tuple[Callable, Any]], rounds: int = 9, cal
 
 def _component_times(game, x0) -> dict[str, float]:
     """Milliseconds per call of the parts of one feedback iteration (:func:`_interleaved_ms`)."""
-    from planners import ilq, lq_game, race_problem
+    from planners import ilq, local_game, lq_game, race_problem
 
     problem = race_problem.problem_from_race_game(game)
     res = ilq.solve(game, x0, mode="feedback", max_iterations=5, tolerance=0.0)
     xs, us = res.xs.reshape(res.xs.shape[0], -1), res.us
-    A, B = ilq.linearize(problem, xs, us)
+    A, B = local_game.linearize(problem, xs, us)
     curvature = ilq.SolverOptions().dynamics_curvature  # as the solver quadratises by default
-    Q, q, Rii, rii = ilq.quadratize(problem, xs, us, True, curvature)
+    Q, q, Rii, rii = local_game.quadratize(problem, xs, us, True, curvature)
     parts = {
-        "linearize": lambda xs: ilq.linearize(problem, xs, us),
-        "quadratize_gauss_newton": lambda xs: ilq.quadratize(problem, xs, us, True, curvature),
+        "linearize": lambda xs: local_game.linearize(problem, xs, us),
+        "quadratize_gauss_newton": lambda xs: local_game.quadratize(problem, xs, us, True, curvature),
         "quadratize_exact_eig": lambda xs: ilq.regularize(
-            *ilq.quadratize(problem, xs, us, False, curvature)[::2], ilq.SolverOptions(), "eig"),
+            *local_game.quadratize(problem, xs, us, False, curvature)[::2], ilq.SolverOptions(), "eig"),
         "lq_feedback": lambda xs: lq_game.solve_feedback_own(A + 0.0 * xs[0, 0], B, Q, q, Rii, rii),
         "forward_pass": lambda xs: ilq.forward(problem, xs, us, res.K, res.k, 0.5),
     }

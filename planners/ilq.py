@@ -38,9 +38,9 @@ One iteration (:func:`iterate`)
 -------------------------------
 Around the nominal trajectory ``(x_hat, u_hat)``:
 
-1. :func:`linearize` the dynamics (``jax.jacfwd`` vmapped over the horizon, or the
+1. :func:`~planners.local_game.linearize` the dynamics (``jax.jacfwd`` vmapped over the horizon, or the
    problem's ``dynamics_jacobians``): ``dx_{t+1} = A_t dx_t + sum_j B_t^j du_t^j``;
-2. :func:`quadratize` each player's cost: ``Q_t^i, q_t^i`` (state) and ``R_t^{ii}, r_t^{ii}``
+2. :func:`~planners.local_game.quadratize` each player's cost: ``Q_t^i, q_t^i`` (state) and ``R_t^{ii}, r_t^{ii}``
    (own input). Mixed state-input terms and ``R^{ij}, r^{ij}`` for ``i != j`` are zero (the
    paper's cost structure; dropped if a custom cost has them). The gradients ``q, r`` are
    always exact. The curvature, ``convexify``:
@@ -108,14 +108,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from planners import lq_game, nash
-from planners.batching import one_at_a_time, with_batched_form
+from planners import local_game, lq_game, nash
 from planners.game_problem import GameProblem, as_problem, game_type_of, rollout, total_costs
 
 Array = jax.Array
@@ -133,13 +132,9 @@ __all__ = [
     "as_array",
     "check_adaptive_regularization",
     "forward",
-    "gauss_newton_factors",
-    "gauss_newton_terms",
     "initial_carry",
     "iterate",
     "iterate_while_running",
-    "linearize",
-    "quadratize",
     "regularize",
     "resolve_options",
     "result",
@@ -379,137 +374,6 @@ class SolverResult(NamedTuple):
 # --------------------------------------------------------------------------------------
 
 
-def linearize(problem: GameProblem, xs: Array, us: Array) -> tuple[Array, Array]:
-    """The dynamics linearised along ``xs (T+1, n)``, ``us (T, N, m)``:
-    ``dx_{t+1} = A_t dx_t + sum_j B_t^j du_t^j`` with ``A (T, n, n)``, ``B (T, N, n, m)``
-    (the problem's ``dynamics_jacobians`` hook, else ``jax.jacfwd``)."""
-    params = problem.params
-    if problem.dynamics_jacobians is not None:
-        jac = lambda t, x, u: problem.dynamics_jacobians(params, t, x, u)
-    else:
-        jac = jax.jacfwd(lambda t, x, u: problem.dynamics(params, t, x, u), argnums=(1, 2))
-    A, B = jax.vmap(jac)(jnp.arange(us.shape[0]), xs[:-1], us)  # B (T, n, N, m)
-    return A, jnp.transpose(B, (0, 2, 1, 3))
-
-
-def _hess_grad(fun: Callable[[Array], Array], z: Array) -> tuple[Array, Array]:
-    """Hessian and gradient of a scalar function in one forward-over-reverse pass."""
-    grad = jax.grad(fun)
-
-    def grad_twice(z_):
-        g = grad(z_)
-        return g, g
-
-    return jax.jacfwd(grad_twice, has_aux=True)(z)
-
-
-def gauss_newton_factors(fun: Callable, z: Array) -> tuple[Array, Array, Array]:
-    """The residual Jacobian ``J (K, D)``, outer slopes ``g (K,)`` and clipped outer
-    curvatures ``h >= 0 (K,)`` of ``sum_k rho_k(r_k(z))``, where ``fun(z) = (r, g, h)``
-    (one forward-mode pass)."""
-    J, (g, h) = jax.jacfwd(lambda z_: (lambda r, g, h: (r, (g, h)))(*fun(z_)), has_aux=True)(z)
-    return J, jax.lax.stop_gradient(g), jax.lax.stop_gradient(jnp.maximum(h, 0.0))
-
-
-# Multiply-adds of one product up to which it is written as fused code. Above it XLA
-# rewrites the fused form into a dot anyway, and the dot is better written as one
-# (docs/performance.md, Loop kernels).
-_GRAM_FUSED_MAX = 2048
-
-
-def _gauss_newton_products(J: Array, g: Array, h: Array) -> tuple[Array, Array]:
-    """``J' diag(h) J (D, D)`` and ``J' g (D,)`` of factors ``J (K, D)``, ``g, h (K,)``."""
-    Jh = J * h[:, None]
-    if J.size * J.shape[1] <= _GRAM_FUSED_MAX:
-        H = lq_game._contract("ka,kb->ab", Jh, J)
-    else:
-        # Contracted axis leading: XLA emits the dot itself (see lq_game._sandwich).
-        H = jax.lax.dot_general(Jh, J, (((0,), (0,)), ((), ())))
-    return H, lq_game._contract("ka,k->a", J, g)
-
-
-def gauss_newton_terms(fun: Callable, z: Array) -> tuple[Array, Array]:
-    """Gauss-Newton Hessian ``J' diag(h) J`` and exact gradient ``J' g`` of
-    ``sum_k rho_k(r_k(z))``, where ``fun(z) = (r, g, h)`` (one forward-mode pass)."""
-    return _gauss_newton_products(*gauss_newton_factors(fun, z))
-
-
-def _stagewise_gauss_newton_products(J: Array, g: Array, h: Array) -> tuple[Array, Array]:
-    """:func:`_gauss_newton_products` of ``(T, N, ...)`` factors, one stage after another.
-
-    As a loop over the stages the products compile into one kernel
-    (:mod:`racing_env.xla_setup`). As one batched product over all stages XLA:CPU hands
-    them to a library call, which is slower for these small shapes and keeps the solver's
-    outer loop from becoming one kernel (docs/performance.md, Loop kernels).
-    """
-    def stage(_, factors):
-        return None, jax.vmap(_gauss_newton_products)(*factors)
-
-    return jax.lax.scan(stage, None, (J, g, h))[1]
-
-
-def _all_gauss_newton_products(J: Array, g: Array, h: Array) -> tuple[Array, Array]:
-    """:func:`_gauss_newton_products` over any leading axes, as batched products."""
-    return jnp.einsum("...ka,...k,...kb->...ab", J, h, J), jnp.einsum("...ka,...k->...a", J, g)
-
-
-# Under vmap (batches of games) the batched products are faster than a loop over the
-# stages per game, mapped or vmapped (docs/performance.md).
-_quadratize_products = with_batched_form(_stagewise_gauss_newton_products, _all_gauss_newton_products)
-
-
-def quadratize(problem: GameProblem, xs: Array, us: Array, gauss_newton: bool = False,
-               dynamics_curvature: bool = False) -> tuple[Array, Array, Array, Array]:
-    """Every player's quadratic cost model along ``xs (T+1, n)``, ``us (T, N, m)``.
-
-    Returns ``Q (T+1, N, n, n)``, ``q (T+1, N, n)`` (state; index ``T`` is the terminal
-    cost) and ``Rii (T, N, m, m)``, ``rii (T, N, m)`` (own input): exact Hessians, or with
-    ``gauss_newton`` the problem's Gauss-Newton form (PSD; needs the problem's hooks). With
-    ``dynamics_curvature`` the problem's ``stage_curvature`` (if it has one) is added to
-    the diagonal of the stages' ``Q``. The gradients are exact either way. Not yet
-    convexified or regularised (:func:`regularize`).
-    """
-    params = problem.params
-    n = problem.state_dim
-    players = jnp.arange(problem.num_players)
-    if gauss_newton:
-        terms, stage_fn, terminal_fn = (
-            gauss_newton_terms, problem.stage_gauss_newton, problem.terminal_gauss_newton
-        )
-    else:
-        terms, stage_fn, terminal_fn = _hess_grad, problem.stage_cost, problem.terminal_cost
-
-    def stage(t, x, u):
-        def player(i, u_i):
-            fun = lambda z: stage_fn(params, t, i, z[:n], z[n:])
-            return (gauss_newton_factors if gauss_newton else terms)(fun, jnp.concatenate([x, u_i]))
-
-        return jax.vmap(player)(players, u)
-
-    stages = jax.vmap(stage)(jnp.arange(us.shape[0]), xs[:-1], us)
-    H, g = _quadratize_products(*stages) if gauss_newton else stages
-    Q, q, Rii, rii = H[..., :n, :n], g[..., :n], H[..., n:, n:], g[..., n:]
-    QT, qT = jax.vmap(lambda i: terms(lambda x: terminal_fn(params, i, x), xs[-1]))(players)
-    if dynamics_curvature and problem.stage_curvature is not None:
-        def diagonal(t, x):
-            return jax.vmap(lambda i: problem.stage_curvature(params, t, i, x))(players)
-
-        d = jax.lax.stop_gradient(jax.vmap(diagonal)(jnp.arange(us.shape[0]), xs[:-1]))  # (T, N, n)
-        Q = Q + jnp.maximum(d, 0.0)[..., None] * jnp.eye(n, dtype=Q.dtype)
-    Q = jnp.concatenate([Q, QT[None]], axis=0)
-    q = jnp.concatenate([q, qT[None]], axis=0)
-    return Q, q, Rii, rii
-
-
-def _own_to_full(Rii: Array, rii: Array) -> tuple[Array, Array]:
-    """Embed own blocks ``(T, N, m, m)``, ``(T, N, m)`` into ``R (T, N, N, m, m)``, ``r``."""
-    T, N, m = rii.shape
-    idx = jnp.arange(N)
-    R = jnp.zeros((T, N, N, m, m), Rii.dtype).at[:, idx, idx].set(Rii)
-    r = jnp.zeros((T, N, N, m), rii.dtype).at[:, idx, idx].set(rii)
-    return R, r
-
-
 def _convexify(problem: GameProblem, options: SolverOptions) -> str:
     """The convexification actually used (``"auto"`` resolved)."""
     if options.convexify == "auto":
@@ -522,21 +386,6 @@ def _convexify(problem: GameProblem, options: SolverOptions) -> str:
     return options.convexify
 
 
-def _psd_part_sequential(Q: Array) -> Array:
-    """The PSD part ``V max(w, 0) V'`` of every symmetric ``(n, n)`` block of ``Q (..., n, n)``,
-    one eigendecomposition after another."""
-    def one(M):
-        w, V = jnp.linalg.eigh(M)
-        return (V * jnp.maximum(w, 0.0)) @ V.T
-
-    return jax.lax.map(one, Q.reshape((-1,) + Q.shape[-2:])).reshape(Q.shape)
-
-
-# One LAPACK call per matrix, also in a vmapped batch split across CPU devices: a batched
-# call hangs there (see planners.batching.one_at_a_time).
-_psd_part = one_at_a_time(_psd_part_sequential)
-
-
 def regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str,
                control_regularization: Array | float | None = None) -> tuple[Array, Array]:
     """``Q (..., n, n)`` made PSD per ``convexify`` (a resolved mode: ``"gauss_newton"``,
@@ -547,7 +396,7 @@ def regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str,
     if convexify != "gauss_newton":
         Q = 0.5 * (Q + jnp.swapaxes(Q, -1, -2))
     if convexify == "eig":
-        Q = _psd_part(Q)
+        Q = local_game.psd_part(Q)
     elif convexify == "diag":
         diag = jnp.diagonal(Q, axis1=-2, axis2=-1)
         off = jnp.sum(jnp.abs(Q), axis=-1) - jnp.abs(diag)
@@ -567,8 +416,8 @@ def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions,
     """Linearise, quadratise and solve the local LQ game: ``K (T, N, m, n)``, ``k (T, N, m)``
     (``control_regularization``: the current ``lambda_u``, see :func:`regularize`)."""
     convexify = _convexify(problem, options)
-    A, B = linearize(problem, xs, us)
-    Q, q, Rii, rii = quadratize(problem, xs, us, convexify == "gauss_newton",
+    A, B = local_game.linearize(problem, xs, us)
+    Q, q, Rii, rii = local_game.quadratize(problem, xs, us, convexify == "gauss_newton",
                                  options.dynamics_curvature)
     Q, Rii = regularize(Q, Rii, options, convexify, control_regularization)
     lam_k = control_regularization if options.feedforward_regularization else None
@@ -576,7 +425,7 @@ def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions,
         # Every Q^i is PSD: the own-input solver's block elimination is safe.
         K, k = lq_game.solve_feedback_own(A, B, Q, q, Rii, rii, lam_k)
     elif options.mode == "feedback":
-        K, k = lq_game.solve_feedback(A, B, Q, q, *_own_to_full(Rii, rii), lam_k)
+        K, k = lq_game.solve_feedback(A, B, Q, q, *local_game.own_to_full(Rii, rii), lam_k)
     else:
         # Deviation coordinates: the local game starts at dx_0 = 0, not at x_0.
         k, _ = lq_game.solve_open_loop_own(A, B, Q, q, Rii, rii, jnp.zeros_like(xs[0]))
@@ -754,8 +603,8 @@ def initial_carry(problem: GameProblem, x0: Array, us0: Array, options: SolverOp
 
 
 def iterate(problem: GameProblem, c: SolverCarry, options: SolverOptions) -> SolverCarry:
-    """One iteration: the local LQ game around ``(c.xs, c.us)`` (:func:`linearize`,
-    :func:`quadratize`, :func:`regularize`, an LQ solve), the step-size search over
+    """One iteration: the local LQ game around ``(c.xs, c.us)`` (:mod:`planners.local_game`,
+    :func:`regularize`, an LQ solve), the step-size search over
     :func:`forward` passes, and the status update. Pure JAX, jit-able."""
     damping = options.step_control == "trust_region" and options.oscillation_damping
     adaptive = options.adaptive_regularization
@@ -884,7 +733,7 @@ def solve_arrays(problem: GameProblem, x0: Array, us0: Array, options: SolverOpt
 @jax.jit
 def _first_own_hessians(problem: GameProblem, x0: Array, us0: Array) -> Array:
     xs = rollout(problem, x0, us0)
-    return quadratize(problem, xs, us0)[2]
+    return local_game.quadratize(problem, xs, us0)[2]
 
 
 def _is_concrete(*trees) -> bool:

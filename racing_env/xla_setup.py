@@ -12,7 +12,7 @@ makes every loop of the two-car solvers a single kernel, and a feedback iteratio
 faster (docs/performance.md, Loop kernels). The three-car recursions hold dot products,
 laid out so that YNNPACK does not take them (``planners.lq_game._sandwich``): their loops
 are single kernels too. The quadratisation's products are such a loop as well
-(``planners.ilq._stagewise_gauss_newton_products``), so a single solve holds no library
+(``planners.local_game._stagewise_gauss_newton_products``), so a single solve holds no library
 call at all, and its outer loop (the iterations) compiles into one kernel too: faster
 iterations at a longer compile (one large function for LLVM; the loops are not unrolled,
 which inside a kernel saves nothing). A batched solve keeps batched products, so its outer

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import racing_env  # noqa: F401  (enables float64)
-from planners import ilq, ilq_batch, lq_game, nash, race_problem
+from planners import ilq, ilq_batch, local_game, lq_game, nash, race_problem
 from planners.ilqr import ego_problem, predict_constant_velocity, solve_ilqr
 from racing_env import CostWeights, RaceGame, VehicleParams
 from racing_env.track import straight
@@ -644,10 +644,10 @@ def test_gauss_newton_hooks_give_exact_gradients_and_psd_hessians(game, racing):
     @jax.jit  # one compilation for all states and players (eager tracing took ~10 s)
     def terms_and_exact(z, i):
         fun = lambda z: race_problem.race_stage_gauss_newton(game, 0, i, z[:n], z[n:])
-        H, g = ilq.gauss_newton_terms(fun, z)
+        H, g = local_game.gauss_newton_terms(fun, z)
         exact = jax.grad(lambda z: problem.stage_cost(game, 0, i, z[:n], z[n:]))(z)
         x = z[:n]
-        HT, gT = ilq.gauss_newton_terms(lambda x: race_problem.race_terminal_gauss_newton(game, i, x), x)
+        HT, gT = local_game.gauss_newton_terms(lambda x: race_problem.race_terminal_gauss_newton(game, i, x), x)
         exact_T = jax.grad(lambda x: problem.terminal_cost(game, i, x))(x)
         return H, g, exact, HT, gT, exact_T
 
@@ -681,9 +681,9 @@ def test_gauss_newton_hooks_mask_a_ghost_among_three_cars(racing):
     @jax.jit
     def gradients(z, i):
         fun = lambda z: race_problem.race_stage_gauss_newton(game, 0, i, z[:n], z[n:])
-        _, g = ilq.gauss_newton_terms(fun, z)
+        _, g = local_game.gauss_newton_terms(fun, z)
         exact = jax.grad(lambda z: problem.stage_cost(game, 0, i, z[:n], z[n:]))(z)
-        _, gT = ilq.gauss_newton_terms(lambda x: race_problem.race_terminal_gauss_newton(game, i, x), z[:n])
+        _, gT = local_game.gauss_newton_terms(lambda x: race_problem.race_terminal_gauss_newton(game, i, x), z[:n])
         exact_T = jax.grad(lambda x: problem.terminal_cost(game, i, x))(z[:n])
         return g, exact, gT, exact_T
 
@@ -718,7 +718,7 @@ def test_gauss_newton_hessian_is_exact_for_the_track_term(game):
     n = problem.state_dim
     z = jnp.concatenate([jnp.asarray(X).reshape(-1), jnp.array([0.3, -0.2])])
     fun = lambda z: race_problem.race_stage_gauss_newton(game, 0, 0, z[:n], z[n:])
-    H, _ = jax.jit(lambda z: ilq.gauss_newton_terms(fun, z))(z)
+    H, _ = jax.jit(lambda z: local_game.gauss_newton_terms(fun, z))(z)
     exact = jax.jit(jax.hessian(lambda z: problem.stage_cost(game, 0, 0, z[:n], z[n:])))(z)
     np.testing.assert_allclose(H, exact, atol=1e-10)
     assert float(exact[2, 2]) > 0  # the track term is active
@@ -730,11 +730,11 @@ def test_quadratization_matches_the_gauss_newton_products_of_each_stage(game, sc
     three) equal ``J' diag(h) J`` and ``J' g`` formed in NumPy from each stage's factors."""
     game, problem, xs, us = _random_trajectory(game, scene, 8, np.array([3.0, 4.0, 5.0, 0.2, 8.0, 12.0]))
     n, N, T = problem.state_dim, game.num_players, game.horizon
-    Q, q, Rii, rii = jax.jit(lambda xs, us: ilq.quadratize(problem, xs, us, gauss_newton=True))(xs, us)
+    Q, q, Rii, rii = jax.jit(lambda xs, us: local_game.quadratize(problem, xs, us, gauss_newton=True))(xs, us)
 
     def factors(t, i):
         fun = lambda z: race_problem.race_stage_gauss_newton(game, t, i, z[:n], z[n:])
-        return ilq.gauss_newton_factors(fun, jnp.concatenate([xs[t], us[t, i]]))
+        return local_game.gauss_newton_factors(fun, jnp.concatenate([xs[t], us[t, i]]))
 
     factors = jax.jit(factors)
     for t in sorted({0, T // 2, T - 1}):
@@ -835,9 +835,9 @@ def test_ilqr_gauss_newton_hooks_match_the_ego_costs(game):
     @jax.jit  # one compilation for all states and stages
     def terms_and_exact(z, t):
         fun = lambda z: problem.stage_gauss_newton(params, t, 0, z[:6], z[6:])
-        H, g = ilq.gauss_newton_terms(fun, z)
+        H, g = local_game.gauss_newton_terms(fun, z)
         exact = jax.grad(lambda z: problem.stage_cost(params, t, 0, z[:6], z[6:]))(z)
-        gT = ilq.gauss_newton_terms(lambda x: problem.terminal_gauss_newton(params, 0, x), z[:6])[1]
+        gT = local_game.gauss_newton_terms(lambda x: problem.terminal_gauss_newton(params, 0, x), z[:6])[1]
         return H, g, exact, gT, jax.grad(lambda x: problem.terminal_cost(params, 0, x))(z[:6])
 
     for X in _random_states(game, rng, 5):
@@ -912,7 +912,7 @@ def test_stage_curvature_is_the_progress_curvature_of_the_rk4_step_on_a_straight
 def test_dynamics_curvature_adds_only_the_heading_diagonal_and_keeps_the_gradients(game, scene, gauss_newton):
     game, problem, xs, us = _random_trajectory(game, scene, 9, np.array([3.0, 2.0, 1.0, 0.1, 1.0, 1.0]))
     n, N, T = problem.state_dim, game.num_players, game.horizon
-    quadratize = jax.jit(lambda xs, us, on: ilq.quadratize(problem, xs, us, gauss_newton, on), static_argnums=2)
+    quadratize = jax.jit(lambda xs, us, on: local_game.quadratize(problem, xs, us, gauss_newton, on), static_argnums=2)
     plain, curved = quadratize(xs, us, False), quadratize(xs, us, True)
     for a, b in zip(plain[1:], curved[1:]):  # q, Rii, rii: bit for bit
         np.testing.assert_array_equal(a, b)
@@ -964,8 +964,8 @@ def test_ilqr_ego_problem_has_the_games_own_heading_curvature(game, scene):
         assert float(d[3]) > 0
         xs = jnp.tile(x_ego, (game.horizon + 1, 1))
         us = jnp.zeros((game.horizon, 1, 2))
-        Q_on = ilq.quadratize(problem, xs, us, True, True)[0]
-        Q_off = ilq.quadratize(problem, xs, us, True, False)[0]
+        Q_on = local_game.quadratize(problem, xs, us, True, True)[0]
+        Q_off = local_game.quadratize(problem, xs, us, True, False)[0]
         added = np.asarray(Q_on - Q_off)[:, 0]
         assert np.count_nonzero(added[:-1, 3, 3]) == game.horizon and np.count_nonzero(added) == game.horizon
 
@@ -988,7 +988,7 @@ def test_the_generic_solver_imports_nothing_of_the_racing_game():
 
     from planners import game_problem
 
-    for module in (ilq, ilq_batch, nash, game_problem):
+    for module in (ilq, local_game, ilq_batch, nash, game_problem):
         tree = ast.parse(inspect.getsource(module))
         imported = [alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names]
         imported += [node.module or "" for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)]

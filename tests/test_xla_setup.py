@@ -121,13 +121,13 @@ def test_gauss_newton_quadratization_holds_no_library_call(cars):
     import jax.numpy as jnp
 
     from experiments.bench import _solver_game
-    from planners import ilq, race_problem
+    from planners import local_game, race_problem
 
     game, x0 = _solver_game(cars)
     problem = race_problem.problem_from_race_game(game)
     xs = jnp.tile(jnp.asarray(x0).reshape(1, -1), (game.horizon + 1, 1))
     us = jnp.zeros((game.horizon, cars, 2))
-    quadratize = lambda xs, us: ilq.quadratize(problem, xs, us, gauss_newton=True, dynamics_curvature=True)
+    quadratize = lambda xs, us: local_game.quadratize(problem, xs, us, gauss_newton=True, dynamics_curvature=True)
     text = jax.jit(quadratize).lower(xs, us).compile().as_text()
     assert "__ynn_fusion" not in text
     assert "xla_cpu_small_call" in text  # the loop over the stages is one kernel
