@@ -114,7 +114,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from planners import local_game, lq_game, nash
+from planners import local_game, lq_game, methods, nash
 from planners.game_problem import GameProblem, as_problem, game_type_of, rollout, total_costs
 
 Array = jax.Array
@@ -184,7 +184,6 @@ def status_message(status) -> str:
 # Options and result.
 # --------------------------------------------------------------------------------------
 
-_MODES = ("feedback", "open_loop")
 _STEP_CONTROLS = ("trust_region", "residual", "none")
 _CONVEXIFY = ("auto", "gauss_newton", "eig", "diag", "none")
 
@@ -276,8 +275,8 @@ class SolverOptions:
             # a string such as "false" would be truthy
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"SolverOptions.{name} must be True or False, got {getattr(self, name)!r}")
-        if self.mode not in _MODES:
-            raise ValueError(f"mode must be one of {_MODES}, got {self.mode!r}")
+        if self.mode not in methods.SOLVER_MODES:
+            raise ValueError(f"mode must be one of {methods.SOLVER_MODES}, got {self.mode!r}")
         if self.step_control not in _STEP_CONTROLS:
             raise ValueError(
                 f"step_control must be one of {_STEP_CONTROLS}, got {self.step_control!r}"
