@@ -351,10 +351,10 @@ def _iteration_rows(fixed_iterations: int, rounds: int) -> Iterator[dict[str, An
     in turns (:func:`_interleaved_calls`), in ms per iteration.
 
     ``ms_per_iter`` is the median; ``ms_per_iter_p10`` and ``ms_per_iter_min`` describe
-    the fast end of the distribution. On this project's shared 2-vCPU machine the same
-    compiled solve runs at two speeds, about 1.7x apart, depending on what else runs on
-    the physical core (docs/performance.md, "Two speeds"): the 10th percentile is the
-    figure of the uncontended core whenever such a spell falls inside the run. The
+    the fast end of the distribution. On a machine whose vCPUs share physical cores the
+    same compiled solve runs at two speeds, depending on what else runs on the core
+    (docs/performance.md, "Running the benchmarks"): the 10th percentile is the figure of
+    the uncontended core whenever such a spell falls inside the run. The
     targets are judged on the median.
     """
     from planners import ilq
@@ -390,7 +390,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     cold solve (zero inputs) to convergence. Components: the parts of one N = 2 feedback
     iteration, timed inside a jitted loop, and the LQ recursion's cost per stage against
     the state size (:func:`_lq_state_size_row`). Batch: 64 perturbations of the
-    paper's scene solved by :func:`planners.ilq.solve_batch` vs one by one (64 calls of
+    paper's scene solved by :func:`planners.ilq_batch.solve_batch` vs one by one (64 calls of
     ``solve``), on one device and split across every local device (``racing bench`` exposes
     one CPU device per core, see :mod:`planners.devices`), in the default batching (on CPU
     one member after another) and vmapped (``batching="vmap"``, for comparison; its
@@ -407,7 +407,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     above 1 means no batching can meet the target on this machine.
     """
     from experiments.timing import time_jax_call
-    from planners import ilq
+    from planners import ilq, ilq_batch
 
     fixed_iterations = 20
     yield _machine_reference()
@@ -437,7 +437,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     calls: dict[Any, Callable[[], Any]] = {}  # (batching, devices used), or "sequential"
     for batching in ("auto", "vmap"):
         for used in sorted({1, len(devices)}):
-            calls[batching, used] = (lambda batching=batching, used=used: ilq.solve_batch(
+            calls[batching, used] = (lambda batching=batching, used=used: ilq_batch.solve_batch(
                 game, x0s, mode="feedback", devices=devices[:used], batching=batching))
     calls["sequential"] = lambda: [ilq.solve(game, x, mode="feedback").xs for x in x0s]
     # In turns, so that the batches and the sequential solves share the machine's spells.
@@ -504,18 +504,18 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     are the open-loop solve's).
     The cars are the paper's two (v_max 20 and 25 m/s), then the three-car bench scene's
     third (24 m/s), then cars of 22 m/s. The scenes are solved by
-    :func:`planners.ilq.solve_batch` (its default batching), timed ``repeats`` (>= 1) times
+    :func:`planners.ilq_batch.solve_batch` (its default batching), timed ``repeats`` (>= 1) times
     after a compiling call. Iteration figures are over the converged scenes; ``statuses``
     counts every outcome by its message. ``max_iterations``, ``tolerance`` and
     ``solver_options`` are the solver's (:class:`planners.ilq.SolverOptions`; the other
     options its defaults);
     ``jerk_weight`` is every car's jerk weight ``r`` (default: ``CostWeights``' default,
     as are the other cost weights). Open-loop rows also give the first-order open-loop Nash
-    residual of every solve, ``max_i |dJ^i/du^i|`` (:func:`planners.ilq.nash_residual`, the
+    residual of every solve, ``max_i |dJ^i/du^i|`` (:func:`planners.nash.nash_residual`, the
     cost's units per m/s^3): its median, p90 and largest value. With ``per_scene`` a row
     also lists every scene's start state ``x0`` (N x 6), ``iterations``, ``status``
     (message) and, in open loop, ``residual``, in scene order."""
-    from planners import ilq
+    from planners import ilq, ilq_batch, nash
     from experiments.timing import time_jax_call
     from racing_env import CostWeights, RaceGame, VehicleParams
     from racing_env.scenarios import random_scenes
@@ -536,11 +536,11 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
     for mode in modes:
         if mode == "open_loop_from_feedback":
             feedback = (results["feedback"] if "feedback" in results
-                        else ilq.solve_batch(game, x0s, options=options["feedback"]))
+                        else ilq_batch.solve_batch(game, x0s, options=options["feedback"]))
             init = np.asarray(feedback.us)
-            solve = lambda: ilq.solve_batch(game, x0s, init, options=options["open_loop"])
+            solve = lambda: ilq_batch.solve_batch(game, x0s, init, options=options["open_loop"])
         else:
-            solve = lambda mode=mode: ilq.solve_batch(game, x0s, options=options[mode])
+            solve = lambda mode=mode: ilq_batch.solve_batch(game, x0s, options=options[mode])
         res, first, run = time_jax_call(solve, repeats)
         results[mode] = res
         status = np.asarray(res.status)
@@ -560,7 +560,7 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
         if mode != "feedback":
             # how near an open-loop equilibrium each solve ended, converged or not (a
             # feedback equilibrium does not zero this residual, so feedback rows skip it)
-            residuals = np.array([float(np.max(ilq.nash_residual(game, x0, us)))
+            residuals = np.array([float(np.max(nash.nash_residual(game, x0, us)))
                                   for x0, us in zip(x0s, np.asarray(res.us))])
             row.update(residual_median=float(np.median(residuals)),
                        residual_p90=float(np.percentile(residuals, 90)), residual_max=float(residuals.max()))
@@ -590,13 +590,13 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
     the default batching (on CPU one member after another, so nobody waits), all on every
     local device, timed in turns (:func:`_interleaved_calls`); compile time (including
     every regrouped size) apart."""
-    from planners import ilq
+    from planners import ilq_batch
 
     x0s = _perturbed_scenes(x0, batch)
     calls = {
-        "lockstep": lambda: ilq.solve_batch(game, x0s, mode="feedback", batching="vmap"),
-        "regrouped": lambda: ilq.solve_batch(game, x0s, mode="feedback", batching="vmap", regroup_every=every),
-        "default": lambda: ilq.solve_batch(game, x0s, mode="feedback"),
+        "lockstep": lambda: ilq_batch.solve_batch(game, x0s, mode="feedback", batching="vmap"),
+        "regrouped": lambda: ilq_batch.solve_batch(game, x0s, mode="feedback", batching="vmap", regroup_every=every),
+        "default": lambda: ilq_batch.solve_batch(game, x0s, mode="feedback"),
     }
     timed = _interleaved_calls(calls, max(1, repeats // 2))
     run = {name: timed.median_s(name) for name in calls}

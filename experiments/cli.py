@@ -66,9 +66,9 @@ def _cmd_agents(args: argparse.Namespace) -> int:
     from rich.markup import escape
     from rich.table import Table
 
-    from planners.agents import AGENT_SPECS, AGENT_SUMMARIES, agent_options
+    from planners.agents import AGENT_SUMMARIES, AGENTS, agent_options
 
-    names = [args.name] if args.name else list(AGENT_SPECS)
+    names = [args.name] if args.name else list(AGENTS)
     console = Console(width=max(Console().width, 120))
     for name in names:
         rows = agent_options(name)  # refuses an unknown name, listing the known ones

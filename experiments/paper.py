@@ -18,6 +18,7 @@ import numpy as np
 
 from experiments.timing import time_jax_call
 from planners import ilq, ilqr
+from planners.nash import nash_residual
 from racing_env.dynamics import N_LAT, S
 from racing_env.game import RaceGame
 from racing_env.scenarios import PAPER_WEIGHTS, paper_game  # noqa: F401  (the scene; re-exported here)
@@ -62,7 +63,7 @@ def _record(game, x0, method: str, res, first_s: float, run_s: float, nash: bool
     xs, us = np.asarray(res.xs), np.asarray(res.us)
     iterations = int(res.iterations)
     plan = getattr(res, "plan", res)
-    residual = np.asarray(ilq.nash_residual(game, x0, us)) if nash else None
+    residual = np.asarray(nash_residual(game, x0, us)) if nash else None
     return {
         "method": method,
         "converged": bool(res.converged),

@@ -49,7 +49,7 @@ from experiments.jsonl import read_jsonl, settings_json
 from experiments.race_spec import RACE_FIELDS, RaceSpec
 from experiments.runner import JobLog
 from planners.agents import with_options
-from racing_env.config import RaceConfig
+from racing_env.config import RaceConfig, is_number
 from racing_env.costs import CostWeights
 from racing_env.vehicle import VehicleParams
 
@@ -99,7 +99,7 @@ class SweepConfig(RaceSpec):
         if not _is_int(self.seed) or self.seed < 0:
             raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         budget = self.step_budget_s
-        if budget is not None and (not _is_number(budget) or not budget > 0):
+        if budget is not None and (not is_number(budget) or not budget > 0):
             # a budget of 0 s would fault both cars at their second action
             raise ValueError(f"step_budget_s must be a number of seconds > 0 (or left out: no budget), "
                              f"got {budget!r}")
@@ -165,7 +165,7 @@ def _check_numbers(name: str, values: tuple[Any, ...]) -> None:
     """Refuse a value that is not a number (the race's own checks compare, and a string
     there is a TypeError or, in a weight, a crash at the first race)."""
     for value in values:
-        if not _is_number(value):
+        if not is_number(value):
             raise ValueError(f"{name} must be a number, got {value!r}")
 
 
@@ -173,17 +173,13 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
-
-
 def _spec_option_types(spec: str) -> dict[str, type]:
     """The options (other than the car's cost weights) a sweep may set on an agent spec."""
-    from planners.agents import AGENT_SPECS, split_spec
+    from planners.agents import AGENTS, split_spec
 
     if spec.strip().lower().startswith("rl:"):
         return {}
-    agent = AGENT_SPECS.get(split_spec(spec)[0])
+    agent = AGENTS.get(split_spec(spec)[0])
     options = agent.spec_options() if agent is not None else {}
     return {key: kind for key, kind in options.items() if key not in CAR_FIELDS}
 

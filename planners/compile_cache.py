@@ -1,7 +1,7 @@
 """Keep compiled solvers on disk between runs (JAX's persistent compilation cache).
 
 Compiling one iLQ solver takes several times longer than a converged solve
-(docs/performance.md, Compile time). With the cache on, a process that needs a solver another process has
+(docs/performance.md, "Compilation cache"). With the cache on, a process that needs a solver another process has
 already compiled (same shapes, options and jaxlib) loads it from disk instead::
 
     import planners.compile_cache

@@ -11,7 +11,6 @@ solvers accept such games directly without importing them.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from typing import Any, Callable
 
 import jax
@@ -24,6 +23,7 @@ __all__ = [
     "GameType",
     "as_problem",
     "game_type_of",
+    "is_concrete",
     "register_game_type",
     "rollout",
     "total_costs",
@@ -51,7 +51,7 @@ class GameProblem:
             player i's stage cost written as ``sum_k rho_k(r_k(x, u_i))`` with scalar outer
             functions ``rho_k``; ``g_k = rho_k'(r_k)`` and a curvature weight ``h_k >= 0``
             (``rho_k''(r_k)`` where that is non-negative). Enables the Gauss-Newton
-            quadratisation (:mod:`planners.ilq`); ``g`` and ``h`` are not differentiated.
+            quadratisation (:func:`planners.local_game.quadratize`); ``g`` and ``h`` are not differentiated.
         terminal_gauss_newton: optional ``(params, i, x) -> (r, g, h)``, the same for
             ``terminal_cost`` (both hooks are needed for Gauss-Newton).
         stage_curvature: optional ``(params, t, i, x) -> (n,)``: a diagonal curvature
@@ -166,12 +166,9 @@ class GameType:
     costs_of_inputs: Callable[[Any, Array, Array], Array] | None = None
 
 
+# The game types planners ships register on import (``import planners`` imports
+# planners.race_problem, which registers racing_env.RaceGame).
 _GAME_TYPES: dict[type, GameType] = {}
-
-# Adapter modules of the game types planners ships, imported the first time the solvers
-# meet a type that is not registered (``import planners`` imports them anyway).
-_ADAPTER_MODULES = ("planners.race_problem",)
-_adapters_imported = False
 
 
 def register_game_type(cls: type, game_type: GameType) -> None:
@@ -182,19 +179,15 @@ def register_game_type(cls: type, game_type: GameType) -> None:
 def game_type_of(obj) -> GameType | None:
     """The :class:`GameType` registered for ``obj``'s class (or a base class); ``None``
     for a :class:`GameProblem` or an unregistered object."""
-    global _adapters_imported
     if isinstance(obj, GameProblem):
         return None
-    for _ in range(2):
-        for cls in type(obj).__mro__:
-            if cls in _GAME_TYPES:
-                return _GAME_TYPES[cls]
-        if _adapters_imported:
-            break
-        _adapters_imported = True
-        for name in _ADAPTER_MODULES:
-            importlib.import_module(name)
-    return None
+    return next((_GAME_TYPES[cls] for cls in type(obj).__mro__ if cls in _GAME_TYPES), None)
+
+
+def is_concrete(*trees: Any) -> bool:
+    """Whether every leaf of ``trees`` is at hand (no tracer inside jit or vmap): checks that
+    read values run only then."""
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
 
 
 def as_problem(problem_or_game) -> tuple[GameProblem, GameType | None]:

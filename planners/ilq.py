@@ -115,7 +115,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from planners import local_game, lq_game, methods, nash
-from planners.game_problem import GameProblem, as_problem, game_type_of, rollout, total_costs
+from planners.game_problem import GameProblem, as_problem, game_type_of, is_concrete, rollout, total_costs
 
 Array = jax.Array
 
@@ -146,7 +146,8 @@ __all__ = [
     "validate_problem",
 ]
 
-# Names that live in the modules built on this one, reachable here as before.
+# Compatibility aliases for scripts written against planners.ilq: names that live in the
+# modules built on this one (the package itself imports them from their modules).
 _MOVED = {
     "solve_batch": "planners.ilq_batch",
     "nash_residual": "planners.nash",
@@ -242,7 +243,7 @@ class SolverOptions:
             do (they follow ``Q``). No effect on problems without the hook.
     """
 
-    mode: str = "feedback"
+    mode: str = methods.FEEDBACK
     max_iterations: int = 100
     tolerance: float = 1e-6
     step_control: str = "trust_region"
@@ -281,7 +282,7 @@ class SolverOptions:
             raise ValueError(
                 f"step_control must be one of {_STEP_CONTROLS}, got {self.step_control!r}"
             )
-        if self.step_control == "residual" and self.mode != "open_loop":
+        if self.step_control == "residual" and self.mode != methods.OPEN_LOOP:
             raise ValueError(
                 "step_control='residual' needs mode='open_loop' (of the agents, ilqgame-ol): it "
                 "decreases the open-loop Nash residual, which a feedback equilibrium does not zero"
@@ -291,7 +292,7 @@ class SolverOptions:
                 "adaptive_regularization needs control_regularization > 0 (the value it starts "
                 f"at and returns to after a reversing step), got {self.control_regularization!r}"
             )
-        if self.feedforward_regularization and self.mode != "feedback":
+        if self.feedforward_regularization and self.mode != methods.FEEDBACK:
             raise ValueError(
                 "feedforward_regularization is for feedback games: an open-loop LQ step is all "
                 "feed-forward, and control_regularization alone damps it"
@@ -420,10 +421,10 @@ def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions,
                                  options.dynamics_curvature)
     Q, Rii = regularize(Q, Rii, options, convexify, control_regularization)
     lam_k = control_regularization if options.feedforward_regularization else None
-    if options.mode == "feedback" and convexify != "none":
+    if options.mode == methods.FEEDBACK and convexify != "none":
         # Every Q^i is PSD: the own-input solver's block elimination is safe.
         K, k = lq_game.solve_feedback_own(A, B, Q, q, Rii, rii, lam_k)
-    elif options.mode == "feedback":
+    elif options.mode == methods.FEEDBACK:
         K, k = lq_game.solve_feedback(A, B, Q, q, *local_game.own_to_full(Rii, rii), lam_k)
     else:
         # Deviation coordinates: the local game starts at dx_0 = 0, not at x_0.
@@ -450,7 +451,7 @@ def forward(problem: GameProblem, xs_hat: Array, us_hat: Array, K: Array, k: Arr
 
     ts = jnp.arange(us_hat.shape[0])
     # Not unrolled (nor are the other solver loops): compiled into one kernel, an unrolled
-    # loop ran no faster and compiled for longer (docs/performance.md, Compile time).
+    # loop ran no faster and compiled for longer (docs/performance.md, "XLA settings and dispatch").
     xT, (xs, us) = jax.lax.scan(body, xs_hat[0], (ts, xs_hat[:-1], us_hat, K, k))
     return jnp.concatenate([xs, xT[None]], axis=0), us
 
@@ -735,11 +736,6 @@ def _first_own_hessians(problem: GameProblem, x0: Array, us0: Array) -> Array:
     return local_game.quadratize(problem, xs, us0)[2]
 
 
-def _is_concrete(*trees) -> bool:
-    leaves = jax.tree_util.tree_leaves(trees)
-    return not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
-
-
 def validate_problem(problem_or_game, x0=None, us0=None, control_regularization: float = 0.0):
     """Refuse games whose own-input Hessians ``R_t^{ii}`` are not positive definite.
 
@@ -762,7 +758,7 @@ def validate_problem(problem_or_game, x0=None, us0=None, control_regularization:
     x0 = jnp.asarray(x0)
     if us0 is None:
         us0 = jnp.zeros((problem.horizon, problem.num_players, problem.input_dim), x0.dtype)
-    if not _is_concrete(problem, x0, us0):
+    if not is_concrete(problem, x0, us0):
         return
     Rii = np.asarray(_first_own_hessians(problem, x0, jnp.asarray(us0)))
     Rii = 0.5 * (Rii + np.swapaxes(Rii, -1, -2))
@@ -797,7 +793,7 @@ def check_adaptive_regularization(options: SolverOptions, num_players: int) -> N
     ``lambda_u`` that changes with every reversal moves the point the iterates converge to.
     With ``feedforward_regularization`` the gains do not see ``lambda_u``, and it is allowed.
     """
-    if (options.adaptive_regularization and options.mode == "feedback" and num_players > 1
+    if (options.adaptive_regularization and options.mode == methods.FEEDBACK and num_players > 1
             and not options.feedforward_regularization):
         raise ValueError(
             "adaptive_regularization is for open-loop games and one-player problems (ilqgame-ol, "

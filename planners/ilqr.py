@@ -23,7 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from planners import ilq, race_problem
+from planners import ilq, methods, race_problem
+from planners.game_problem import GameProblem
 from racing_env.dynamics import STATE_DIM, rk4_step
 
 Array = jax.Array
@@ -134,8 +135,8 @@ def _checked_prediction(game, predicted) -> Array:
     return jnp.asarray(predicted)
 
 
-def ego_problem(game, x0, ego: int = 0, predicted=None) -> ilq.GameProblem:
-    """The ego's single-player :class:`planners.ilq.GameProblem` against a prediction.
+def ego_problem(game, x0, ego: int = 0, predicted=None) -> GameProblem:
+    """The ego's single-player :class:`planners.game_problem.GameProblem` against a prediction.
 
     ``predicted (T+1, N, 6)``: the opponents' predicted trajectories (the ego's row is
     ignored); ``None`` is the paper's :func:`predict_constant_velocity`. Other predictions:
@@ -157,7 +158,7 @@ def ego_problem(game, x0, ego: int = 0, predicted=None) -> ilq.GameProblem:
         predicted=predicted,
         ego=jnp.asarray(ego, dtype=jnp.int32),
     )
-    return ilq.GameProblem(
+    return GameProblem(
         dynamics=_ego_dynamics,
         stage_cost=_ego_stage_cost,
         terminal_cost=_ego_terminal_cost,
@@ -202,7 +203,7 @@ def solve_ilqr(game, x0, ego: int = 0, U0=None, *, predicted=None, options=None,
         if U0.shape == (T, game.num_players, game.input_dim) and game.num_players > 1:
             U0 = U0[:, ego]
         U0 = U0.reshape(T, 1, game.input_dim)
-    overrides.setdefault("mode", "feedback")
+    overrides.setdefault("mode", methods.FEEDBACK)
     options = ilq.resolve_options(options, overrides)
     ilq.validate_problem(game, control_regularization=options.guaranteed_control_regularization)
     plan = ilq.solve(problem, x0[ego], U0, options=options, validate=False)

@@ -65,7 +65,7 @@ def gauss_newton_factors(fun: Callable, z: Array) -> tuple[Array, Array, Array]:
 
 # Multiply-adds of one product up to which it is written as fused code. Above it XLA
 # rewrites the fused form into a dot anyway, and the dot is better written as one
-# (docs/performance.md, Loop kernels).
+# (docs/performance.md, "XLA settings and dispatch").
 _GRAM_FUSED_MAX = 2048
 
 
@@ -92,7 +92,7 @@ def _stagewise_gauss_newton_products(J: Array, g: Array, h: Array) -> tuple[Arra
     As a loop over the stages the products compile into one kernel
     (:mod:`racing_env.xla_setup`). As one batched product over all stages XLA:CPU hands
     them to a library call, which is slower for these small shapes and keeps the solver's
-    outer loop from becoming one kernel (docs/performance.md, Loop kernels).
+    outer loop from becoming one kernel (docs/performance.md, "XLA settings and dispatch").
     """
     def stage(_, factors):
         return None, jax.vmap(_gauss_newton_products)(*factors)
@@ -119,7 +119,7 @@ def quadratize(problem: GameProblem, xs: Array, us: Array, gauss_newton: bool = 
     ``gauss_newton`` the problem's Gauss-Newton form (PSD; needs the problem's hooks). With
     ``dynamics_curvature`` the problem's ``stage_curvature`` (if it has one) is added to
     the diagonal of the stages' ``Q``. The gradients are exact either way. Not yet
-    convexified or regularised (:func:`regularize`).
+    convexified or regularised (:func:`planners.ilq.regularize`).
     """
     params = problem.params
     n = problem.state_dim

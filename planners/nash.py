@@ -16,7 +16,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from planners.game_problem import GameProblem, as_problem, rollout, total_costs
+from planners.game_problem import GameProblem, as_problem, game_type_of, rollout, total_costs
 
 Array = jax.Array
 
@@ -60,7 +60,8 @@ def nash_residual(problem_or_game, x0, us) -> Array:
     equilibrium generally does not satisfy it when the players interact.
     """
     us = jnp.asarray(getattr(us, "us", us))
-    problem, game_type = as_problem(problem_or_game)
+    game_type = game_type_of(problem_or_game)
     if game_type is not None and game_type.costs_of_inputs is not None:
         return _residual(game_type.costs_of_inputs, problem_or_game, jnp.asarray(x0, us.dtype), us)
+    problem, _ = as_problem(problem_or_game)
     return _residual(_problem_costs, problem, jnp.asarray(x0, us.dtype).reshape(-1), us)

@@ -19,7 +19,8 @@ Two other kinds of prediction live here:
   from the equilibrium as a *policy* (the iLQGame agents).
 
 Each prediction has the name of its method (:data:`planners.methods.PREDICTIONS`: the same
-strings as the agents'). A prediction named after an agent is exact against that agent when
+strings as the agents'; ``CONSTANT_VELOCITY``, ``ILQR``, ... here are those of
+:mod:`planners.methods`). A prediction named after an agent is exact against that agent when
 it drives as predicted: the lane keeper (which ignores the others), or an ``ilqr`` agent with the same
 weights and solver options (same start state, same warm start, same solve). Against any
 other driver it is a model error like the constant-velocity one, only a different one.

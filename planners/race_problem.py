@@ -25,13 +25,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from planners.game_problem import GameProblem, GameType, register_game_type
+from planners.game_problem import GameProblem, GameType, is_concrete, register_game_type
 from racing_env.costs import collision_costs, terminal_weights
 from racing_env.dynamics import CHI, MIN_FRENET_SCALE, N_LAT, S, STATE_DIM, V, rk4_step
 from racing_env.game import RaceGame
 
 __all__ = [
-    "is_race_game",
     "problem_from_race_game",
     "race_dynamics",
     "race_dynamics_jacobians",
@@ -44,17 +43,21 @@ __all__ = [
 ]
 
 
-def race_dynamics(game, t, x, u):
+def race_dynamics(game: RaceGame, t: jax.Array, x: jax.Array, u: jax.Array) -> jax.Array:
+    """One step of every car: flat joint state ``x (6 N,)``, inputs ``u (N, 2)`` [m/s^3] ->
+    ``(6 N,)`` (the dynamics do not depend on the stage ``t``)."""
     del t
     return game.step(x.reshape(u.shape[0], -1), u).reshape(-1)
 
 
-def race_stage_cost(game, t, i, x, u_i):
+def race_stage_cost(game: RaceGame, t: jax.Array, i: jax.Array, x: jax.Array, u_i: jax.Array) -> jax.Array:
+    """Player ``i``'s stage cost at the flat joint state ``x (6 N,)`` with its input ``u_i (2,)``."""
     del t
     return game.stage_cost(i, x.reshape(game.num_players, -1), u_i)
 
 
-def race_terminal_cost(game, i, x):
+def race_terminal_cost(game: RaceGame, i: jax.Array, x: jax.Array) -> jax.Array:
+    """Player ``i``'s terminal cost at the flat joint state ``x (6 N,)``."""
     return game.terminal_cost(i, x.reshape(game.num_players, -1))
 
 
@@ -95,7 +98,7 @@ def race_stage_curvature(game, t, i, x):
     cost only through the dynamics' second derivatives, which the local LQ games drop; on a
     straight the jerk weight is then the only curvature in the lateral states, and at a
     small racing jerk weight the iterations cycle laterally instead of converging
-    (docs/solvers.md, Progress curvature). The entry at ``chi_i`` is
+    (docs/solvers.md, "Curvature of the local games"). The entry at ``chi_i`` is
     ``-d^2 (dt ds/dt) / d chi_i^2 = dt V cos(chi) / (1 - n kappa)``, the Euler step's
     (on a straight at constant speed and heading exactly the RK4 step's); every other
     entry is 0. The rivals' progress, which player i's terminal cost weights with ``+c_g``,
@@ -162,11 +165,6 @@ def problem_from_race_game(game) -> GameProblem:
     )
 
 
-def is_race_game(obj) -> bool:
-    """Whether ``obj`` is a :class:`racing_env.RaceGame`."""
-    return isinstance(obj, RaceGame)
-
-
 def validate_race_game(game, control_regularization: float = 0.0) -> None:
     """Refuse a game whose input weights ``R^{ii} = 2 diag(r_jx, r_jy) + control_regularization``
     are not positive definite (a traced game is not checked).
@@ -174,7 +172,7 @@ def validate_race_game(game, control_regularization: float = 0.0) -> None:
     Raises:
         ValueError: naming the player.
     """
-    if not _is_concrete(game.weights):
+    if not is_concrete(game.weights):
         return
     weights = game.weights  # NumPy only: no device dispatch on every solve
     jerk = np.stack(np.broadcast_arrays(np.asarray(weights.r_jx, float), np.asarray(weights.r_jy, float)), -1)
@@ -186,10 +184,6 @@ def validate_race_game(game, control_regularization: float = 0.0) -> None:
                 "is not positive definite: the LQ game (and the Nash equilibrium) is not "
                 "defined; use jerk weights r_jx, r_jy > 0"
             )
-
-
-def _is_concrete(tree) -> bool:
-    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
 
 
 def _game_costs_of_inputs(game, x0, us):

@@ -29,14 +29,15 @@ def check_race_length(laps: int, race_distance: float | None, max_steps: int) ->
     >= 1, ``race_distance`` None or a finite number of metres > 0."""
     if isinstance(laps, bool) or not isinstance(laps, (int, np.integer)) or laps < 1:
         raise ValueError(f"laps must be an integer >= 1, got {laps!r}")
-    if race_distance is not None and not (_is_number(race_distance) and np.isfinite(race_distance)
+    if race_distance is not None and not (is_number(race_distance) and np.isfinite(race_distance)
                                           and race_distance > 0):
         raise ValueError(f"race_distance must be a finite number > 0 metres, got {race_distance!r}")
     if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}")
 
 
-def _is_number(value: object) -> bool:
+def is_number(value: object) -> bool:
+    """Whether ``value`` is a real number (a bool is not)."""
     return isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
 
 

@@ -66,7 +66,7 @@ class CostWeights:
 
     # 1.0 keeps the iLQ games well scaled: with jerk almost free (0.01) the solvers'
     # local models change fast between iterations, and cold solves take several times the
-    # iterations (docs/solvers.md, Convergence).
+    # iterations (docs/solvers.md, "Convergence and status").
     r_jx: ArrayLike = 1.0
     r_jy: ArrayLike = 1.0
     c_collision: ArrayLike = 10.0
@@ -110,7 +110,7 @@ progress is worth one cost unit. With the solver default r = 1 (kept for the pap
 solves, where it keeps the iterations well scaled) a 5 s horizon buys so little progress per
 unit of jerk that the planners accelerate at a fraction of the car's limit. At r = 0.01 the
 feedback iLQGame planner beats the lane keeper; a larger or a smaller weight does worse
-(docs/model.md, Costs).
+(docs/model.md, "The jerk weight of a race").
 """
 
 
@@ -241,19 +241,6 @@ def player_stage_cost(res: StageResiduals) -> jax.Array:
     return sum(_state_terms(res).values()) + jnp.sum(res.jerk_weights * res.jerk**2)
 
 
-def collision_proximity(
-    x: jax.Array, vehicles: VehicleParams, track: Track, racing: jax.Array | None = None
-) -> jax.Array:
-    """Pairwise proximity ``exp(1 - (ds/l)^2 - (dn/w)^2)^2``, shape ``(N, N)``, zero on the
-    diagonal and for pairs with a car out of the race."""
-    ones = CostWeights(c_collision=1.0)
-
-    def row(i):
-        return collision_costs(stage_residuals(i, x, jnp.zeros(2, x.dtype), vehicles, ones, track, racing))
-
-    return jax.vmap(row)(jnp.arange(x.shape[0]))
-
-
 def state_cost_terms(
     x: jax.Array,
     vehicles: VehicleParams,
@@ -261,7 +248,8 @@ def state_cost_terms(
     track: Track,
     racing: jax.Array | None = None,
 ) -> dict[str, jax.Array]:
-    """The input-independent stage-cost terms of every player, each of shape ``(N,)``."""
+    """The input-independent stage-cost terms of every player, each of shape ``(N,)`` (the
+    input enters only the jerk term, :func:`input_cost`, so any input will do here)."""
     def player(i):
         return _state_terms(stage_residuals(i, x, jnp.zeros(2, x.dtype), vehicles, weights, track, racing))
 
@@ -282,8 +270,10 @@ def stage_costs(
     racing: jax.Array | None = None,
 ) -> jax.Array:
     """Stage cost of every player: ``x (N, 6)``, ``u (N, 2)`` -> ``(N,)``."""
-    terms = state_cost_terms(x, vehicles, weights, track, racing)
-    return input_cost(u, weights) + sum(terms.values())
+    def player(i, u_i):
+        return player_stage_cost(stage_residuals(i, x, u_i, vehicles, weights, track, racing))
+
+    return jax.vmap(player)(jnp.arange(x.shape[0]), u)
 
 
 def terminal_weights(weights: CostWeights, racing: jax.Array | None, num_cars: int, dtype) -> jax.Array:

@@ -9,7 +9,7 @@ memory traffic per iteration is below ``xla_cpu_small_while_loop_byte_threshold`
 defaults to about a kilobyte, and that contain no library calls (LAPACK, and the YNNPACK
 fusions jaxlib 0.10 makes of dot products). Raising the limit to :data:`LOOP_KERNEL_BYTES`
 makes every loop of the two-car solvers a single kernel, and a feedback iteration much
-faster (docs/performance.md, Loop kernels). The three-car recursions hold dot products,
+faster (docs/performance.md, "XLA settings and dispatch"). The three-car recursions hold dot products,
 laid out so that YNNPACK does not take them (``planners.lq_game._sandwich``): their loops
 are single kernels too. The quadratisation's products are such a loop as well
 (``planners.local_game._stagewise_gauss_newton_products``), so a single solve holds no library

@@ -10,7 +10,7 @@ import racing_env
 from experiments.cli import main
 from experiments.race import run_race
 from planners.agents import (
-    AGENT_SPECS,
+    AGENTS,
     FeedbackGameAgent,
     ILQRAgent,
     LaneKeepingAgent,
@@ -231,12 +231,12 @@ def test_cars_racing_reads_the_flags_of_the_observation(num_cars, num_preview):
 
 
 def test_every_agent_lists_its_options(capsys):
-    for name in AGENT_SPECS:
+    for name in AGENTS:
         rows = agent_options(name)
         assert rows and all(len(row) == 4 and row[3] for row in rows)  # every option has a meaning
         kinds = dict((option, kind) for option, kind, _, _ in rows)
         # what is listed is exactly what a spec accepts
-        assert set(kinds) == set(AGENT_SPECS[name].spec_options())
+        assert set(kinds) == set(AGENTS[name].spec_options())
     assert dict((r[0], r[2]) for r in agent_options("ilqgame-fb"))["max_iterations"] == "30"
     assert main(["agents"]) == 0
     out = capsys.readouterr().out

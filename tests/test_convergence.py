@@ -9,7 +9,7 @@ import pytest
 
 from experiments import convergence
 from experiments.cli import main
-from planners import ilq
+from planners import ilq, nash
 from racing_env import CostWeights, RaceGame, VehicleParams
 from racing_env.dynamics import S, V
 from racing_env.track import get_track
@@ -44,7 +44,7 @@ def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     single = ilq.solve(race_game, x0, mode="open_loop", max_iterations=30, step_control="none",
                        initial_step=0.5, max_backtracks=3)
     assert int(single.iterations) == row["iterations"][0]
-    np.testing.assert_allclose(row["residual"][0], float(np.max(ilq.nash_residual(race_game, x0, single.us))),
+    np.testing.assert_allclose(row["residual"][0], float(np.max(nash.nash_residual(race_game, x0, single.us))),
                                rtol=1e-9)
     (same,) = convergence.convergence_rows(6, seed=3, repeats=1, modes=("open_loop",), max_iterations=30,
                                            jerk_weight=0.5, per_scene=True, spread=8.0, speed=(12.0, 14.0),

@@ -61,7 +61,7 @@ class InterruptingAgent(LaneKeepingAgent):
 @pytest.fixture
 def extra_specs(monkeypatch):
     for spec, cls in (("raiser", RaisingAgent), ("sleeper", SlowAgent), ("interrupter", InterruptingAgent)):
-        monkeypatch.setitem(agents_module.AGENT_SPECS, spec, cls)
+        monkeypatch.setitem(agents_module.AGENTS, spec, cls)
 
 
 def _strip_timing(record):

@@ -223,8 +223,7 @@ class TrainConfig(RaceSpec):
         for name, _ in self.hyperparameters:
             if name not in known:
                 raise ValueError(f"{self.algo} has no hyperparameter {name!r}; it takes {sorted(known)}")
-        # the race in every start the copies use (a scenario's own limits)
-        for copy in range(min(self.envs, 2)):  # every start the copies use
+        for copy in range(min(self.envs, 2)):  # the race of every start the copies use (its own limits)
             self.race_config(copy=copy)
 
     @property

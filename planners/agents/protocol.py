@@ -119,14 +119,6 @@ class BaseAgent:
         return {}
 
     @classmethod
-    def spec_help(cls) -> dict[str, str]:
-        """One line on what each spec option does (for help text), from the registry's
-        table of option meanings (:data:`planners.agents.registry.OPTION_HELP`)."""
-        from planners.agents.registry import option_help  # the registry imports the agents
-
-        return option_help(cls.spec_options())
-
-    @classmethod
     def from_spec_options(cls, options: dict[str, Any], **kwargs: Any) -> "BaseAgent":
         """The agent with converted spec options (keyword arguments win over them)."""
         return cls(**{**options, **kwargs})

@@ -33,6 +33,7 @@ from planners.agents.receding_horizon import (
 from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent
 from planners.agents.weights import PLACE_PREFIXES, weight_names
 from planners.methods import (
+    AGENT_METHODS,
     CONSTANT_SPEED,
     CONSTANT_VELOCITY,
     FEEDBACK_GAME,
@@ -62,15 +63,15 @@ __all__ = [
 # The registry.
 # --------------------------------------------------------------------------------------
 
-AGENTS: dict[str, type[BaseAgent]] = {
-    cls.spec: cls
-    for cls in (ILQRAgent, OpenLoopGameAgent, FeedbackGameAgent, LaneKeepingAgent, ConstantSpeedAgent)
-}
+_CLASSES = {cls.spec: cls for cls in (ILQRAgent, OpenLoopGameAgent, FeedbackGameAgent, LaneKeepingAgent,
+                                      ConstantSpeedAgent)}
+AGENTS: dict[str, type[BaseAgent]] = {name: _CLASSES[name] for name in AGENT_METHODS}
 """Agent name -> class (each class's ``spec`` is its name). ``rl:`` specs are not in it: they
 name a saved model (:class:`planners.agents.sb3.SB3Agent`, loaded with stable-baselines3)."""
 
 AGENT_SPECS = AGENTS
-"""The same registry under its earlier name (the same dict)."""
+"""A compatibility alias of :data:`AGENTS` (the same dict) for scripts written against it;
+the package itself uses ``AGENTS``."""
 
 AGENT_SUMMARIES = {
     ILQR: "iLQR against predictions of the opponents (the paper's: constant velocity and offset)",
@@ -129,7 +130,7 @@ def agent_options(name: str) -> list[tuple[str, str, str, str]]:
     if name not in AGENTS:
         raise ValueError(f"unknown agent {name!r}; agents with options: {', '.join(AGENTS)}")
     cls = AGENTS[name]
-    return describe_options(cls.spec_options(), cls.spec_defaults(), cls.spec_help())
+    return describe_options(cls.spec_options(), cls.spec_defaults(), option_help(cls.spec_options()))
 
 
 # --------------------------------------------------------------------------------------
@@ -256,7 +257,7 @@ def split_spec_list(parts: list[str]) -> list[str]:
         for piece in (p.strip() for p in part.split(",")):
             if not piece:
                 continue
-            if specs and "=" in piece and ":" not in piece and ":" in specs[-1] and not specs[-1].startswith("rl:"):
+            if specs and "=" in piece and ":" not in piece and ":" in specs[-1] and not specs[-1].lower().startswith(f"{RL}:"):
                 specs[-1] = f"{specs[-1]},{piece}"
             elif "=" in piece and ":" not in piece:
                 raise ValueError(f"{piece!r} is an option with no agent spec before it; "

@@ -20,7 +20,7 @@ __all__ = ["PLACE_PREFIXES", "WEIGHT_PREFIXES", "checked_weight_changes", "weigh
            "with_player_weights"]
 
 
-def weights_for(game, index: int, belief) -> Any:
+def weights_for(game, index: int, belief) -> CostWeights:
     """The game's weights with the agent's belief about the others (``None``: the truth).
 
     ``belief`` is one ``CostWeights`` (scalars) assumed for every opponent (the agent keeps
@@ -32,8 +32,7 @@ def weights_for(game, index: int, belief) -> Any:
     n = game.num_players
     if isinstance(belief, CostWeights):
         if np.ndim(belief.r_jx) == 0:  # one belief for every opponent, own weights kept
-            names = [f.name for f in dataclasses.fields(CostWeights)]
-            own = CostWeights(**{k: float(np.asarray(getattr(game.weights, k))[index]) for k in names})
+            own = CostWeights(**{k: float(np.asarray(getattr(game.weights, k))[index]) for k in weight_names()})
             return stack_weights([own if j == index else belief for j in range(n)])
         if np.shape(belief.r_jx) != (n,):
             raise ValueError(f"stacked belief_weights must have fields of shape ({n},)")
@@ -63,7 +62,7 @@ def checked_weight_changes(label: str, changes: Any) -> dict[str, float]:
     return values
 
 
-def with_player_weights(weights, players: int | Sequence[int], changes: dict[str, float]):
+def with_player_weights(weights: CostWeights, players: int | Sequence[int], changes: dict[str, float]) -> CostWeights:
     """Stacked weights ``(N,)`` with the fields in ``changes`` replaced for ``players``."""
     if not changes:
         return weights
