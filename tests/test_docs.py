@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import shlex
 import subprocess
 import sys
 import textwrap
@@ -32,7 +33,8 @@ MAX_README_LINES = 400
 BLOCK_TIMEOUT_S = 300  # one file's blocks together; the slowest (a solve per file) take ~20 s
 
 OPT_OUT = re.compile(r"<!--\s*no-test:\s*\S.*-->")
-FENCE = re.compile(r"^(\s*)```(\w*)\s*$")
+FENCE = re.compile(r"^(\s*)```([\w+-]*)(.*)$")
+PYTHON_FENCES = ("python", "py", "python3")
 
 # Lines the diary grep matches that are not diary: (path relative to the root, or "" for any
 # file; a regex the matching line must contain). Keep it narrow, one entry per legitimate use.
@@ -58,7 +60,7 @@ def python_blocks(path: Path) -> list[tuple[int, str, bool]]:
         if not match:
             i += 1
             continue
-        indent, language = match.groups()
+        indent, language, _ = match.groups()
         start = i
         body = []
         i += 1
@@ -66,7 +68,7 @@ def python_blocks(path: Path) -> list[tuple[int, str, bool]]:
             body.append(lines[i])
             i += 1
         i += 1
-        if language != "python":
+        if language.lower() not in PYTHON_FENCES:
             continue
         previous = next((lines[j] for j in range(start - 1, -1, -1) if lines[j].strip()), "")
         code = textwrap.dedent("\n".join(body))
@@ -124,7 +126,7 @@ def test_readme_is_a_guide_not_a_notebook() -> None:
 
 
 def _diary_targets() -> list[Path]:
-    files = [README, *(ROOT / "docs").rglob("*.md")]
+    files = [README, *(ROOT / "docs").rglob("*.md"), *(ROOT / "docs").rglob("*.toml")]
     for package in PACKAGES:
         files += [p for p in (ROOT / package).rglob("*") if p.is_file() and p.suffix in (".py", ".md", ".toml")]
     return sorted(files)
@@ -194,7 +196,7 @@ def _anchors(path: Path) -> set[str]:
 
 def test_relative_links_resolve() -> None:
     broken = []
-    for path in [README, *sorted((ROOT / "docs").glob("*.md"))]:
+    for path in [README, ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").rglob("*.md"))]:
         text = re.sub(r"```.*?```", "", path.read_text(encoding="utf-8"), flags=re.DOTALL)
         for match in LINK.finditer(text):
             target = match.group(1) or match.group(2)
@@ -207,3 +209,61 @@ def test_relative_links_resolve() -> None:
             elif anchor and linked.suffix == ".md" and anchor not in _anchors(linked):
                 broken.append(f"{_relative(path)}: {target} (no such heading)")
     assert not broken, "broken links:\n" + "\n".join(broken)
+
+
+DOC_POINTER = re.compile(r'(docs/[\w/-]+\.md)(?:, "([^"]+)")?')
+
+
+def test_code_points_to_docs_that_exist() -> None:
+    """A docstring's ``docs/page.md`` (and ``docs/page.md, "Heading"``) names a page and heading
+    that exist."""
+    broken = []
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+                for page, heading in DOC_POINTER.findall(line):
+                    target = ROOT / page
+                    if not target.exists():
+                        broken.append(f"{_relative(path)}:{number}: {page} (no such page)")
+                    elif heading and re.sub(r"[^\w\- ]", "", heading.lower()).replace(" ", "-") not in _anchors(target):
+                        broken.append(f"{_relative(path)}:{number}: {page}, {heading!r} (no such heading)")
+    assert not broken, "docs pointers in code that lead nowhere:\n" + "\n".join(broken)
+
+
+def _racing_command_lines(path: Path) -> list[tuple[int, str]]:
+    """The ``racing ...`` command lines of a Markdown file's shell blocks (continuations joined,
+    comments dropped), with the line they start on."""
+    commands, in_shell, pending, start = [], False, "", 0
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        match = FENCE.match(line)
+        if match:
+            in_shell = not in_shell and match.group(2) in ("bash", "sh", "shell", "console")
+            continue
+        if not in_shell:
+            continue
+        code = line.split(" #", 1)[0].rstrip() if not line.lstrip().startswith("#") else ""
+        if not pending:
+            start = number
+        pending += " " + code.rstrip("\\").strip()
+        if code.endswith("\\"):
+            continue
+        text, pending = pending.strip(), ""
+        if text.startswith("racing ") and "$" not in text:
+            commands.append((start, text))
+    return commands
+
+
+def test_documented_commands_parse() -> None:
+    """Every ``racing ...`` line in the guide's shell blocks names a command and options that
+    ``racing`` accepts (the parser only: nothing runs)."""
+    from experiments.cli import build_parser
+
+    bad = []
+    for path in [README, *sorted((ROOT / "docs").rglob("*.md"))]:
+        for number, text in _racing_command_lines(path):
+            parser = build_parser()
+            try:
+                parser.parse_args(shlex.split(text)[1:])
+            except SystemExit:
+                bad.append(f"{_relative(path)}:{number}: {text}")
+    assert not bad, "commands in the guide that racing refuses:\n" + "\n".join(bad)
