@@ -629,8 +629,8 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
     share of those re-plans that converged (``converged_share``).
     """
     from planners.agents import make_agent, reset_agents
-    from racing_env import CostWeights, parallel_env
-    from racing_env.costs import RACING_JERK_WEIGHT
+    from racing_env import parallel_env
+    from racing_env.costs import racing_weights
 
     specs = {"ilqr": "ilqr", "ilqr_lane_keeping_prediction": "ilqr:prediction=lane-keeping",
              "ilqr_ilqr_prediction": "ilqr:prediction=ilqr",
@@ -644,7 +644,7 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
                  f"ilqgame-fb:{_ADAPTIVE_REGULARIZATION},feedforward_regularization=true"}
     for name, spec in specs.items():
         env = parallel_env(track="trefoil", num_agents=2, max_steps=steps,
-                           weights=CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT))
+                           weights=racing_weights())
         drivers = [make_agent(spec), make_agent(spec)]
         reset_agents(drivers, env, seed=0)
         observations, _ = env.reset(seed=0)

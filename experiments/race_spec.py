@@ -16,7 +16,7 @@ import numbers
 from typing import Any
 
 from racing_env.config import RaceConfig, check_incident_rules, check_race_length
-from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
+from racing_env.costs import RACING_JERK_WEIGHT, CostWeights, racing_weights
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -55,7 +55,7 @@ class RaceSpec:
     def weights(self) -> CostWeights:
         """Every car's cost weights in the race's game: the defaults with jerk weight
         ``jerk_weight``."""
-        return CostWeights(r_jx=self.jerk_weight, r_jy=self.jerk_weight)
+        return racing_weights(self.jerk_weight)
 
     def to_race_config(self, num_agents: int, scenario: str = "grid", **fields: Any) -> RaceConfig:
         """This race for ``num_agents`` cars from ``scenario``

@@ -7,7 +7,7 @@ from typing import Sequence
 
 import numpy as np
 
-from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
+from racing_env.costs import CostWeights, racing_weights
 from racing_env.scenarios import SCENARIOS
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
@@ -156,5 +156,5 @@ class RaceConfig:
         """The cost weights of the game the env builds: ``weights``, or when None the racing
         default, every car with jerk weight :data:`racing_env.costs.RACING_JERK_WEIGHT`."""
         if self.weights is None:
-            return CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT)
+            return racing_weights()
         return self.weights

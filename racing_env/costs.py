@@ -114,6 +114,12 @@ feedback iLQGame planner beats the lane keeper; a larger or a smaller weight doe
 """
 
 
+def racing_weights(jerk_weight: float = RACING_JERK_WEIGHT) -> CostWeights:
+    """The cost weights of every car in a race: the defaults with jerk weight ``jerk_weight``
+    [s^6/m^2] (``R = r I``)."""
+    return CostWeights(r_jx=jerk_weight, r_jy=jerk_weight)
+
+
 def stack_weights(weights: Sequence[CostWeights]) -> CostWeights:
     """Stack per-player weights into one ``CostWeights`` with fields of shape ``(N,)``."""
     if len(weights) < 1:
