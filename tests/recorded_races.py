@@ -1,0 +1,79 @@
+"""Races recorded with the PettingZoo env, replayed by tests/test_race_core.py.
+
+Each race is a config, a reset seed and a seeded sequence of actions; the recording holds
+every step's observations, rewards, terminations, truncations and infos. The races were
+chosen to exercise every rule: contacts and retirements on contact, off-track penalties and
+retirements, finishes (in turn, with places and finish times), a lap of a closed track, a
+truncation at ``max_steps``, the lead and time reward terms, and three cars.
+
+``python tests/recorded_races.py`` writes ``tests/data/recorded_races.json``. The file in
+the repository was written by the env as it was before its rules moved into
+:mod:`racing_env.race`, so the replay checks that the move changed no race.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import racing_env
+from racing_env import track as tr
+from racing_env.config import RewardConfig
+
+RECORDING = Path(__file__).parent / "data" / "recorded_races.json"
+
+#: name -> (config keyword arguments, reset seed, action seed, action bias per car (jx, jy), steps)
+RACES: dict[str, tuple[dict[str, Any], int, int, list[tuple[float, float]], int]] = {
+    # side by side, steering into each other: contacts, then a retirement on contact
+    "contact_retire": (dict(track="straight", num_agents=2, scenario="side_by_side", on_collision="both",
+                            race_distance=300.0), 0, 1, [(0.6, -0.3), (0.5, 0.3)], 200),
+    # three cars on the trefoil, random steering: off-track penalties, lead/time/position terms
+    "trefoil_three": (dict(track="trefoil", num_agents=3, scenario="grid", on_off_track="penalty",
+                           reward=RewardConfig(position=0.1, lead=0.05, time=-0.01), max_steps=120),
+                      3, 2, [(0.8, 0.0)] * 3, 130),
+    # a short race to the finish: places, finish times, off-track retirements
+    "finish": (dict(track="straight", num_agents=3, scenario="grid", race_distance=90.0,
+                    reward=RewardConfig(lead=0.1, time=-0.05)), 5, 3, [(1.0, 0.0)] * 3, 120),
+}
+
+
+def _actions(num: int, seed: int, bias: list[tuple[float, float]], steps: int) -> np.ndarray:
+    """Seeded actions ``(steps, num, 2)``: each car's ``bias`` plus noise, mostly inside the
+    box, some outside it (the env clips them)."""
+    rng = np.random.default_rng(seed)
+    return np.asarray(bias) + rng.normal(0.0, 0.4, (steps, num, 2))
+
+
+def _track(name: str):
+    return {"straight": lambda: tr.straight(length=400.0), "trefoil": tr.trefoil}[name]()
+
+
+def replay(name: str) -> list[dict[str, Any]]:
+    """Race ``name`` in the PettingZoo env; every step as plain Python values."""
+    config, seed, action_seed, bias, steps = RACES[name]
+    config = {**config, "track": _track(config["track"])}
+    env = racing_env.parallel_env(**config)
+    obs, infos = env.reset(seed=seed)
+    frames = [{"obs": {a: o.tolist() for a, o in obs.items()}, "infos": infos}]
+    actions = _actions(env.num_cars, action_seed, bias, steps)
+    for k in range(steps):
+        if not env.agents:
+            break
+        act = {a: actions[k, env.possible_agents.index(a)] for a in env.agents}
+        obs, rewards, terms, truncs, infos = env.step(act)
+        frames.append({"obs": {a: o.tolist() for a, o in obs.items()}, "rewards": rewards,
+                       "terminations": terms, "truncations": truncs, "infos": infos,
+                       "state": env.state().tolist()})
+    return frames
+
+
+def main() -> None:
+    RECORDING.parent.mkdir(exist_ok=True)
+    RECORDING.write_text(json.dumps({name: replay(name) for name in RACES}))
+
+
+if __name__ == "__main__":
+    main()
