@@ -19,7 +19,7 @@ import functools
 import math
 import numbers
 import warnings
-from typing import Any, Mapping, NamedTuple
+from typing import Any, Mapping
 
 import gymnasium
 import jax
@@ -27,133 +27,52 @@ import jax.numpy as jnp
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from racing_env.config import RETIRING_MODES, RaceConfig
-from racing_env.dynamics import STATE_DIM, S, V
+from racing_env import race
+from racing_env.config import RaceConfig
+from racing_env.dynamics import STATE_DIM, S
 from racing_env.game import RaceGame
-from racing_env.observation import observation_size, observe
+from racing_env.observation import observation_size
 from racing_env.packing import Layout, pack, unpack
-from racing_env.physics import drive, footprint_overlap, off_track
-from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
+from racing_env.race import RaceInfo, RaceParams, check_starts_behind, finish_line
+from racing_env.referee import REWARD_TERMS, RaceStatus
 from racing_env.scenarios import make_scenario
-from racing_env.track import Track, get_track
+from racing_env.track import get_track
 
 
-def _per_car_rows(game: RaceGame, x, status: RaceStatus, race_positions, collided, outside, contact, reward, terms):
+def _per_car_rows(params: RaceParams, status: RaceStatus, reward, info: RaceInfo):
     """Per-car results packed into two arrays (two to read back instead of a dozen).
 
     Returns floats ``(N, 2 + len(REWARD_TERMS))``: finish_time, reward, the reward terms (``REWARD_TERMS``);
     and int32 ``(N, 8 + N)``: active, finished, out, place, position, collided, off_track,
     lap, then which cars each one touches.
     """
-    s = x[:, S]
-    lap = jnp.maximum(jnp.floor(s / game.track.length), 0) if game.track.closed else jnp.zeros_like(s)
-    floats = jnp.concatenate([status.finish_time[:, None], reward[:, None], terms], axis=1)
-    flags = [status.active, status.finished, status.out, status.place, race_positions, collided, outside, lap]
-    ints = jnp.concatenate([jnp.stack(flags, axis=1), contact], axis=1).astype(jnp.int32)
+    floats = jnp.concatenate([status.finish_time[:, None], reward[:, None], info.terms], axis=1)
+    flags = [status.active, status.finished, status.out, status.place, info.position, info.collided,
+             info.off_track, info.lap]
+    ints = jnp.concatenate([jnp.stack(flags, axis=1), info.contact], axis=1).astype(jnp.int32)
     return floats, ints
 
 
-class _RaceConstants(NamedTuple):
-    """What stays fixed during a race; passed to the jitted calls as one flat array
-    (:mod:`racing_env.packing`)."""
-
-    game: RaceGame
-    finish_s: jax.Array  # [m]
-    preview: jax.Array  # (P,) [m]
-    rules: RaceRules
-
-
 @functools.partial(jax.jit, static_argnames=("layout",))
-def _race_step(constants: jax.Array, layout: Layout, x, status: RaceStatus, actions, step):
-    """Advance the active cars by their normalised ``actions (N, 2)`` (clipped to [-1, 1],
-    the only silent correction), enforce their limits, detect incidents, apply the rules
-    and observe. ``constants`` are the packed :class:`_RaceConstants`.
+def _race_step(constants: jax.Array, layout: Layout, x, status: RaceStatus, actions, steps):
+    """One step of the race core (:func:`racing_env.race.step`) from ``steps`` steps taken,
+    with the packed :class:`racing_env.race.RaceParams` ``constants``.
 
     Returns ``x_next (N, 6)``, observations ``(N, obs)`` float32 and the packed per-car
     results (:func:`_per_car_rows`).
     """
-    game, finish_s, preview, rules = unpack(constants, layout)
-    active = status.active
-    x_next = jnp.where(active[:, None], drive(game, x, actions), x)
-    contact = footprint_overlap(x_next, game.vehicles, game.track)
-    contact = contact & active[:, None] & active[None, :]
-    outside = off_track(x_next, game.track) & active
-    collided = contact.any(axis=1)
-    verdict = judge(x[:, S], x_next[:, S], status, collided, outside, step, game.dt, finish_s, rules,
-                    speed=x_next[:, V])
-    # observed with the cars still racing after this step's verdict
-    obs = observe(x_next, verdict.status.active, game.track, finish_s, preview).astype(jnp.float32)
-    packed = _per_car_rows(game, x_next, verdict.status, verdict.positions, collided, outside, contact,
-                   verdict.reward, verdict.terms)
-    return (x_next, obs) + packed
+    params = unpack(constants, layout)
+    state, obs, reward, _, _, info = race.step(None, race.RaceState(x, status, steps), actions, params)
+    return (state.x, obs) + _per_car_rows(params, state.status, reward, info)
 
 
 @functools.partial(jax.jit, static_argnames=("layout",))
-def _race_start(constants: jax.Array, layout: Layout, x, status: RaceStatus):
+def _race_start(constants: jax.Array, layout: Layout, x):
     """Observations ``(N, obs)`` float32 and the packed per-car results (:func:`_per_car_rows`) of a
     start state: no incidents, no rewards."""
-    game, finish_s, preview, _ = unpack(constants, layout)
-    num = x.shape[0]
-    obs = observe(x, status.active, game.track, finish_s, preview).astype(jnp.float32)
-    none = jnp.zeros(num, dtype=bool)
-    packed = _per_car_rows(game, x, status, positions(x[:, S], status.finished, status.place), none, none,
-                   jnp.zeros((num, num), dtype=bool), jnp.zeros(num), jnp.zeros((num, len(REWARD_TERMS))))
-    return (obs,) + packed
-
-
-def _race_rules(config: RaceConfig) -> RaceRules:
-    """The config's incident rules and reward weights as arrays."""
-    reward = config.reward
-    penalise = lambda mode: mode in ("penalty", "both")
-    weights = [
-        reward.progress,
-        reward.position,
-        reward.collision if penalise(config.on_collision) else 0.0,
-        reward.off_track if penalise(config.on_off_track) else 0.0,
-        reward.finish,
-        reward.lead,
-        reward.time,
-    ]
-    return RaceRules(
-        retire_on_collision=np.asarray(config.on_collision in RETIRING_MODES),
-        retire_off_track=np.asarray(config.on_off_track in RETIRING_MODES),
-        weights=np.asarray(weights, dtype=np.float64),
-        spread=np.asarray(max(config.num_agents - 1, 1), dtype=np.float64),
-    )
-
-
-def _finish_line(config: RaceConfig, track: Track) -> float:
-    """The finish line's arc length [m]: ``race_distance``, else ``laps`` laps of a closed
-    track or 20 m before the end of an open one.
-
-    Raises ``ValueError`` when it lies beyond the end of an open track (the cars would drive
-    off its end, never to finish).
-    """
-    if config.race_distance is not None:
-        finish_s = float(config.race_distance)
-    elif track.closed:
-        finish_s = float(config.laps * track.length)
-    else:
-        finish_s = float(track.length - 20.0)
-    if not math.isfinite(finish_s):
-        raise ValueError(f"the finish line must be a finite arc length [m], got {finish_s!r}")
-    if not track.closed and finish_s > track.length:
-        raise ValueError(
-            f"the finish line at s = {finish_s:g} m lies beyond the end of the open track "
-            f"{track.name!r} ({track.length:g} m): give a race_distance <= {track.length:g} m"
-        )
-    return finish_s
-
-
-def _check_starts_behind(finish_s: float, x0: np.ndarray, scenario: str) -> None:
-    """Raise ``ValueError`` unless every car of the scenario's start ``x0 (N, 6)`` is behind
-    the finish line ``finish_s`` [m] (a car on or past it would finish on the first step)."""
-    furthest = float(np.max(x0[:, S]))
-    if not furthest < finish_s:
-        raise ValueError(
-            f"the finish line at s = {finish_s:g} m is not ahead of every start: scenario "
-            f"{scenario!r} places a car at s = {furthest:g} m (use a longer track or race_distance)"
-        )
+    params = unpack(constants, layout)
+    state, obs, info = race.start(x, params)
+    return (obs,) + _per_car_rows(params, state.status, jnp.zeros(x.shape[0], x.dtype), info)
 
 
 def _is_real(action: Any) -> bool:
@@ -199,22 +118,17 @@ class RacingParallelEnv(ParallelEnv):
         self.possible_agents = [agent_name(i) for i in range(num)]
         self.agents: list[str] = []
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
-        self.finish_s = _finish_line(config, self.track)
+        self.finish_s = finish_line(config, self.track)
         scenario = make_scenario(config.scenario, self.track, num, config.vehicles, seed=0, finish_s=self.finish_s)
         self.game = RaceGame.create(
             self.track, scenario.vehicles, config.game_weights(), dt=config.dt, horizon=config.horizon
         )
-        _check_starts_behind(self.finish_s, scenario.x0, config.scenario)
+        check_starts_behind(self.finish_s, scenario.x0, config.scenario)
+        #: the race's constants for the race core (racing_env.race)
+        self.params = race.race_params(config, self.track, self.game, self.finish_s)
         # on the device once, as one array: a step neither re-transfers them nor pays for
         # their argument leaves (racing_env.packing)
-        self._constants, self._layout = pack(
-            _RaceConstants(
-                self.game,
-                np.float64(self.finish_s),
-                np.asarray(config.preview_distances, dtype=np.float64),
-                _race_rules(config),
-            )
-        )
+        self._constants, self._layout = pack(self.params)
         obs_dim = observation_size(num, len(config.preview_distances))
         # every finite float32 vector (physical units, no natural bounds): finite limits,
         # because Gymnasium's check_env warns about infinite Box bounds
@@ -262,7 +176,7 @@ class RacingParallelEnv(ParallelEnv):
             x0 = make_scenario(config.scenario, self.track, self.num_cars, config.vehicles, scenario_seed,
                                self.finish_s).x0
             # seed 0's grid was checked in __init__; another seed's jitter moves cars by up to 1 m
-            _check_starts_behind(self.finish_s, x0, config.scenario)
+            check_starts_behind(self.finish_s, x0, config.scenario)
         if options:
             # PettingZoo's parallel_api_test resets with options={"options": 1}: unknown keys
             # are ignored with a warning rather than refused.
@@ -278,7 +192,7 @@ class RacingParallelEnv(ParallelEnv):
         self.agents = list(self.possible_agents)
         obs, floats, ints = (
             np.asarray(a)
-            for a in _race_start(self._constants, self._layout, x0, self._status())
+            for a in _race_start(self._constants, self._layout, x0)
         )
         obs = obs.copy()  # writable
         per_car = self._infos(floats.tolist(), ints.tolist(), with_terms=False)
@@ -344,8 +258,8 @@ class RacingParallelEnv(ParallelEnv):
     def step(self, actions: Mapping[str, Any]):
         """Apply normalised jerk actions of all live agents for one time step."""
         normalised = self._checked_actions(actions)  # validates before anything changes
-        self._steps += 1
         out = _race_step(self._constants, self._layout, self._x, self._status(), normalised, self._steps)
+        self._steps += 1
         # np.asarray waits for each result; jax.device_get cost about 60 us more per step.
         x, obs, floats, ints = (np.asarray(a) for a in out)
         self._x = x

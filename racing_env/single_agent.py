@@ -182,4 +182,5 @@ ENV_ID = "racing_env/Race-v0"
 def register() -> None:
     """Register ``racing_env/Race-v0`` with Gymnasium (idempotent)."""
     if ENV_ID not in gymnasium.registry:
-        gymnasium.register(id=ENV_ID, entry_point="racing_env.single_agent:RaceEnv")
+        gymnasium.register(id=ENV_ID, entry_point="racing_env.single_agent:RaceEnv",
+                           vector_entry_point="racing_env.vector:RaceVectorEnv")

@@ -1,0 +1,307 @@
+"""The race as pure functions: ``reset(key, params)`` and ``step(key, state, actions, params)``.
+
+This is the one implementation of a race: the physics, the incident detection and the
+rules (finishing order, laps, retirements, positions, rewards: :mod:`racing_env.referee`).
+Every function is pure JAX on pytrees, so it can be jitted, vmapped over thousands of
+races and differentiated. The PettingZoo env (:mod:`racing_env.env`), the Gymnasium env
+(:mod:`racing_env.single_agent`) and the vectorised env (:mod:`racing_env.vector`) are thin
+faces over it; they validate their input, the core does not.
+
+Shapes, for N cars and an observation of size ``O`` (:mod:`racing_env.observation`):
+
+* ``RaceState.x (N, 6)``: the joint state ``[s, V, n, chi, ax, ay]`` per car (``s`` is
+  cumulative on closed tracks, laps included);
+* ``RaceState.status``: :class:`racing_env.referee.RaceStatus`, ``(N,)`` fields;
+* ``RaceState.steps``: the number of steps taken, an int32 scalar;
+* ``actions (N, 2)``: normalised jerks ``[jx, jy]``, clipped to ``[-1, 1]`` and scaled by each
+  car's jerk limits (a car no longer racing ignores its action);
+* observations ``(N, O)`` float32, rewards ``(N,)``, terminations and truncations ``(N,)`` bool.
+
+This is the multi-agent form (every car acts; the JaxMARL convention of per-agent arrays).
+The single-learner form with opponents inside the step, in gymnax's interface, is
+:class:`racing_env.vector.GymnaxRace`. Guide: docs/env.md, "The race core".
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from racing_env.config import RETIRING_MODES, RaceConfig
+from racing_env.dynamics import N_LAT, S, V
+from racing_env.game import RaceGame
+from racing_env.observation import observe
+from racing_env.physics import drive, footprint_overlap, off_track
+from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
+from racing_env.track import Track
+
+__all__ = [
+    "RaceInfo",
+    "RaceParams",
+    "RaceState",
+    "check_starts_behind",
+    "draw_start",
+    "finish_line",
+    "race_params",
+    "race_rules",
+    "reset",
+    "start",
+    "step",
+]
+
+
+class RaceParams(NamedTuple):
+    """What stays fixed during a race (a pytree of arrays; one compiled step serves every
+    value of them).
+
+    Attributes:
+        game: the race's :class:`RaceGame` (track, cars, cost weights, ``dt``).
+        finish_s: the finish line's arc length [m].
+        preview: the observation's preview distances ``(P,)`` [m].
+        rules: incident rules and reward weights.
+        max_steps: steps after which a race is truncated (int32 scalar).
+        grid: the start grid of :func:`draw_start` (see :class:`StartGrid`).
+    """
+
+    game: RaceGame
+    finish_s: jax.Array
+    preview: jax.Array
+    rules: RaceRules
+    max_steps: jax.Array
+    grid: "StartGrid"
+
+
+class StartGrid(NamedTuple):
+    """The seeded start of :func:`draw_start`: the staggered grid of
+    :func:`racing_env.scenarios.grid` (slot k at ``front - k * spacing / 2``, alternately
+    ``+offset`` and ``-offset``), its order shuffled and jittered (up to ``jitter = (ds, dn,
+    dV)``) per draw, speeds capped to ``[0, 0.95 v_max]``. A fixed start (``paper``,
+    ``side_by_side``) has ``shuffle = False`` and zero jitter, and the cars at their slots.
+
+    Attributes:
+        slots: ``(N, 6)`` the unshuffled slot states (slot k's ``s``, ``V``, ``n``).
+        shuffle: whether a draw permutes the cars over the slots (bool scalar).
+        jitter: ``(3,)`` half-widths [m, m, m/s] of the uniform jitter of ``s``, ``n``, ``V``.
+    """
+
+    slots: jax.Array
+    shuffle: jax.Array
+    jitter: jax.Array
+
+
+class RaceState(NamedTuple):
+    """A race in progress: joint state ``x (N, 6)``, ``status`` and ``steps`` taken (int32)."""
+
+    x: jax.Array
+    status: RaceStatus
+    steps: jax.Array
+
+
+class RaceInfo(NamedTuple):
+    """Per-car outcome of a step (or of the start), every field ``(N,)`` unless stated.
+
+    Attributes:
+        s: arc length [m] (cumulative on closed tracks).
+        lap: completed laps (0 on open tracks), int32.
+        position: race position, 1 = leading, int32.
+        collided: the footprint overlaps another car's.
+        contact: ``(N, N)`` which cars each one touches.
+        off_track: the car's centre is beyond a track boundary.
+        terms: ``(N, 7)`` reward terms, columns as :data:`racing_env.referee.REWARD_TERMS`.
+    """
+
+    s: jax.Array
+    lap: jax.Array
+    position: jax.Array
+    collided: jax.Array
+    contact: jax.Array
+    off_track: jax.Array
+    terms: jax.Array
+
+
+# --- the params of a configured race -------------------------------------------------------
+def race_rules(config: RaceConfig) -> RaceRules:
+    """The config's incident rules and reward weights as arrays."""
+    reward = config.reward
+    penalise = lambda mode: mode in ("penalty", "both")
+    weights = [
+        reward.progress,
+        reward.position,
+        reward.collision if penalise(config.on_collision) else 0.0,
+        reward.off_track if penalise(config.on_off_track) else 0.0,
+        reward.finish,
+        reward.lead,
+        reward.time,
+    ]
+    return RaceRules(
+        retire_on_collision=np.asarray(config.on_collision in RETIRING_MODES),
+        retire_off_track=np.asarray(config.on_off_track in RETIRING_MODES),
+        weights=np.asarray(weights, dtype=np.float64),
+        spread=np.asarray(max(config.num_agents - 1, 1), dtype=np.float64),
+    )
+
+
+def finish_line(config: RaceConfig, track: Track) -> float:
+    """The finish line's arc length [m]: ``race_distance``, else ``laps`` laps of a closed
+    track or 20 m before the end of an open one.
+
+    Raises ``ValueError`` when it lies beyond the end of an open track (the cars would drive
+    off its end, never to finish).
+    """
+    if config.race_distance is not None:
+        finish_s = float(config.race_distance)
+    elif track.closed:
+        finish_s = float(config.laps * track.length)
+    else:
+        finish_s = float(track.length - 20.0)
+    if not math.isfinite(finish_s):
+        raise ValueError(f"the finish line must be a finite arc length [m], got {finish_s!r}")
+    if not track.closed and finish_s > track.length:
+        raise ValueError(
+            f"the finish line at s = {finish_s:g} m lies beyond the end of the open track "
+            f"{track.name!r} ({track.length:g} m): give a race_distance <= {track.length:g} m"
+        )
+    return finish_s
+
+
+def check_starts_behind(finish_s: float, x0: np.ndarray, scenario: str) -> None:
+    """Raise ``ValueError`` unless every car of the start ``x0 (N, 6)`` is behind the finish
+    line ``finish_s`` [m] (a car on or past it would finish on the first step)."""
+    furthest = float(np.max(x0[:, S]))
+    if not furthest < finish_s:
+        raise ValueError(
+            f"the finish line at s = {finish_s:g} m is not ahead of every start: scenario "
+            f"{scenario!r} places a car at s = {furthest:g} m (use a longer track or race_distance)"
+        )
+
+
+def _start_grid(config: RaceConfig, track: Track, game: RaceGame) -> StartGrid:
+    """The :class:`StartGrid` of the config's scenario (``grid``, ``paper``, ``side_by_side``);
+    for ``anywhere`` (not drawn in JAX) the unjittered grid, which :func:`draw_start` refuses."""
+    from racing_env.scenarios import FIXED_STARTS, make_scenario
+
+    num = config.num_agents
+    if config.scenario in FIXED_STARTS:
+        x0 = make_scenario(config.scenario, track, num, config.vehicles, seed=None).x0
+        return StartGrid(np.asarray(x0), np.asarray(False), np.zeros(3))
+    # the grid's slots in car order (no shuffle, no jitter)
+    x0 = make_scenario("grid", track, num, config.vehicles, seed=None).x0
+    jitter = np.array([1.0, 0.3, 1.0]) if config.scenario == "grid" else np.zeros(3)
+    return StartGrid(np.asarray(x0), np.asarray(config.scenario == "grid"), jitter)
+
+
+def race_params(config: RaceConfig, track: Track, game: RaceGame, finish_s: float) -> RaceParams:
+    """The :class:`RaceParams` of a configured race on ``track`` with ``game`` (the env's)
+    and the finish line ``finish_s`` [m] (:func:`finish_line`)."""
+    return RaceParams(
+        game=game,
+        finish_s=np.float64(finish_s),
+        preview=np.asarray(config.preview_distances, dtype=np.float64),
+        rules=race_rules(config),
+        max_steps=np.int32(config.max_steps),
+        grid=_start_grid(config, track, game),
+    )
+
+
+# --- the race --------------------------------------------------------------------------------
+def _lap(params: RaceParams, s: jax.Array) -> jax.Array:
+    track = params.game.track
+    if track.closed:
+        return jnp.maximum(jnp.floor(s / track.length), 0).astype(jnp.int32)
+    return jnp.zeros(s.shape, jnp.int32)
+
+
+def start(x0: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array, RaceInfo]:
+    """A race starting from the joint state ``x0 (N, 6)``: its state, the observations
+    ``(N, O)`` float32 and the start's :class:`RaceInfo` (no incidents, no rewards)."""
+    num = x0.shape[0]
+    status = RaceStatus(
+        active=jnp.ones(num, dtype=bool),
+        finished=jnp.zeros(num, dtype=bool),
+        out=jnp.zeros(num, dtype=bool),
+        place=jnp.zeros(num, dtype=jnp.int32),
+        finish_time=jnp.full(num, jnp.nan, dtype=x0.dtype),
+    )
+    state = RaceState(x0, status, jnp.zeros((), jnp.int32))
+    game = params.game
+    obs = observe(x0, status.active, game.track, params.finish_s, params.preview).astype(jnp.float32)
+    none = jnp.zeros(num, dtype=bool)
+    info = RaceInfo(
+        s=x0[:, S],
+        lap=_lap(params, x0[:, S]),
+        position=positions(x0[:, S], status.finished, status.place),
+        collided=none,
+        contact=jnp.zeros((num, num), dtype=bool),
+        off_track=none,
+        terms=jnp.zeros((num, len(REWARD_TERMS)), dtype=x0.dtype),
+    )
+    return state, obs, info
+
+
+def draw_start(key: jax.Array, params: RaceParams) -> jax.Array:
+    """A seeded start ``x0 (N, 6)`` from ``params.grid`` (:class:`StartGrid`): the grid's
+    distribution of :func:`racing_env.scenarios.grid` (a uniform shuffle of the slots, uniform
+    jitter, speeds capped to ``[0, 0.95 v_max]``) drawn with JAX's generator, or the fixed
+    start. The NumPy scenarios draw the same distribution from a NumPy generator, so a JAX
+    start and a NumPy start of the same seed differ."""
+    grid = params.grid
+    num = grid.slots.shape[0]
+    k_order, k_jitter = jax.random.split(key)
+    order = jnp.where(grid.shuffle, jax.random.permutation(k_order, num), jnp.arange(num))
+    x0 = jnp.zeros_like(grid.slots).at[order].set(grid.slots)  # car order[k] takes slot k
+    noise = jax.random.uniform(k_jitter, (3, num), grid.slots.dtype, -1.0, 1.0) * grid.jitter[:, None]
+    x0 = x0.at[:, S].add(noise[0]).at[:, N_LAT].add(noise[1]).at[:, V].add(noise[2])
+    v_cap = 0.95 * jnp.broadcast_to(params.game.vehicles.v_max, (num,))
+    return x0.at[:, V].set(jnp.clip(x0[:, V], 0.0, v_cap))
+
+
+def reset(key: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array]:
+    """A new race from a start drawn with ``key`` (:func:`draw_start`): ``(state, obs (N, O))``."""
+    state, obs, _ = start(draw_start(key, params), params)
+    return state, obs
+
+
+def step(
+    key: jax.Array, state: RaceState, actions: jax.Array, params: RaceParams
+) -> tuple[RaceState, jax.Array, jax.Array, jax.Array, jax.Array, RaceInfo]:
+    """Advance the cars still racing by their normalised ``actions (N, 2)`` (clipped to
+    ``[-1, 1]``), enforce their limits, detect incidents and apply the rules.
+
+    ``key`` is unused (the race is deterministic) and kept for the interface's sake.
+
+    Returns ``(state, obs (N, O) float32, rewards (N,), terminations (N,), truncations (N,),
+    info)``: a car terminates when it finishes or retires, and is truncated when it is still
+    racing after ``params.max_steps`` steps. A car that was no longer racing before the step
+    stays as it was, terminated, with zero reward.
+    """
+    del key
+    game = params.game
+    x, status = state.x, state.status
+    steps = state.steps + 1
+    active = status.active
+    x_next = jnp.where(active[:, None], drive(game, x, actions), x)
+    contact = footprint_overlap(x_next, game.vehicles, game.track)
+    contact = contact & active[:, None] & active[None, :]
+    outside = off_track(x_next, game.track) & active
+    collided = contact.any(axis=1)
+    verdict = judge(x[:, S], x_next[:, S], status, collided, outside, steps, game.dt, params.finish_s,
+                    params.rules, speed=x_next[:, V])
+    new_status = verdict.status
+    # observed with the cars still racing after this step's verdict
+    obs = observe(x_next, new_status.active, game.track, params.finish_s, params.preview).astype(jnp.float32)
+    info = RaceInfo(
+        s=x_next[:, S],
+        lap=_lap(params, x_next[:, S]),
+        position=verdict.positions,
+        collided=collided,
+        contact=contact,
+        off_track=outside,
+        terms=verdict.terms,
+    )
+    truncations = new_status.active & (steps >= params.max_steps)
+    terminations = ~new_status.active
+    return RaceState(x_next, new_status, steps), obs, verdict.reward, terminations, truncations, info

@@ -1,0 +1,538 @@
+"""B races in one compiled call: a Gymnasium ``VectorEnv`` and a gymnax-style face.
+
+:class:`RaceVectorEnv` is the vectorised form of :class:`racing_env.RaceEnv` (one learner
+against opponents), made by::
+
+    envs = gymnasium.make_vec("racing_env/Race-v0", num_envs=1024, vectorization_mode="vector_entry_point",
+                              opponents=["lane-keeping"], track="trefoil")
+
+with the keyword arguments of ``gymnasium.make`` (the :class:`racing_env.RaceConfig` fields,
+``opponents``, ``learner``). Every step advances all B races with one jitted, vmapped call of
+the race core (:mod:`racing_env.race`). Observations are ``(B, O)`` float32, actions ``(B, 2)``
+normalised jerks (clipped to ``[-1, 1]``), rewards ``(B,)`` and the flags ``(B,)`` bool.
+
+Opponents, one per opponent car (in car order, skipping the learner; one entry is reused for
+every opponent car): ``None`` (a coasting car), an agent spec (``"lane-keeping"``,
+``"ilqgame-fb:replan_every=5"``, ``"rl:PATH"``, ...), a list of specs (a pool: each race draws
+its driver at every reset), or an object with the batched opponent interface
+(:class:`planners.agents.batched.BatchedOpponent`). Specs are made by
+:func:`planners.agents.batched.make_batched_opponent`: the scripted drivers become JAX
+functions inside the compiled step, the planners one batched, warm-started solve per
+re-plan for all races, before it.
+
+Autoreset (Gymnasium 1.x): ``autoreset_mode="next_step"`` (the default,
+:attr:`gymnasium.vector.AutoresetMode.NEXT_STEP`): the step after a race ended resets it,
+ignores its action and returns its start observation with reward 0 and both flags False.
+``"same_step"``: a race that ends is reset within the same step; the observation returned is
+the new race's, and the last one is in ``infos["final_obs"]`` (with ``infos["final_info"]``).
+
+Seeding: ``reset(seed=s)`` gives race b the seed ``s + b`` (or ``seed=[s_0, ..., s_{B-1}]``),
+and race b then runs exactly the episodes of ``gymnasium.make("racing_env/Race-v0", ...)``
+reset with seed ``s + b`` and autoreset after: the same starts (drawn with NumPy as the
+single env draws them) whatever B. The states agree to a few ulps rather than bit for bit:
+XLA:CPU evaluates sin and cos with a vectorised kernel across races (docs/env.md).
+
+:class:`GymnaxRace` is the same race for JAX learners, in gymnax's ``Environment``
+interface (``reset(key, params)``, ``step(key, state, action, params)`` with autoreset,
+pure functions that jit and vmap), with JAX-function opponents inside the step.
+Guide: docs/env.md, "Vectorised races".
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+from typing import Any, Callable, Sequence
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from racing_env import race
+from racing_env.config import RaceConfig
+from racing_env.env import RacingParallelEnv, agent_name
+from racing_env.packing import pack, unpack
+from racing_env.race import RaceParams, RaceState
+from racing_env.referee import REWARD_TERMS
+from racing_env.scenarios import make_scenario
+
+__all__ = ["GymnaxRace", "RaceVectorEnv", "coasting", "make_opponent"]
+
+JaxPolicy = Callable[[jax.Array], jax.Array]
+"""A JAX driver: ``policy(x (N, 6)) -> action (2,)``, normalised, for one car of one race."""
+
+_AUTORESET = {"next_step": AutoresetMode.NEXT_STEP, "same_step": AutoresetMode.SAME_STEP}
+_OPPONENT_FACTORY = "planners.agents.batched:make_batched_opponent"
+
+
+def coasting(x: jax.Array) -> jax.Array:
+    """The coasting driver as a JAX policy: zero jerk (keeps its accelerations)."""
+    return jnp.zeros(2, x.dtype)
+
+
+class _JaxOpponent:
+    """A stateless JAX driver of one car, run inside the compiled step."""
+
+    def __init__(self, policy: JaxPolicy, index: int, num_races: int, spec: str = "coasting") -> None:
+        self.jax_policy, self.index, self.num_races, self.spec = policy, index, num_races, spec
+
+    def reset(self, races: np.ndarray, seeds: np.ndarray) -> None:
+        pass
+
+    def act(self, observations, x, racing):  # pragma: no cover - the env fuses jax_policy instead
+        return np.asarray(jax.vmap(self.jax_policy)(jnp.asarray(x))), {}
+
+
+class _LoopedCallable:
+    """A plain ``policy(observation, joint_state) -> action`` (as :class:`racing_env.RaceEnv`
+    takes) called once per race: correct for any callable, and as slow as B single envs."""
+
+    jax_policy = None
+
+    def __init__(self, policy: Callable, index: int, num_races: int) -> None:
+        self.policy, self.index, self.num_races = policy, index, num_races
+        self.spec = getattr(policy, "name", getattr(policy, "__name__", "policy"))
+
+    def reset(self, races: np.ndarray, seeds: np.ndarray) -> None:
+        pass
+
+    def act(self, observations: np.ndarray, x: np.ndarray, racing: np.ndarray):
+        actions = np.array([np.asarray(self.policy(o, s), dtype=np.float64) for o, s in zip(observations, x)])
+        return actions.reshape(self.num_races, 2), {}
+
+
+def make_opponent(opponent: Any, game, index: int, num_races: int):
+    """The batched driver of car ``index`` in ``num_races`` races from an ``opponents`` entry
+    of :class:`RaceVectorEnv` (see the module docstring)."""
+    if opponent is None:
+        return _JaxOpponent(coasting, index, num_races)
+    if isinstance(opponent, str) or (isinstance(opponent, (list, tuple)) and opponent
+                                     and all(isinstance(o, str) for o in opponent)):
+        module, _, name = _OPPONENT_FACTORY.partition(":")
+        # specs name the planners' agents: made by the planners package, looked up by name so
+        # that importing racing_env never imports it
+        factory = getattr(importlib.import_module(module), name)
+        return factory(list(opponent) if not isinstance(opponent, str) else opponent, game, index, num_races)
+    if callable(getattr(opponent, "act", None)) and callable(getattr(opponent, "reset", None)) \
+            and hasattr(opponent, "num_races"):
+        if opponent.num_races != num_races or opponent.index != index:
+            raise ValueError(f"a batched opponent for car {opponent.index} of {opponent.num_races} races cannot "
+                             f"drive car {index} of {num_races} races")
+        return opponent
+    if callable(opponent):
+        return _LoopedCallable(opponent, index, num_races)
+    raise ValueError(f"an opponent must be None, an agent spec (str), a list of specs (a pool), a batched "
+                     f"opponent or a callable policy(observation, joint_state); got {opponent!r}")
+
+
+class RaceVectorEnv(VectorEnv):
+    """B races of one learner (``car_<learner>``) against opponents, stepped in one compiled call.
+
+    Args:
+        num_envs: the number of races B (>= 1).
+        opponents: one entry per opponent car, or one for all (module docstring); default:
+            coasting cars (one when ``num_agents`` is not given).
+        learner: index of the learner's car.
+        autoreset_mode: ``"next_step"`` (default) or ``"same_step"`` (module docstring).
+        max_episode_steps: accepted from ``gymnasium.make_vec`` only when None: a race's
+            length is ``max_steps``.
+        **config: :class:`racing_env.RaceConfig` fields (``render_mode`` must be None).
+
+    ``infos`` hold, per race, the learner's ``s``, ``lap``, ``position``, ``collided``,
+    ``off_track``, ``finished``, ``finish_time`` (NaN until finished), ``out`` and
+    ``reward_terms`` (a dict of arrays), and ``infos["opponents"][agent][name]`` the batched
+    opponents' diagnostics (a planner's ``replanned``, ``converged``, ``iterations``,
+    ``fallback``).
+    """
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        opponents: Sequence[Any] | None = None,
+        learner: int = 0,
+        autoreset_mode: str | AutoresetMode = "next_step",
+        max_episode_steps: int | None = None,
+        **config: Any,
+    ) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
+        if max_episode_steps is not None:
+            raise ValueError("the race's length is max_steps (a RaceConfig field), not max_episode_steps")
+        modes = {**_AUTORESET, **{mode: mode for mode in _AUTORESET.values()}}
+        if autoreset_mode not in modes:
+            raise ValueError(f"autoreset_mode must be one of {sorted(_AUTORESET)}, got {autoreset_mode!r}")
+        if config.get("render_mode") is not None:
+            raise ValueError("the vectorised env does not render: race a recorded start in racing_env.parallel_env")
+        self.num_envs = int(num_envs)
+        self.autoreset_mode = modes[autoreset_mode]
+        self.metadata = {"autoreset_mode": self.autoreset_mode}
+        opponents = None if opponents is None else list(opponents)
+        num = int(config.pop("num_agents", 2 if opponents is None else len(opponents) + 1))
+        if opponents is None:
+            opponents = [None] * (num - 1)
+        if len(opponents) == 1 and num > 2:
+            opponents = opponents * (num - 1)
+        if len(opponents) != num - 1:
+            raise ValueError(f"need {num - 1} opponents for {num} cars, got {len(opponents)}")
+        if not 0 <= learner < num:
+            raise ValueError(f"learner must be a car index in [0, {num - 1}], got {learner}")
+        # one race built the usual way: its checks, its game and its params serve every race
+        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
+        self.config, self.game, self.params = self.race.config, self.race.game, self.race.params
+        self.learner = int(learner)
+        self.num_cars = num
+        cars = [j for j in range(num) if j != self.learner]
+        self.opponents = {j: make_opponent(o, self.game, j, self.num_envs) for j, o in zip(cars, opponents)}
+        self._jax_cars = tuple(j for j, o in self.opponents.items() if o.jax_policy is not None)
+        self._host_cars = tuple(j for j, o in self.opponents.items() if o.jax_policy is None)
+        learner_agent = agent_name(self.learner)
+        self.single_observation_space = self.race.observation_space(learner_agent)
+        self.single_action_space = self.race.action_space(learner_agent)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._step = _compile_step(tuple(self.opponents[j].jax_policy for j in self._jax_cars), self._jax_cars,
+                                   self.learner, self.autoreset_mode == AutoresetMode.SAME_STEP)
+        self._start = _compile_start(self.learner)
+        # the params as one flat array: a call then pays for one argument leaf, not dozens
+        self._constants = pack(self.params)
+        self._rngs: list[np.random.Generator] = []
+        self._state: RaceState | None = None
+        self._obs_all = None
+        self._needs_reset = np.zeros(self.num_envs, dtype=bool)
+        self._next_x0 = None  # same_step: each race's next start, drawn when its episode begins
+        self._next_seeds = None
+
+    # --- starts ----------------------------------------------------------------------------
+    def _draw(self, race_index: int) -> tuple[np.ndarray, int]:
+        """Race ``race_index``'s next start ``(N, 6)`` and episode seed, from its own generator,
+        as :meth:`racing_env.RacingParallelEnv.reset` draws them."""
+        scenario_seed = int(self._rngs[race_index].integers(2**31 - 1))
+        config = self.config
+        x0 = make_scenario(config.scenario, self.race.track, self.num_cars, config.vehicles, scenario_seed,
+                           self.race.finish_s).x0
+        race.check_starts_behind(self.race.finish_s, x0, config.scenario)
+        return x0, scenario_seed
+
+    def _draw_many(self, races: np.ndarray, into: np.ndarray, seeds: np.ndarray) -> None:
+        for b in np.flatnonzero(races):
+            into[b], seeds[b] = self._draw(b)
+
+    def _seed_generators(self, seed: int | Sequence[int] | None) -> None:
+        if seed is None:
+            self._rngs = [np.random.default_rng() for _ in range(self.num_envs)]
+        elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            self._rngs = [np.random.default_rng(int(seed) + b) for b in range(self.num_envs)]
+        elif isinstance(seed, Sequence) and len(seed) == self.num_envs:
+            self._rngs = [np.random.default_rng(s) for s in seed]
+        else:
+            raise ValueError(f"seed must be None, an int or {self.num_envs} ints, got {seed!r}")
+
+    # --- episode ---------------------------------------------------------------------------
+    def reset(self, *, seed: int | Sequence[int] | None = None, options: dict[str, Any] | None = None):
+        """Start every race (or those of ``options["reset_mask"]`` (B,) bool). ``options`` may
+        hold ``x0``: start states ``(B, N, 6)``, or ``(N, 6)`` for every race."""
+        options = dict(options or {})
+        mask = np.asarray(options.pop("reset_mask", np.ones(self.num_envs, dtype=bool)), dtype=bool)
+        if mask.shape != (self.num_envs,):
+            raise ValueError(f"options['reset_mask'] must have shape ({self.num_envs},), got {mask.shape}")
+        x0_given = options.pop("x0", None)
+        if options:
+            raise ValueError(f"unknown reset options {sorted(options)}; allowed: ['reset_mask', 'x0']")
+        if self._state is None and not mask.all():
+            raise RuntimeError("the first reset must start every race (no reset_mask)")
+        if x0_given is not None:
+            x0_given = np.broadcast_to(np.asarray(x0_given, dtype=np.float64), (self.num_envs, self.num_cars, 6))
+            if not np.all(np.isfinite(x0_given)):
+                raise ValueError("options['x0'] must be finite")
+        if seed is not None or not self._rngs:
+            self._seed_generators(seed)
+        x0 = np.zeros((self.num_envs, self.num_cars, 6))
+        seeds = np.zeros(self.num_envs, dtype=np.int64)
+        self._draw_many(mask, x0, seeds)
+        if x0_given is not None:
+            x0 = np.where(mask[:, None, None], x0_given, x0)
+        for opponent in self.opponents.values():
+            opponent.reset(mask, seeds)
+        state, obs_all, _, ints, floats = self._start(jnp.asarray(x0), *self._constants)
+        if self._state is None:
+            self._state, self._obs_all = state, obs_all
+        else:
+            keep = jnp.asarray(~mask)
+            self._state = jax.tree_util.tree_map(
+                lambda old, new: jnp.where(keep.reshape((-1,) + (1,) * (new.ndim - 1)), old, new), self._state, state)
+            self._obs_all = jnp.where(keep[:, None, None], self._obs_all, obs_all)
+        self._needs_reset = np.where(mask, False, self._needs_reset)
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            if self._next_x0 is None:
+                self._next_x0, self._next_seeds = np.zeros_like(x0), np.zeros(self.num_envs, dtype=np.int64)
+            self._draw_many(mask, self._next_x0, self._next_seeds)
+        obs = np.array(self._obs_all[:, self.learner])
+        infos = self._infos(np.asarray(ints), np.asarray(floats), {}, with_terms=False)
+        # infos describe the races that were reset (Gymnasium's masks)
+        infos.update({key: value & mask for key, value in infos.items() if key.startswith("_")})
+        return obs, infos
+
+    def _checked_actions(self, actions: Any) -> np.ndarray:
+        """The learner's actions as ``(B, 2)`` float64; raises before anything changes."""
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        array = np.asarray(actions)
+        if array.dtype.kind not in "fiu":
+            raise TypeError(f"actions must be real numbers (B, 2) = ({self.num_envs}, 2), got dtype {array.dtype}")
+        if array.shape != (self.num_envs, 2):
+            raise ValueError(f"actions must have shape (num_envs, 2) = ({self.num_envs}, 2), got {array.shape}")
+        array = array.astype(np.float64)
+        if not np.isfinite(array).all():
+            bad = np.flatnonzero(~np.isfinite(array).all(axis=1)).tolist()
+            raise ValueError(f"actions must be finite; races {bad[:10]} have NaN or inf")
+        return array
+
+    def step(self, actions: Any):
+        learner_actions = self._checked_actions(actions)
+        resetting = self._needs_reset.copy()
+        x0 = np.zeros((self.num_envs, self.num_cars, 6))
+        seeds = np.zeros(self.num_envs, dtype=np.int64)
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP and resetting.any():
+            self._draw_many(resetting, x0, seeds)
+            for opponent in self.opponents.values():
+                opponent.reset(resetting, seeds)
+        elif self.autoreset_mode == AutoresetMode.SAME_STEP:
+            x0 = self._next_x0
+        all_actions = np.zeros((self.num_envs, self.num_cars, 2))
+        all_actions[:, self.learner] = learner_actions
+        diagnostics: dict[str, dict[str, np.ndarray]] = {}
+        if self._host_cars:
+            x = np.asarray(self._state.x)
+            racing = np.asarray(self._state.status.active).copy()
+            obs_all = np.asarray(self._obs_all)
+            for j in self._host_cars:
+                racing_j = racing.copy()
+                racing_j[:, j] = True
+                act, diag = self.opponents[j].act(obs_all[:, j], x, racing_j)
+                all_actions[:, j] = act
+                diagnostics[agent_name(j)] = {k: np.asarray(v) for k, v in diag.items()}
+        out = self._step(self._state, all_actions, resetting, x0, *self._constants)
+        self._state, self._obs_all, obs, reward, ints, floats, final = out
+        obs, reward, ints, floats = np.array(obs), np.asarray(reward), np.asarray(ints), np.asarray(floats)
+        terminated, truncated = ints[:, 7].astype(bool), ints[:, 8].astype(bool)
+        infos = self._infos(ints, floats, diagnostics, with_terms=True)
+        done = terminated | truncated
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            self._needs_reset = done
+        elif done.any():
+            final_obs, final_ints, final_floats = (np.asarray(a) for a in final)
+            infos["final_obs"] = np.full(self.num_envs, None, dtype=object)
+            for b in np.flatnonzero(done):
+                infos["final_obs"][b] = final_obs[b]
+            infos["_final_obs"] = done
+            infos["final_info"] = self._infos(final_ints, final_floats, diagnostics, with_terms=True)
+            infos["_final_info"] = done
+            for opponent in self.opponents.values():
+                opponent.reset(done, self._next_seeds)
+            self._draw_many(done, self._next_x0, self._next_seeds)
+        return obs, reward, terminated, truncated, infos
+
+    def _infos(self, ints: np.ndarray, floats: np.ndarray, diagnostics: dict, with_terms: bool) -> dict[str, Any]:
+        """The learner's infos from the packed rows of :func:`_learner_rows` (with ``_key``
+        masks, Gymnasium's vector convention)."""
+        every = np.ones(self.num_envs, dtype=bool)
+        finished = ints[:, 4].astype(bool)
+        infos: dict[str, Any] = {
+            "s": floats[:, 0],
+            "lap": ints[:, 0],
+            "position": ints[:, 1],
+            "collided": ints[:, 2].astype(bool),
+            "off_track": ints[:, 3].astype(bool),
+            "finished": finished,
+            "out": ints[:, 5].astype(bool),
+            "finish_time": floats[:, 1],
+        }
+        masks = {f"_{key}": every for key in infos}
+        masks["_finish_time"] = finished
+        if with_terms:
+            infos["reward_terms"] = {name: floats[:, 2 + k] for k, name in enumerate(REWARD_TERMS)}
+            masks["_reward_terms"] = every
+        if diagnostics:
+            infos["opponents"] = diagnostics
+            masks["_opponents"] = every
+        return {**infos, **masks}
+
+    def close_extras(self, **kwargs: Any) -> None:
+        self.race.close()
+
+
+# --- the compiled calls ------------------------------------------------------------------------
+def _learner_rows(state: RaceState, info: race.RaceInfo, learner: int, terminated, truncated):
+    """The learner's per-race results as two arrays: int32 ``(B, 9)`` lap, position, collided,
+    off_track, finished, out, active, terminated, truncated; float64 ``(B, 9)`` s, finish_time
+    and the reward terms."""
+    status = state.status
+    ints = jnp.stack([info.lap[:, learner], info.position[:, learner], info.collided[:, learner],
+                      info.off_track[:, learner], status.finished[:, learner], status.out[:, learner],
+                      status.active[:, learner], terminated, truncated], axis=1).astype(jnp.int32)
+    floats = jnp.concatenate([info.s[:, learner, None], status.finish_time[:, learner, None],
+                              info.terms[:, learner]], axis=1)
+    return ints, floats
+
+
+def _select(mask: jax.Array, a, b):
+    """Per race (axis 0): ``a`` where ``mask`` else ``b``, for every leaf."""
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
+
+
+def _restarted(restart: jax.Array, x0: jax.Array, params: RaceParams, fresh: tuple) -> tuple:
+    """``fresh = (state, obs_all, info)`` of B races with the races ``restart (B,)`` replaced by
+    new races from their starts ``x0 (B, N, 6)``."""
+    started = jax.vmap(race.start, in_axes=(0, None))(x0, params)
+    return _select(restart, started, fresh)
+
+
+@functools.lru_cache(maxsize=None)
+def _compile_start(learner: int):
+    @functools.partial(jax.jit, static_argnames=("layout",))
+    def start(x0, constants, layout):
+        params = unpack(constants, layout)
+        state, obs_all, info = jax.vmap(race.start, in_axes=(0, None))(x0, params)
+        none = jnp.zeros(x0.shape[0], dtype=bool)
+        ints, floats = _learner_rows(state, info, learner, none, none)
+        return state, obs_all, obs_all[:, learner], ints, floats
+
+    return start
+
+
+@functools.lru_cache(maxsize=None)
+def _compile_step(policies: tuple, cars: tuple[int, ...], learner: int, same_step: bool):
+    """The jitted step of B races: JAX opponents' actions, the race core, autoreset."""
+
+    @functools.partial(jax.jit, static_argnames=("layout",))
+    def step(state: RaceState, actions, resetting, x0, constants, layout):
+        params = unpack(constants, layout)
+        for policy, car in zip(policies, cars):
+            actions = actions.at[:, car].set(jax.vmap(policy)(state.x))
+        stepped, obs_all, rewards, terms, truncs, info = jax.vmap(race.step, in_axes=(None, 0, 0, None))(
+            None, state, actions, params)
+        terminated = terms[:, learner] & state.status.active[:, learner]
+        truncated = truncs[:, learner]
+        done = terminated | truncated
+        restart = done if same_step else resetting
+        # the starts are computed only in the steps that need one (rare: races are long)
+        fresh = (stepped, obs_all, info)
+        new_state, new_obs_all, new_info = jax.lax.cond(
+            restart.any(), lambda: _restarted(restart, x0, params, fresh), lambda: fresh)
+        if same_step:
+            ints, floats = _learner_rows(stepped, info, learner, terminated, truncated)
+            final = (obs_all[:, learner], ints, floats)
+            reward = rewards[:, learner]
+        else:
+            final = ()
+            terminated, truncated = terminated & ~resetting, truncated & ~resetting
+            ints, floats = _learner_rows(new_state, new_info, learner, terminated, truncated)
+            reward = jnp.where(resetting, 0.0, rewards[:, learner])
+        return new_state, new_obs_all, new_obs_all[:, learner], reward, ints, floats, final
+
+    return step
+
+
+# --- the gymnax face ---------------------------------------------------------------------------
+def _is_jax_policy(policy: Any, state_shape: tuple[int, ...]) -> bool:
+    """Whether ``policy`` traces as a JAX function of the joint state to an action ``(2,)``."""
+    if policy is None or not callable(policy):
+        return False
+    try:
+        out = jax.eval_shape(policy, jax.ShapeDtypeStruct(state_shape, jnp.float64))
+    except Exception:  # noqa: BLE001 - anything that does not trace (NumPy code, wrong arguments)
+        return False
+    return getattr(out, "shape", None) == (2,)
+
+
+class GymnaxRace:
+    """One learner against JAX opponents, in gymnax's ``Environment`` interface.
+
+    ``reset(key, params) -> (obs (O,), state)`` and ``step(key, state, action (2,), params) ->
+    (obs, state, reward, done, info)`` are pure: jit and vmap them for many races. ``step``
+    resets a race that ends (gymnax's autoreset): ``done`` marks the step that ended it and
+    ``obs`` is then the new race's; ``info`` holds ``terminated``, ``truncated`` and the
+    learner's ``position``, ``finished`` and ``finish_time``. Starts are drawn with
+    :func:`racing_env.race.draw_start` (scenarios ``grid``, ``paper``, ``side_by_side``).
+
+    Args:
+        opponents: one :data:`JaxPolicy` per opponent car (or one for all); default coasting.
+            A batched opponent made from a spec (``"lane-keeping"``) carries its JAX policy
+            as ``jax_policy``; planners are not JAX functions of the state and are refused.
+        learner: index of the learner's car.
+        **config: :class:`racing_env.RaceConfig` fields.
+    """
+
+    def __init__(self, opponents: Sequence[Any] | None = None, learner: int = 0, **config: Any) -> None:
+        opponents = None if opponents is None else list(opponents)
+        num = int(config.pop("num_agents", 2 if opponents is None else len(opponents) + 1))
+        if config.get("scenario", "grid") not in ("grid", "paper", "side_by_side"):
+            raise ValueError(f"GymnaxRace draws starts in JAX for scenarios grid, paper and side_by_side, "
+                             f"not {config['scenario']!r}")
+        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
+        self.learner = int(learner)
+        if not 0 <= self.learner < num:
+            raise ValueError(f"learner must be a car index in [0, {num - 1}], got {learner}")
+        opponents = [None] * (num - 1) if opponents is None else opponents
+        if len(opponents) == 1 and num > 2:
+            opponents = opponents * (num - 1)
+        if len(opponents) != num - 1:
+            raise ValueError(f"need {num - 1} opponents for {num} cars, got {len(opponents)}")
+        cars = [j for j in range(num) if j != self.learner]
+        self._policies = []
+        for car, opponent in zip(cars, opponents):
+            if isinstance(opponent, str):
+                opponent = make_opponent(opponent, self.race.game, car, 1)
+            policy = getattr(opponent, "jax_policy", opponent) if opponent is not None else coasting
+            if not _is_jax_policy(policy, self.race.state_space.shape):
+                raise ValueError(f"opponent {opponent!r} of car {car} is not a JAX policy x (N, 6) -> action (2,)")
+            self._policies.append((car, policy))
+        self.num_cars = num
+
+    @property
+    def default_params(self) -> RaceParams:
+        return self.race.params
+
+    @property
+    def name(self) -> str:
+        return "racing_env/Race-v0"
+
+    @property
+    def num_actions(self) -> int:
+        return 2
+
+    def observation_space(self, params: RaceParams | None = None) -> gymnasium.spaces.Box:
+        return self.race.observation_space(agent_name(self.learner))
+
+    def action_space(self, params: RaceParams | None = None) -> gymnasium.spaces.Box:
+        return self.race.action_space(agent_name(self.learner))
+
+    def reset(self, key: jax.Array, params: RaceParams | None = None) -> tuple[jax.Array, RaceState]:
+        params = self.default_params if params is None else params
+        state, obs = race.reset(key, params)
+        return obs[self.learner], state
+
+    def step(self, key: jax.Array, state: RaceState, action: jax.Array, params: RaceParams | None = None):
+        params = self.default_params if params is None else params
+        actions = jnp.zeros((self.num_cars, 2), state.x.dtype).at[self.learner].set(action)
+        for car, policy in self._policies:
+            actions = actions.at[car].set(policy(state.x))
+        key_step, key_reset = jax.random.split(key)
+        stepped, obs, rewards, terms, truncs, race_info = race.step(key_step, state, actions, params)
+        terminated, truncated = terms[self.learner], truncs[self.learner]
+        done = terminated | truncated
+        restarted, start_obs = race.reset(key_reset, params)
+        new_state = jax.tree_util.tree_map(lambda a, b: jnp.where(done, a, b), restarted, stepped)
+        info = {
+            "terminated": terminated,
+            "truncated": truncated,
+            "position": race_info.position[self.learner],
+            "finished": stepped.status.finished[self.learner],
+            "finish_time": stepped.status.finish_time[self.learner],
+        }
+        return (jnp.where(done, start_obs[self.learner], obs[self.learner]), new_state, rewards[self.learner],
+                done, info)
+
