@@ -1,7 +1,8 @@
 """`racing bench`: performance figures as JSON and a table.
 
 Sections: ``env`` (PettingZoo steps per second), ``solvers`` (iLQGame iterations, solves,
-batches), ``agents`` (re-plan times of the game agents). Compile time is measured apart from run
+batches), ``agents`` (re-plan times of the game agents), ``rl`` (the vectorised env, batched
+opponents and training: :mod:`experiments.bench_rl`). Compile time is measured apart from run
 time; each figure is the median over repeats so a noisy shared machine disturbs it less, and
 the solver iterations and the batches are timed in turns with what they are compared to.
 """
@@ -667,7 +668,15 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
                "target_ms_p95": 50.0 if spec == "ilqgame-fb" else None}
 
 
-SECTIONS: dict[str, Callable[[], Iterator[dict[str, Any]]]] = {"env": bench_env, "solvers": bench_solvers, "agents": bench_agents}
+def bench_rl() -> Iterator[dict[str, Any]]:
+    """The RL loops' throughput (:mod:`experiments.bench_rl`)."""
+    from experiments import bench_rl as rl
+
+    return rl.bench_rl()
+
+
+SECTIONS: dict[str, Callable[[], Iterator[dict[str, Any]]]] = {
+    "env": bench_env, "solvers": bench_solvers, "agents": bench_agents, "rl": bench_rl}
 
 
 _FIGURE_KEYS = ("steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95",

@@ -26,6 +26,10 @@ name                   class                           what it does
 ``rl:PATH``            :class:`SB3Agent`               a saved stable-baselines3 policy
 =====================  ==============================  ==========================================
 
+For vectorised race envs, :func:`make_batched_opponent` makes one :class:`BatchedOpponent`
+that drives one car in B races of the same game at once (``opponent.act(observations, x,
+racing) -> (actions (B, 2), diagnostics)``), from the same specs or a list of them (a pool).
+
 A spec may carry options, ``"ilqgame-fb:max_iterations=100,c_collision=1"``
 (:func:`agent_options` lists them); :data:`AGENTS` maps each name to its class, whose
 ``spec`` attribute is that name (the names themselves: :mod:`planners.methods`). Every agent
@@ -63,6 +67,7 @@ from planners.agents import (
     AGENTS,
     Agent,
     BaseAgent,
+    BatchedOpponent,
     ConstantSpeedAgent,
     FeedbackGameAgent,
     ILQRAgent,
@@ -70,6 +75,7 @@ from planners.agents import (
     OpenLoopGameAgent,
     agent_options,
     make_agent,
+    make_batched_opponent,
     reset_agents,
 )
 from planners.game_problem import GameProblem
@@ -84,6 +90,7 @@ __all__ = [
     "AGENTS",
     "Agent",
     "BaseAgent",
+    "BatchedOpponent",
     "ConstantSpeedAgent",
     "FeedbackGameAgent",
     "GameProblem",
@@ -95,6 +102,7 @@ __all__ = [
     "SolverResult",
     "agent_options",
     "make_agent",
+    "make_batched_opponent",
     "nash_residual",
     "problem_from_race_game",
     "reset_agents",

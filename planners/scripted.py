@@ -6,10 +6,17 @@ jerk actions in ``[-1, 1]^2``. These are the control laws alone, callables
 agents, and :mod:`planners.prediction` drives predicted opponents with them. The lateral law makes the lateral offset behave like a
 critically damped second-order system around a target offset; the longitudinal law tracks a
 target speed capped by the tightest curve in a preview window.
+
+:func:`jax_policy` (and :func:`lane_keeping_policy`, :func:`constant_speed_policy`) gives the
+same laws as pure JAX functions of the joint state, to be jitted into a compiled env step and
+vmapped over the races of a batch (:mod:`planners.agents.batched`).
 """
 
 from __future__ import annotations
 
+from typing import Callable
+
+import jax.numpy as jnp
 import numpy as np
 
 from planners.methods import CONSTANT_SPEED, LANE_KEEPING
@@ -117,3 +124,93 @@ class ConstantSpeed(LaneKeeping):
 
     def __init__(self, track: Track, index: int, vehicle: VehicleParams = VehicleParams(), target_speed: float = 15.0):
         super().__init__(track, index, vehicle, target_speed=target_speed, target_n=0.0)
+
+
+# --------------------------------------------------------------------------------------
+# The same laws in JAX, for batched races (racing_env.vector) and compiled env steps.
+# --------------------------------------------------------------------------------------
+
+BRAKE_ACTION = (-0.5, 0.0)
+"""The normalised action a scripted driver's JAX law returns where its law is not finite:
+the constant braking action of :meth:`planners.agents.BaseAgent._safe_action` for a car
+whose own state is not finite (the only way the law gives a non-finite action)."""
+
+
+def jax_curvature(controller: LaneKeeping) -> Callable[[jnp.ndarray], jnp.ndarray]:
+    """``kappa(s)`` [1/m] of a controller's prepared curvature grid, in JAX, as ``np.interp``
+    computes it: the same segment (the last grid point at or below ``s``), the same slope
+    ``(f[j+1] - f[j]) / (x[j+1] - x[j])`` and ``slope * (s - x[j]) + f[j]``, ``f[j]`` at a
+    grid point, the end values beyond the ends (open tracks). On a closed track ``s`` is
+    wrapped twice as :meth:`LaneKeeping._kappa` wraps it. ``s``: any shape [m], finite.
+
+    XLA:CPU fuses the multiply-add into one rounding (FMA) where NumPy rounds twice, so a
+    value may differ from ``np.interp``'s by one ulp."""
+    xp = np.asarray(controller._kappa_s, dtype=np.float64)
+    fp = np.asarray(controller._kappa_values, dtype=np.float64)
+    slopes = (fp[1:] - fp[:-1]) / (xp[1:] - xp[:-1])
+    closed, period = bool(controller.track.closed), float(controller.track.length)
+    last = xp.shape[0] - 1
+
+    def kappa(s):
+        s = jnp.asarray(s, dtype=jnp.float64)
+        x_grid, f_grid, slope = jnp.asarray(xp), jnp.asarray(fp), jnp.asarray(slopes)
+        if closed:
+            s = jnp.mod(jnp.mod(s, period), period)
+        j = jnp.clip(jnp.searchsorted(x_grid, s, side="right") - 1, 0, last - 1)
+        inside = jnp.where(s == x_grid[j], f_grid[j], slope[j] * (s - x_grid[j]) + f_grid[j])
+        return jnp.where(s < xp[0], fp[0], jnp.where(s >= xp[last], fp[last], inside))
+
+    return kappa
+
+
+def jax_policy(controller: LaneKeeping) -> Callable[[jnp.ndarray], jnp.ndarray]:
+    """The law of a :class:`LaneKeeping` (or :class:`ConstantSpeed`) controller as a pure JAX
+    function ``policy(x (N, 6)) -> action (2,)``: normalised jerks in ``[-1, 1]``, float64.
+
+    The same IEEE operations in the same order as ``controller(observation, x)`` (the
+    curvature preview by :func:`jax_curvature`), except that XLA fuses multiply-adds into
+    one rounding and has its own ``sin`` (each within an ulp), and that the output stays
+    float64 where the NumPy law rounds it to float32. On the law's magnitudes (``kappa V^2``
+    and accelerations up to ~100 m/s^2, scaled by ``ACCEL_GAIN / jerk_max`` = 5 / 30 by default)
+    those ulps are ~1e-14 in the normalised action. A non-finite law (a car whose own state is not finite) gives
+    :data:`BRAKE_ACTION`, so the function never returns NaN. Jit it, ``vmap`` it over races.
+    """
+    index = controller.index
+    kappa = jax_curvature(controller)
+    vehicle = controller.vehicle
+    target_speed, target_n = float(controller.target_speed), float(controller.target_n)
+    jx_max, jy_max = (float(j) for j in controller._jerk_max)
+    preview_index = jnp.asarray(_PREVIEW_INDEX)
+    brake = jnp.asarray(BRAKE_ACTION, dtype=jnp.float64)
+
+    def policy(x):
+        s, v, n, chi, ax, ay = (jnp.asarray(x, dtype=jnp.float64)[index, k] for k in range(6))
+        v_pos = jnp.maximum(v, 0.0)
+        reach = jnp.maximum(v_pos, 5.0) * PREVIEW_TIME
+        offsets = (preview_index * (reach / (PREVIEW_POINTS - 1))).at[-1].set(reach)
+        kappa_ahead = kappa(s + offsets)
+        kappa_max = jnp.max(jnp.abs(kappa_ahead))
+        rho = vehicle.rho(v_pos)
+        v_curve = jnp.sqrt(GRIP_MARGIN * rho / jnp.maximum(kappa_max, 1e-6))
+        v_target = jnp.minimum(target_speed, v_curve)
+        ax_des = jnp.minimum(jnp.maximum(SPEED_GAIN * (v_target - v), -GRIP_MARGIN * rho), vehicle.ax_max(v_pos))
+        n_rate = v * jnp.sin(chi)
+        ay_des = kappa_ahead[0] * v**2 + LATERAL_STIFFNESS * (target_n - n) - LATERAL_DAMPING * n_rate
+        jx, jy = ACCEL_GAIN * (ax_des - ax) / jx_max, ACCEL_GAIN * (ay_des - ay) / jy_max
+        action = jnp.clip(jnp.stack([jx, jy]), -1.0, 1.0)
+        return jnp.where(jnp.all(jnp.isfinite(action)), action, brake)
+
+    return policy
+
+
+def lane_keeping_policy(track: Track, index: int, vehicle: VehicleParams = VehicleParams(),
+                        target_speed: float | None = None,
+                        target_n: float = 0.0) -> Callable[[jnp.ndarray], jnp.ndarray]:
+    """:func:`jax_policy` of ``LaneKeeping(track, index, vehicle, target_speed, target_n)``."""
+    return jax_policy(LaneKeeping(track, index, vehicle, target_speed=target_speed, target_n=target_n))
+
+
+def constant_speed_policy(track: Track, index: int, vehicle: VehicleParams = VehicleParams(),
+                          target_speed: float = 15.0) -> Callable[[jnp.ndarray], jnp.ndarray]:
+    """:func:`jax_policy` of ``ConstantSpeed(track, index, vehicle, target_speed)``."""
+    return jax_policy(ConstantSpeed(track, index, vehicle, target_speed=target_speed))

@@ -19,7 +19,7 @@ Shapes, for N cars and an observation of size ``O`` (:mod:`racing_env.observatio
 
 This is the multi-agent form (every car acts; the JaxMARL convention of per-agent arrays).
 The single-learner form with opponents inside the step, in gymnax's interface, is
-:class:`racing_env.vector.GymnaxRace`. Guide: docs/env.md, "The race core".
+:class:`racing_env.vector.GymnaxRace`. Guide: docs/env.md, "The race core (`racing_env.race`)".
 """
 
 from __future__ import annotations

@@ -35,7 +35,7 @@ XLA:CPU evaluates sin and cos with a vectorised kernel across races (docs/env.md
 :class:`GymnaxRace` is the same race for JAX learners, in gymnax's ``Environment``
 interface (``reset(key, params)``, ``step(key, state, action, params)`` with autoreset,
 pure functions that jit and vmap), with JAX-function opponents inside the step.
-Guide: docs/env.md, "Vectorised races".
+Guide: docs/env.md, "Vectorised races (`racing_env.vector`)".
 """
 
 from __future__ import annotations
@@ -193,11 +193,13 @@ class RaceVectorEnv(VectorEnv):
         self.single_action_space = self.race.action_space(learner_agent)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
-        self._step = _compile_step(tuple(self.opponents[j].jax_policy for j in self._jax_cars), self._jax_cars,
-                                   self.learner, self.autoreset_mode == AutoresetMode.SAME_STEP)
-        self._start = _compile_start(self.learner)
         # the params as one flat array: a call then pays for one argument leaf, not dozens
-        self._constants = pack(self.params)
+        constants, layout = pack(self.params)
+        shardings = _race_shardings(self.num_envs)
+        self._constants = constants if shardings is None else jax.device_put(constants, shardings[1])
+        self._step = _compile_step(tuple(self.opponents[j].jax_policy for j in self._jax_cars), self._jax_cars,
+                                   self.learner, self.autoreset_mode == AutoresetMode.SAME_STEP, layout, shardings)
+        self._start = _compile_start(self.learner, layout, shardings)
         self._rngs: list[np.random.Generator] = []
         self._state: RaceState | None = None
         self._obs_all = None
@@ -256,7 +258,7 @@ class RaceVectorEnv(VectorEnv):
             x0 = np.where(mask[:, None, None], x0_given, x0)
         for opponent in self.opponents.values():
             opponent.reset(mask, seeds)
-        state, obs_all, _, ints, floats = self._start(jnp.asarray(x0), *self._constants)
+        state, obs_all, _, ints, floats = self._start(x0, self._constants)
         if self._state is None:
             self._state, self._obs_all = state, obs_all
         else:
@@ -306,15 +308,14 @@ class RaceVectorEnv(VectorEnv):
         diagnostics: dict[str, dict[str, np.ndarray]] = {}
         if self._host_cars:
             x = np.asarray(self._state.x)
-            racing = np.asarray(self._state.status.active).copy()
+            # a car no longer racing in a race gets no action there (the core ignores it)
+            racing = np.asarray(self._state.status.active)
             obs_all = np.asarray(self._obs_all)
             for j in self._host_cars:
-                racing_j = racing.copy()
-                racing_j[:, j] = True
-                act, diag = self.opponents[j].act(obs_all[:, j], x, racing_j)
+                act, diag = self.opponents[j].act(obs_all[:, j], x, racing)
                 all_actions[:, j] = act
                 diagnostics[agent_name(j)] = {k: np.asarray(v) for k, v in diag.items()}
-        out = self._step(self._state, all_actions, resetting, x0, *self._constants)
+        out = self._step(self._state, all_actions, resetting, x0, self._constants)
         self._state, self._obs_all, obs, reward, ints, floats, final = out
         obs, reward, ints, floats = np.array(obs), np.asarray(reward), np.asarray(ints), np.asarray(floats)
         terminated, truncated = ints[:, 7].astype(bool), ints[:, 8].astype(bool)
@@ -390,25 +391,46 @@ def _restarted(restart: jax.Array, x0: jax.Array, params: RaceParams, fresh: tup
     return _select(restart, started, fresh)
 
 
+def _race_shardings(num_races: int):
+    """``(per_race, replicated)`` shardings that split the races evenly over the local devices
+    of JAX's default backend (on a CPU, one device per core once
+    :func:`planners.devices.use_cpu_cores` ran), or None on one device or when they do not
+    divide ``num_races``. The races never interact, so the split costs no communication."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    devices = jax.local_devices()
+    if len(devices) < 2 or num_races % len(devices):
+        return None
+    mesh = Mesh(np.asarray(devices), ("races",))
+    return NamedSharding(mesh, PartitionSpec("races")), NamedSharding(mesh, PartitionSpec())
+
+
+def _jit(fn, shardings, races: int, shared: int):
+    """``jax.jit(fn)``; with ``shardings``, its first ``races`` arguments split by race and the
+    next ``shared`` replicated, every output split by race."""
+    if shardings is None:
+        return jax.jit(fn)
+    per_race, replicated = shardings
+    return jax.jit(fn, in_shardings=(per_race,) * races + (replicated,) * shared, out_shardings=per_race)
+
+
 @functools.lru_cache(maxsize=None)
-def _compile_start(learner: int):
-    @functools.partial(jax.jit, static_argnames=("layout",))
-    def start(x0, constants, layout):
+def _compile_start(learner: int, layout, shardings):
+    def start(x0, constants):
         params = unpack(constants, layout)
         state, obs_all, info = jax.vmap(race.start, in_axes=(0, None))(x0, params)
         none = jnp.zeros(x0.shape[0], dtype=bool)
         ints, floats = _learner_rows(state, info, learner, none, none)
         return state, obs_all, obs_all[:, learner], ints, floats
 
-    return start
+    return _jit(start, shardings, races=1, shared=1)
 
 
 @functools.lru_cache(maxsize=None)
-def _compile_step(policies: tuple, cars: tuple[int, ...], learner: int, same_step: bool):
+def _compile_step(policies: tuple, cars: tuple[int, ...], learner: int, same_step: bool, layout, shardings):
     """The jitted step of B races: JAX opponents' actions, the race core, autoreset."""
 
-    @functools.partial(jax.jit, static_argnames=("layout",))
-    def step(state: RaceState, actions, resetting, x0, constants, layout):
+    def step(state: RaceState, actions, resetting, x0, constants):
         params = unpack(constants, layout)
         for policy, car in zip(policies, cars):
             actions = actions.at[:, car].set(jax.vmap(policy)(state.x))
@@ -433,7 +455,7 @@ def _compile_step(policies: tuple, cars: tuple[int, ...], learner: int, same_ste
             reward = jnp.where(resetting, 0.0, rewards[:, learner])
         return new_state, new_obs_all, new_obs_all[:, learner], reward, ints, floats, final
 
-    return step
+    return _jit(step, shardings, races=4, shared=1)
 
 
 # --- the gymnax face ---------------------------------------------------------------------------

@@ -20,6 +20,8 @@ DOCUMENTED = {
     # agents
     "Agent", "BaseAgent", "FeedbackGameAgent", "OpenLoopGameAgent", "ILQRAgent", "LaneKeepingAgent",
     "ConstantSpeedAgent", "SB3Agent", "make_agent", "AGENTS", "agent_options", "reset_agents",
+    # batched opponents (one object drives one car in B races)
+    "BatchedOpponent", "make_batched_opponent",
     # solvers
     "solve", "solve_batch", "nash_residual", "SolverOptions", "SolverResult", "GameProblem",
     "problem_from_race_game", "solve_ilqr", "solve_feedback", "solve_open_loop",

@@ -13,7 +13,10 @@ The modules, one job each:
 * :mod:`~planners.agents.scripted`: :class:`LaneKeepingAgent`, :class:`ConstantSpeedAgent`;
 * :mod:`~planners.agents.sb3`: :class:`SB3Agent` (loaded on first use: the RL layer);
 * :mod:`~planners.agents.registry`: :data:`AGENTS` (name -> class), :func:`make_agent`,
-  :func:`check_specs`, :func:`agent_options`, the spec parser and the options' help text.
+  :func:`check_specs`, :func:`agent_options`, the spec parser and the options' help text;
+* :mod:`~planners.agents.batched`: :class:`BatchedOpponent`, one object driving one car in B
+  races at once (:func:`make_batched_opponent`; the planners' form in
+  :mod:`~planners.agents.batched_planners`), for vectorised race envs.
 
 See docs/agents.md.
 """
@@ -23,6 +26,15 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+from planners.agents.batched import (
+    BatchedOpponent,
+    BatchedPool,
+    BatchedSB3,
+    BatchedScripted,
+    LoopedOpponent,
+    make_batched_opponent,
+)
+from planners.agents.batched_planners import BatchedPlanner
 from planners.agents.protocol import Agent, BaseAgent, game_of, reset_agents
 from planners.agents.receding_horizon import (
     RECOVERED_SPEED,
@@ -54,10 +66,16 @@ __all__ = [
     "AGENT_SUMMARIES",
     "Agent",
     "BaseAgent",
+    "BatchedOpponent",
+    "BatchedPlanner",
+    "BatchedPool",
+    "BatchedSB3",
+    "BatchedScripted",
     "ConstantSpeedAgent",
     "FeedbackGameAgent",
     "ILQRAgent",
     "LaneKeepingAgent",
+    "LoopedOpponent",
     "OpenLoopGameAgent",
     "RECOVERED_SPEED",
     "REPLAN_TOLERANCE",
@@ -70,6 +88,7 @@ __all__ = [
     "check_specs",
     "game_of",
     "make_agent",
+    "make_batched_opponent",
     "reset_agents",
     "split_spec",
     "split_spec_list",

@@ -1,0 +1,135 @@
+"""`racing bench --only rl`: the throughput of the loops RL trains in.
+
+Rows: the PettingZoo env and the vectorised env (:mod:`racing_env.vector`) at B = 1, 64 and
+1,024 races with random actions, in the same run; the vectorised env against each kind of
+opponent at B = 64, re-planning every step and every 5 steps; and stable-baselines3 PPO
+training against the lane keeper and against feedback iLQGame, today's path (copies of the
+single env in a ``DummyVecEnv``) beside the vectorised one. Every rate counts race-steps (one
+step of one race) per second of run time after a first call that compiles; the compile time
+is reported apart.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Iterator
+
+import numpy as np
+
+#: The race every row runs: two cars on the trefoil, a race long enough never to end while timed.
+RACE = dict(track="trefoil", max_steps=10**9, laps=1000)
+#: Batch sizes of the random-action rows.
+BATCHES = (1, 64, 1024)
+#: Opponents of the opponent rows, and the re-plan intervals they are raced with.
+OPPONENTS = ("lane-keeping", "ilqr", "ilqgame-ol", "ilqgame-fb", "ilqgame-fb:max_iterations=5")
+REPLAN_EVERY = (1, 5)
+
+
+def _rate(step, count: int, repeats: int) -> tuple[float, list[float]]:
+    """Median race-steps per second of ``step(k)`` called ``count`` times, over ``repeats``."""
+    rates = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        done = sum(step(k) for k in range(count))
+        rates.append(done / (time.perf_counter() - start))
+    return float(np.median(rates)), rates
+
+
+def _vector_env(num_envs: int, opponents: list | None = None):
+    import gymnasium
+
+    import racing_env  # noqa: F401 - registers racing_env/Race-v0
+
+    return gymnasium.make_vec("racing_env/Race-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
+                              opponents=opponents, **RACE)
+
+
+def pettingzoo_row(steps: int = 2000, repeats: int = 3) -> dict[str, Any]:
+    """The PettingZoo env, two cars, random actions: the baseline of the vectorised rows."""
+    from racing_env import parallel_env
+
+    env = parallel_env(num_agents=2, **RACE)
+    actions = np.random.default_rng(0).uniform(-1, 1, (steps, 2, 2)).astype(np.float32)
+    env.reset(seed=0)
+    start = time.perf_counter()
+    env.step({a: actions[0, i] for i, a in enumerate(env.agents)})
+    compile_s = time.perf_counter() - start
+
+    def step(k: int) -> int:
+        env.step({a: actions[k, i] for i, a in enumerate(env.possible_agents)})
+        return 1
+
+    rate, rates = _rate(step, steps, repeats)
+    return {"name": "pettingzoo_env_2_cars", "steps_per_s": rate, "compile_s": compile_s,
+            "repeats": [round(r) for r in rates]}
+
+
+def vector_rows(baseline: float, calls: int = 300, repeats: int = 3) -> Iterator[dict[str, Any]]:
+    """The vectorised env at each of :data:`BATCHES`, random learner actions against a coasting
+    car; ``vs_pettingzoo`` is the ratio to ``baseline`` (the PettingZoo row of this run)."""
+    for num_envs in BATCHES:
+        envs = _vector_env(num_envs)
+        actions = np.random.default_rng(0).uniform(-1, 1, (calls, num_envs, 2))
+        envs.reset(seed=0)
+        start = time.perf_counter()
+        envs.step(actions[0])
+        compile_s = time.perf_counter() - start
+
+        def step(k: int) -> int:
+            envs.step(actions[k])
+            return num_envs
+
+        rate, rates = _rate(step, calls, repeats)
+        yield {"name": f"vector_env_B{num_envs}", "races": num_envs, "steps_per_s": rate,
+               "vs_pettingzoo": rate / baseline, "compile_s": compile_s, "repeats": [round(r) for r in rates],
+               "target_steps_per_s": 1_000_000 if num_envs == 1024 else None}
+
+
+def _opponent_target(spec: str, replan_every: int) -> float | None:
+    if not spec.startswith("ilqgame-fb"):
+        return None
+    return 2_000 if replan_every == 1 else 10_000
+
+
+def opponent_rows(num_envs: int = 64, calls: int = 30) -> Iterator[dict[str, Any]]:
+    """The vectorised env at ``num_envs`` races against each of :data:`OPPONENTS`, re-planning
+    every step and every 5 steps (:data:`REPLAN_EVERY`; the scripted driver does not plan, so
+    it has one row). The learner coasts (zero action), so the rate is the opponent's. Each
+    row also reports the opponents' converged share and median iterations per re-plan."""
+    for spec in OPPONENTS:
+        for every in REPLAN_EVERY if spec != "lane-keeping" else (1,):
+            full = spec if every == 1 else f"{spec}{',' if ':' in spec else ':'}replan_every={every}"
+            envs = _vector_env(num_envs, [full])
+            envs.reset(seed=0)
+            coast = np.zeros((num_envs, 2))
+            start = time.perf_counter()
+            for _ in range(every):  # the first re-plan and the steps that follow it compile
+                envs.step(coast)
+            compile_s = time.perf_counter() - start
+            converged, iterations = [], []
+
+            def step(k: int) -> int:
+                infos = envs.step(coast)[4]
+                diagnostics = infos.get("opponents", {}).get("car_1", {})
+                if "replanned" in diagnostics:
+                    replanned = np.asarray(diagnostics["replanned"], dtype=bool)
+                    converged.extend(np.asarray(diagnostics["converged"])[replanned].tolist())
+                    iterations.extend(np.asarray(diagnostics["iterations"])[replanned].tolist())
+                return num_envs
+
+            rate, rates = _rate(step, calls * every, 1)
+            row = {"name": f"opponent_{full}_B{num_envs}", "opponent": full, "replan_every": every,
+                   "steps_per_s": rate, "compile_s": compile_s,
+                   "target_steps_per_s": _opponent_target(spec, every)}
+            if converged:
+                row["converged_share"] = float(np.mean(converged))
+                row["iterations_median"] = float(np.median(iterations))
+            yield row
+
+
+def bench_rl() -> Iterator[dict[str, Any]]:
+    """The rows of ``racing bench --only rl`` (module docstring)."""
+    baseline = pettingzoo_row()
+    yield baseline
+    yield from vector_rows(baseline["steps_per_s"])
+    yield from opponent_rows()

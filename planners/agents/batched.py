@@ -1,0 +1,454 @@
+"""Batched opponents: one object drives one car in B races of the same game at once.
+
+A vectorised race env steps B races of one track, set of cars and game in one compiled
+call; its opponents must act for all B races at once. A :class:`BatchedOpponent` does::
+
+    opponent = make_batched_opponent("ilqgame-fb:replan_every=5", env.game, index=1, num_races=64)
+    opponent.reset(races, seeds)                         # races (B,) bool, seeds (B,) int64
+    actions, diagnostics = opponent.act(observations, x, racing)   # (B, 2) in [-1, 1]
+
+Specs are the registry's (:func:`planners.agents.make_agent`), so every option means what it
+means for a single agent, and a list of specs is a pool that draws each race's driver at its
+reset. The kinds:
+
+* :class:`BatchedScripted` (``lane-keeping``, ``constant-speed``): the driver's law as a pure
+  JAX function ``jax_policy(x (N, 6)) -> action (2,)`` (:func:`planners.scripted.jax_policy`),
+  for the env to fuse into its compiled step; ``act`` runs it jitted and vmapped;
+* :class:`planners.agents.batched_planners.BatchedPlanner` (``ilqgame-fb``, ``ilqgame-ol``,
+  ``ilqr``): the receding-horizon loop of :class:`planners.agents.RecedingHorizonAgent` with
+  one batched solve (:func:`planners.ilq_batch.solve_batch`) of the races due to re-plan;
+* :class:`BatchedSB3` (``rl:PATH``): the saved model predicts for all B observations at once;
+* :class:`BatchedPool` (a list of specs): each race's driver drawn from its own seed;
+* :class:`LoopedOpponent`: B single agents, one race at a time, for what cannot be batched.
+
+Actions are float64 and never NaN. The single agents round their actions to float32
+(:meth:`planners.agents.BaseAgent._finish`); these are not rounded (cast them to float32 to
+hand an env the very numbers a single agent would).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any, Callable, Sequence
+
+import jax
+import numpy as np
+
+from planners.agents.protocol import BaseAgent, game_of
+from planners.agents.registry import make_agent
+from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent
+from planners.methods import RL
+from planners import scripted as scripted_laws
+
+SCRIPTED_AGENTS = (LaneKeepingAgent, ConstantSpeedAgent)
+"""The scripted agents, whose laws :class:`BatchedScripted` runs in JAX."""
+
+__all__ = [
+    "BatchedOpponent",
+    "BatchedPool",
+    "BatchedSB3",
+    "BatchedScripted",
+    "DIAGNOSTIC_FIELDS",
+    "LoopedOpponent",
+    "SCRIPTED_AGENTS",
+    "batched_from_agent",
+    "empty_diagnostics",
+    "make_batched_opponent",
+]
+
+DIAGNOSTIC_FIELDS: dict[str, type] = {
+    "replanned": bool,  # a solve was made for the race this step
+    "converged": bool,  # that solve met its tolerance
+    "iterations": np.int64,  # that solve's iterations (0 without one)
+    "fallback": bool,  # the action is a fallback: the previous plan, or braking
+    "brake": bool,  # the action is the braking fallback
+}
+"""The per-race diagnostics every batched opponent returns, ``{name: dtype}``; each array
+is ``(B,)``, zero (False) for races that the step did not concern."""
+
+
+class BatchedOpponent:
+    """Drives car ``index`` in ``num_races`` races of one game (the base class).
+
+    Subclasses implement :meth:`_act_rows` (and :meth:`_reset_rows` if they keep per-race
+    state); the checks, the races in which the car is no longer racing and the braking
+    fallback are here.
+
+    Attributes:
+        spec: the agent spec it was made from (a pool: ``"pool(spec; spec; ...)"``).
+        index: the car it drives (row of the joint state).
+        num_races: B.
+        game: the races' :class:`racing_env.RaceGame`.
+        jax_policy: a pure JAX ``policy(x (N, 6)) -> action (2,)`` for drivers that are one
+            (scripted), else None.
+        diagnostic_fields: ``{name: dtype}`` of the diagnostics :meth:`act` returns.
+    """
+
+    jax_policy: Callable | None = None
+    diagnostic_fields: dict[str, type] = DIAGNOSTIC_FIELDS
+
+    def __init__(self, spec: str, game: Any, index: int, num_races: int) -> None:
+        self.game = game_of(game)
+        n = self.game.num_players
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not 0 <= index < n:
+            raise ValueError(f"index must be a car index in [0, {n}), got {index!r}")
+        if isinstance(num_races, bool) or not isinstance(num_races, (int, np.integer)) or num_races < 1:
+            raise ValueError(f"num_races must be an integer >= 1, got {num_races!r}")
+        self.spec = str(spec)
+        self.index = int(index)
+        self.num_races = int(num_races)
+        self._started = np.zeros(self.num_races, dtype=bool)
+        self._brake_law = BaseAgent()  # the single agents' braking fallback, for this car
+        self._brake_law.reset(None, self.index, self.game)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(spec={self.spec!r}, index={self.index}, num_races={self.num_races})"
+
+    # --- the interface --------------------------------------------------------------------
+    def reset(self, races: np.ndarray, seeds: np.ndarray) -> None:
+        """(Re)start the races flagged in ``races (B,)`` bool; ``seeds (B,)`` int64 are the
+        races' episode seeds (a pool draws each race's driver from its own). The races'
+        plans are forgotten; the others are untouched. Every race must be started once
+        before :meth:`act`."""
+        races = self._checked(races, "races", (self.num_races,), bool)
+        seeds = self._checked(seeds, "seeds", (self.num_races,), np.int64)
+        rows = np.flatnonzero(races)
+        self._started[rows] = True
+        if rows.size:
+            self._reset_rows(rows, seeds[rows])
+
+    def act(self, observations: np.ndarray, x: np.ndarray,
+            racing: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Actions for every race.
+
+        Args:
+            observations: ``(B, obs_dim)``, this car's env observation in each race.
+            x: ``(B, N, 6)`` joint states ``[s, V, n, chi, ax, ay]``.
+            racing: ``(B, N)`` bool, the cars still racing. A race in which this car's own
+                entry is False is idle: its action is zero and nothing of it changes.
+
+        Returns:
+            ``actions (B, 2)`` float64 in ``[-1, 1]`` (normalised jerks, never NaN) and
+            ``{name: (B,)}`` diagnostics (:attr:`diagnostic_fields`).
+        """
+        observations, x, racing = self._checked_step(observations, x, racing)
+        if not self._started.all():
+            missing = np.flatnonzero(~self._started)[:5].tolist()
+            raise RuntimeError(f"reset(races, seeds) must start every race before act; races {missing}... were never "
+                               "started")
+        actions = np.zeros((self.num_races, 2))
+        diagnostics = empty_diagnostics(self.diagnostic_fields, self.num_races)
+        rows = np.flatnonzero(racing[:, self.index])
+        if rows.size == self.num_races:  # the usual case: no copies
+            return self._act_rows(rows, observations, x, racing)
+        if rows.size:
+            part, part_diagnostics = self._act_rows(rows, observations[rows], x[rows], racing[rows])
+            actions[rows] = part
+            for name, values in part_diagnostics.items():
+                diagnostics[name][rows] = values
+        return actions, diagnostics
+
+    # --- for subclasses -------------------------------------------------------------------
+    def _reset_rows(self, rows: np.ndarray, seeds: np.ndarray) -> None:
+        """Forget the plans of the races ``rows (R,)`` (global race indices)."""
+
+    def _act_rows(self, rows: np.ndarray, observations: np.ndarray, x: np.ndarray,
+                  racing: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Actions ``(R, 2)`` and diagnostics ``{name: (R,)}`` of the races ``rows (R,)``,
+        whose observations, states and racing flags are given (``(R, ...)``)."""
+        raise NotImplementedError
+
+    def _finish(self, actions: np.ndarray, x: np.ndarray, diagnostics: dict[str, np.ndarray]) -> np.ndarray:
+        """``actions (R, 2)`` with every non-finite row replaced by the single agents' braking
+        action (flagged ``fallback`` and ``brake``), clipped to ``[-1, 1]``."""
+        actions = np.array(actions, dtype=np.float64)
+        bad = ~np.all(np.isfinite(actions), axis=1)
+        for r in np.flatnonzero(bad):
+            actions[r] = self._brake_law._safe_action(x[r])
+        diagnostics["fallback"] |= bad
+        diagnostics["brake"] |= bad
+        return np.clip(actions, -1.0, 1.0)
+
+    # --- checks ---------------------------------------------------------------------------
+    @staticmethod
+    def _checked(values: Any, name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+        array = np.asarray(values)
+        if array.shape != shape:
+            raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
+        if dtype is bool and array.dtype != bool:
+            raise ValueError(f"{name} must be booleans, got dtype {array.dtype}")
+        if dtype is np.int64 and array.dtype.kind not in "iu":
+            raise ValueError(f"{name} must be integers, got dtype {array.dtype}")
+        return array.astype(dtype, copy=False)
+
+    def _checked_step(self, observations, x, racing) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n, b = self.game.num_players, self.num_races
+        observations = np.asarray(observations)
+        if observations.ndim != 2 or observations.shape[0] != b:
+            raise ValueError(f"observations must have shape (B, obs_dim) with B = {b}, got {observations.shape}")
+        x = self._checked(x, "x", (b, n, 6), np.float64)
+        racing = self._checked(racing, "racing", (b, n), bool)
+        return observations, x, racing
+
+
+def empty_diagnostics(fields: dict[str, type], count: int) -> dict[str, np.ndarray]:
+    """``{name: zeros (count,) of its dtype}``."""
+    return {name: np.zeros(count, dtype=dtype) for name, dtype in fields.items()}
+
+
+# --------------------------------------------------------------------------------------
+# Scripted drivers.
+# --------------------------------------------------------------------------------------
+
+
+def _padded_size(count: int) -> int:
+    """The next power of two >= ``count``: the few batch shapes a jitted law compiles for."""
+    return 1 << max(0, int(count) - 1).bit_length()
+
+
+class BatchedScripted(BatchedOpponent):
+    """A scripted driver (:class:`planners.agents.LaneKeepingAgent`,
+    :class:`planners.agents.ConstantSpeedAgent`) in B races.
+
+    ``jax_policy(x (N, 6)) -> action (2,)`` is its law in JAX (:func:`planners.scripted.jax_policy`,
+    float64, equal to the NumPy law to ~1e-14, :data:`planners.scripted.BRAKE_ACTION` where the
+    car's own state is not finite); ``act`` evaluates it jitted and vmapped over the races
+    (padded to a power of two, so a handful of batch shapes compile).
+    """
+
+    def __init__(self, agent: BaseAgent, game: Any, index: int, num_races: int, spec: str | None = None) -> None:
+        if not isinstance(agent, SCRIPTED_AGENTS):
+            raise TypeError(f"BatchedScripted needs a scripted agent, got {type(agent).__name__}")
+        super().__init__(spec or agent.spec, game, index, num_races)
+        agent.reset(None, self.index, self.game)  # builds the controller of this car
+        self.controller = agent.controller
+        self.jax_policy = scripted_laws.jax_policy(self.controller)
+        self._batched = jax.jit(jax.vmap(self.jax_policy))
+
+    def _act_rows(self, rows, observations, x, racing):
+        count = rows.size
+        padded = np.zeros((_padded_size(count),) + x.shape[1:])
+        padded[:count] = x
+        actions = np.asarray(self._batched(padded))[:count].astype(np.float64)
+        diagnostics = empty_diagnostics(self.diagnostic_fields, count)
+        braked = ~np.all(np.isfinite(x[:, self.index]), axis=1)  # where the law returned BRAKE_ACTION
+        diagnostics["fallback"] |= braked
+        diagnostics["brake"] |= braked
+        return self._finish(actions, x, diagnostics), diagnostics
+
+
+# --------------------------------------------------------------------------------------
+# Saved stable-baselines3 policies.
+# --------------------------------------------------------------------------------------
+
+
+class BatchedSB3(BatchedOpponent):
+    """A saved stable-baselines3 model (:class:`planners.agents.SB3Agent`) in B races: one
+    ``predict(observations (R, obs_dim), deterministic=True)`` call per step, observations
+    normalised with the model's saved ``VecNormalize`` statistics as the single agent does.
+    A race whose action is not finite brakes; a failed prediction brakes in every race.
+    Observations of another size than the model reads are refused (ValueError): the env
+    races another number of cars or preview distances, which no race can drive with."""
+
+    def __init__(self, agent: BaseAgent, game: Any, index: int, num_races: int, spec: str | None = None) -> None:
+        from planners.agents.sb3 import SB3Agent
+
+        if not isinstance(agent, SB3Agent):
+            raise TypeError(f"BatchedSB3 needs an SB3Agent, got {type(agent).__name__}")
+        super().__init__(spec or agent.name, game, index, num_races)
+        agent.reset(None, self.index, self.game)
+        self.agent = agent
+
+    def _act_rows(self, rows, observations, x, racing):
+        model, normalizer = self.agent.model, self.agent.normalizer
+        expected = tuple(model.observation_space.shape)
+        if observations.shape[1:] != expected:
+            raise ValueError(f"{self.agent.path} reads observations of shape {expected}, got "
+                             f"{observations.shape[1:]} per "
+                             "race (trained with another number of cars or preview distances?)")
+        diagnostics = empty_diagnostics(self.diagnostic_fields, rows.size)
+        try:
+            obs = observations.astype(np.float32)
+            if normalizer is not None:
+                obs = normalizer.normalize_obs(obs)
+            actions, _ = model.predict(obs, deterministic=True)
+            actions = np.asarray(actions, dtype=np.float64).reshape(rows.size, 2)
+        except Exception:  # noqa: BLE001 - any policy failure: brake, as the single agent does
+            actions = np.full((rows.size, 2), np.nan)
+        return self._finish(actions, x, diagnostics), diagnostics
+
+
+# --------------------------------------------------------------------------------------
+# Pools.
+# --------------------------------------------------------------------------------------
+
+
+class BatchedPool(BatchedOpponent):
+    """Several drivers for one car: every race draws its driver at each reset.
+
+    The draw is ``np.random.default_rng(seed).integers(len(specs))`` with the race's own
+    episode seed: uniform over the entries of ``specs`` (a spec listed twice is drawn twice
+    as often), deterministic per race and independent of B. Each member acts on its races
+    only; entries with the same spec share one member. The diagnostics add ``"driver"``, the
+    drawn entry per race.
+
+    Args:
+        specs: the agent specs (at least one).
+        game, index, num_races: as :class:`BatchedOpponent`.
+        members: ``{spec: BatchedOpponent}`` already made for these races (default: made by
+            :func:`make_batched_opponent` with ``options``).
+        options: keyword options for :func:`make_batched_opponent` (``batching``, ...).
+    """
+
+    def __init__(self, specs: Sequence[str], game: Any, index: int, num_races: int,
+                 members: dict[str, BatchedOpponent] | None = None, **options: Any) -> None:
+        specs = list(specs)
+        if not specs or not all(isinstance(s, str) for s in specs):
+            raise ValueError(f"a pool needs a non-empty list of agent specs, got {specs!r}")
+        super().__init__("pool(" + "; ".join(specs) + ")", game, index, num_races)
+        self.specs = specs
+        members = dict(members or {})
+        for spec in dict.fromkeys(specs):
+            if spec not in members:
+                members[spec] = make_batched_opponent(spec, self.game, self.index, self.num_races, **options)
+        self.members = [members[spec] for spec in specs]  # one per entry (shared by equal specs)
+        self._groups = {}  # id(member) -> (member, entries)
+        for entry, member in enumerate(self.members):
+            self._groups.setdefault(id(member), (member, []))[1].append(entry)
+        fields = dict(DIAGNOSTIC_FIELDS)
+        for member in self.members:
+            fields.update(member.diagnostic_fields)
+        self.diagnostic_fields = {**fields, "driver": np.int64}
+        self.driver = np.zeros(self.num_races, dtype=np.int64)  # the drawn entry per race
+
+    def _reset_rows(self, rows, seeds):
+        if np.any(seeds < 0):
+            raise ValueError(f"a pool draws from each race's seed, which must be >= 0; got {seeds[seeds < 0][:5]}")
+        self.driver[rows] = [np.random.default_rng(int(seed)).integers(len(self.specs)) for seed in seeds]
+        for member, entries in self._groups.values():
+            mine = rows[np.isin(self.driver[rows], entries)]
+            races = np.zeros(self.num_races, dtype=bool)
+            races[mine] = True
+            full_seeds = np.zeros(self.num_races, dtype=np.int64)
+            full_seeds[rows] = seeds
+            member.reset(races, full_seeds)
+
+    def _act_rows(self, rows, observations, x, racing):
+        actions = np.zeros((rows.size, 2))
+        diagnostics = empty_diagnostics(self.diagnostic_fields, rows.size)
+        diagnostics["driver"][:] = self.driver[rows]
+        for member, entries in self._groups.values():
+            mine = np.flatnonzero(np.isin(self.driver[rows], entries))
+            if not mine.size:
+                continue
+            part, part_diagnostics = member._act_rows(rows[mine], observations[mine], x[mine], racing[mine])
+            actions[mine] = part
+            for name, values in part_diagnostics.items():
+                diagnostics[name][mine] = values
+        return actions, diagnostics
+
+
+# --------------------------------------------------------------------------------------
+# The looped fallback.
+# --------------------------------------------------------------------------------------
+
+
+class LoopedOpponent(BatchedOpponent):
+    """B single agents (made by the registry from one spec), each driving one race, acting
+    one race after another.
+
+    Slow: a step costs B single-agent steps in a Python loop (for a planner B solves one
+    after another, each with its own dispatch), and an agent with its own compiled parts
+    (an iLQR prediction's physics rollout) compiles them once per race. It is the
+    always-correct form, used for what the batched opponents cannot batch (an iLQR
+    prediction other than constant velocity, agents outside the registry's kinds).
+    Each agent is reset as this car with the race's seed and ``env_info``; it reads the
+    racing flags from its observation, as in the PettingZoo env.
+
+    Args:
+        spec: an agent spec (:func:`planners.agents.make_agent`).
+        game, index, num_races: as :class:`BatchedOpponent`.
+        env_info: what the agents are reset with (default: the game); an env lets an
+            ``rl:`` agent check its observation space.
+    """
+
+    def __init__(self, spec: str, game: Any, index: int, num_races: int, env_info: Any = None) -> None:
+        super().__init__(spec, game, index, num_races)
+        self.env_info = self.game if env_info is None else env_info
+        self.agents = [make_agent(spec) for _ in range(self.num_races)]
+
+    def _reset_rows(self, rows, seeds):
+        for row, seed in zip(rows, seeds):
+            self.agents[row].reset(int(seed), self.index, self.env_info)
+
+    def _act_rows(self, rows, observations, x, racing):
+        actions = np.zeros((rows.size, 2))
+        diagnostics = empty_diagnostics(self.diagnostic_fields, rows.size)
+        for r, row in enumerate(rows):
+            agent = self.agents[row]
+            actions[r] = agent.act(observations[r], x[r])
+            record = agent.diagnostics()
+            diagnostics["replanned"][r] = bool(record.get("replanned"))
+            diagnostics["converged"][r] = bool(record.get("converged"))
+            diagnostics["iterations"][r] = int(record.get("iterations") or 0)
+            diagnostics["fallback"][r] = bool(record.get("fallback"))
+            diagnostics["brake"][r] = record.get("fallback_kind") == "brake"
+        return self._finish(actions, x, diagnostics), diagnostics
+
+
+# --------------------------------------------------------------------------------------
+# The factory.
+# --------------------------------------------------------------------------------------
+
+
+def make_batched_opponent(spec: str | Sequence[str], game: Any, index: int, num_races: int, *,
+                          batching: str = "auto", devices: Sequence[Any] | None = None,
+                          solve_sizes: Sequence[int] | None = None) -> BatchedOpponent:
+    """The batched opponent of an agent spec (or of a list of specs: a pool).
+
+    Args:
+        spec: an agent spec as :func:`planners.agents.make_agent` parses it
+            (``"lane-keeping"``, ``"constant-speed:target_speed=12"``, ``"ilqr"``,
+            ``"ilqgame-ol"``, ``"ilqgame-fb:replan_every=5,max_iterations=5"``,
+            ``"rl:PATH"``), or a list of specs: a :class:`BatchedPool`, whose races each draw
+            their driver, uniformly, at every reset from their own seed.
+        game: the races' :class:`racing_env.RaceGame` (or an env that has it).
+        index: the car it drives.
+        num_races: B.
+        batching, devices, solve_sizes: how planners solve their batches
+            (:class:`planners.agents.batched_planners.BatchedPlanner`); other kinds ignore them.
+
+    Returns:
+        A :class:`BatchedScripted`, :class:`~planners.agents.batched_planners.BatchedPlanner`,
+        :class:`BatchedSB3` or :class:`BatchedPool`; a :class:`LoopedOpponent` (with a
+        warning, it is slow) for a planner option that cannot be batched (an iLQR prediction
+        other than constant velocity).
+
+    Raises:
+        ValueError: for a bad spec or option (the registry's message), or a bad index.
+    """
+    options = {"batching": batching, "devices": devices, "solve_sizes": solve_sizes}
+    if isinstance(spec, (list, tuple)):
+        return BatchedPool(spec, game, index, num_races, **options)
+    if not isinstance(spec, str):
+        raise ValueError(f"spec must be an agent spec (a string) or a list of them, got {spec!r}")
+    return batched_from_agent(make_agent(spec), spec, game, index, num_races, **options)
+
+
+def batched_from_agent(agent: BaseAgent, spec: str, game: Any, index: int, num_races: int, *,
+                       batching: str = "auto", devices: Sequence[Any] | None = None,
+                       solve_sizes: Sequence[int] | None = None) -> BatchedOpponent:
+    """The batched form of a single ``agent`` made from ``spec`` (see :func:`make_batched_opponent`)."""
+    from planners.agents import batched_planners
+
+    if isinstance(agent, SCRIPTED_AGENTS):
+        return BatchedScripted(agent, game, index, num_races, spec=spec)
+    if spec.strip().lower().startswith(f"{RL}:"):
+        return BatchedSB3(agent, game, index, num_races, spec=spec)
+    reason = batched_planners.unbatchable(agent)
+    if reason is None:
+        return batched_planners.BatchedPlanner(agent, game, index, num_races, spec=spec, batching=batching,
+                                               devices=devices, solve_sizes=solve_sizes)
+    warnings.warn(f"{spec!r}: {reason}; it races as a LoopedOpponent, one single agent per race (slow)",
+                  stacklevel=3)
+    return LoopedOpponent(spec, game, index, num_races)
