@@ -64,10 +64,11 @@ def pettingzoo_row(steps: int = 2000, repeats: int = 3) -> dict[str, Any]:
             "repeats": [round(r) for r in rates]}
 
 
-def vector_rows(baseline: float, calls: int = 300, repeats: int = 3) -> Iterator[dict[str, Any]]:
+def vector_rows(baseline: float, calls: int = 300, repeats: int = 3, batches: tuple[int, ...] = BATCHES
+                ) -> Iterator[dict[str, Any]]:
     """The vectorised env at each of :data:`BATCHES`, random learner actions against a coasting
     car; ``vs_pettingzoo`` is the ratio to ``baseline`` (the PettingZoo row of this run)."""
-    for num_envs in BATCHES:
+    for num_envs in batches:
         envs = _vector_env(num_envs)
         actions = np.random.default_rng(0).uniform(-1, 1, (calls, num_envs, 2))
         envs.reset(seed=0)
@@ -91,12 +92,13 @@ def _opponent_target(spec: str, replan_every: int) -> float | None:
     return 2_000 if replan_every == 1 else 10_000
 
 
-def opponent_rows(num_envs: int = 64, calls: int = 30) -> Iterator[dict[str, Any]]:
+def opponent_rows(num_envs: int = 64, calls: int = 30, opponents: tuple[str, ...] = OPPONENTS
+                  ) -> Iterator[dict[str, Any]]:
     """The vectorised env at ``num_envs`` races against each of :data:`OPPONENTS`, re-planning
     every step and every 5 steps (:data:`REPLAN_EVERY`; the scripted driver does not plan, so
     it has one row). The learner coasts (zero action), so the rate is the opponent's. Each
     row also reports the opponents' converged share and median iterations per re-plan."""
-    for spec in OPPONENTS:
+    for spec in opponents:
         for every in REPLAN_EVERY if spec != "lane-keeping" else (1,):
             full = spec if every == 1 else f"{spec}{',' if ':' in spec else ':'}replan_every={every}"
             envs = _vector_env(num_envs, [full])
@@ -127,9 +129,50 @@ def opponent_rows(num_envs: int = 64, calls: int = 30) -> Iterator[dict[str, Any
             yield row
 
 
+#: (opponent spec, target steps/s) of the training rows.
+TRAINING_OPPONENTS = (("lane-keeping", 5_000), ("ilqgame-fb", 1_500), ("ilqgame-fb:replan_every=5", 1_500))
+#: (label, envs, vector) of the training paths: today's copies in a DummyVecEnv and the vectorised race.
+TRAINING_PATHS = (("dummy_vec_env", 2, False), ("vector_env", 64, True))
+
+
+def training_row(opponent: str, path: str, envs: int, vector: bool, rollouts: int = 2,
+                 target: float | None = None) -> dict[str, Any]:
+    """SB3 PPO training steps per second on the trefoil against ``opponent``: the run's
+    training env (:func:`experiments.rl.train.make_training_env`) under ``VecNormalize``, with
+    the PPO settings ``racing train`` gives ``envs`` copies; a first rollout and update
+    (compiling the race and the opponent's solver) are timed apart, then ``rollouts`` more."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from experiments.rl.train import TrainConfig, make_training_env, model_settings
+
+    config = TrainConfig(opponents=(opponent,), envs=envs, vector=vector, seed=0)
+    venv = VecNormalize(make_training_env(config))
+    settings = model_settings(config)
+    rollout = settings.get("n_steps", 2048) * envs
+    model = PPO("MlpPolicy", venv, seed=0, verbose=0, **settings)
+    start = time.perf_counter()
+    model.learn(total_timesteps=rollout)
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    model.learn(total_timesteps=rollouts * rollout, reset_num_timesteps=False)
+    seconds = time.perf_counter() - start
+    venv.close()
+    return {"name": f"ppo_{opponent}_{path}", "opponent": opponent, "envs": envs, "vector": vector,
+            "steps_per_s": rollouts * rollout / seconds, "steps": rollouts * rollout,
+            "first_rollout_s": compile_s, "target_steps_per_s": target if vector else None}
+
+
+def training_rows() -> Iterator[dict[str, Any]]:
+    for opponent, target in TRAINING_OPPONENTS:
+        for path, envs, vector in TRAINING_PATHS:
+            yield training_row(opponent, path, envs, vector, target=target)
+
+
 def bench_rl() -> Iterator[dict[str, Any]]:
     """The rows of ``racing bench --only rl`` (module docstring)."""
     baseline = pettingzoo_row()
     yield baseline
     yield from vector_rows(baseline["steps_per_s"])
     yield from opponent_rows()
+    yield from training_rows()

@@ -242,3 +242,18 @@ def test_open_loop_from_feedback_rows_start_from_each_scenes_feedback_solution()
     assert ol_fb["iterations"] == alone["iterations"] == [int(r.iterations) for r in singles]
     assert ol_fb["status"] == alone["status"] == [ilq.status_message(r.status) for r in singles]
     assert fb["iterations"] != ol_fb["iterations"]  # the rows are two different solves
+
+
+def test_rl_rows_measure_the_vectorised_env_and_its_opponents():
+    from experiments import bench_rl
+
+    baseline = bench_rl.pettingzoo_row(steps=20, repeats=1)
+    assert baseline["steps_per_s"] > 0
+    rows = list(bench_rl.vector_rows(baseline["steps_per_s"], calls=3, repeats=1, batches=(1, 8)))
+    assert [row["races"] for row in rows] == [1, 8]
+    assert all(row["steps_per_s"] > 0 and row["vs_pettingzoo"] > 0 for row in rows)
+    rows = list(bench_rl.opponent_rows(num_envs=2, calls=2, opponents=("lane-keeping", "ilqgame-fb")))
+    assert [row["replan_every"] for row in rows] == [1, 1, 5]
+    planner = rows[1]
+    assert planner["target_steps_per_s"] == 2_000 and 0.0 <= planner["converged_share"] <= 1.0
+    assert planner["iterations_median"] >= 1
