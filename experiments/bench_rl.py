@@ -96,22 +96,34 @@ def opponent_rows(num_envs: int = 64, calls: int = 30, opponents: tuple[str, ...
                   ) -> Iterator[dict[str, Any]]:
     """The vectorised env at ``num_envs`` races against each of :data:`OPPONENTS`, re-planning
     every step and every 5 steps (:data:`REPLAN_EVERY`; the scripted driver does not plan, so
-    it has one row). The learner coasts (zero action), so the rate is the opponent's. Each
-    row also reports the opponents' converged share and median iterations per re-plan."""
+    it has one row). The learner's car is driven by the lane keeper (its JAX law, outside the
+    timed env step's opponent but inside the timing), so the opponent races a realistic rival
+    as in the tournaments' gauntlets. Each row also reports the opponents' converged share
+    and median iterations per re-plan."""
+    from planners.agents.batched import make_batched_opponent
+
     for spec in opponents:
         for every in REPLAN_EVERY if spec != "lane-keeping" else (1,):
             full = spec if every == 1 else f"{spec}{',' if ':' in spec else ':'}replan_every={every}"
             envs = _vector_env(num_envs, [full])
+            learner = make_batched_opponent("lane-keeping", envs.unwrapped.game, 0, num_envs)
+            everyone = np.ones(num_envs, dtype=bool)
+            learner.reset(everyone, np.arange(num_envs))
+            racing = np.ones((num_envs, 2), dtype=bool)
+
+            def learner_step():
+                actions, _ = learner.act(np.zeros((num_envs, 1), np.float32), envs.unwrapped.state(), racing)
+                return envs.step(actions)
+
             envs.reset(seed=0)
-            coast = np.zeros((num_envs, 2))
             start = time.perf_counter()
             for _ in range(every):  # the first re-plan and the steps that follow it compile
-                envs.step(coast)
+                learner_step()
             compile_s = time.perf_counter() - start
             converged, iterations = [], []
 
             def step(k: int) -> int:
-                infos = envs.step(coast)[4]
+                infos = learner_step()[4]
                 diagnostics = infos.get("opponents", {}).get("car_1", {})
                 if "replanned" in diagnostics:
                     replanned = np.asarray(diagnostics["replanned"], dtype=bool)
@@ -146,6 +158,11 @@ def training_row(opponent: str, path: str, envs: int, vector: bool, rollouts: in
 
     from experiments.rl.train import TrainConfig, make_training_env, model_settings
 
+    import torch
+
+    from experiments.rl.train import TORCH_THREADS
+
+    torch.set_num_threads(TORCH_THREADS)  # as racing train trains
     config = TrainConfig(opponents=(opponent,), envs=envs, vector=vector, seed=0)
     venv = VecNormalize(make_training_env(config))
     settings = model_settings(config)

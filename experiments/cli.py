@@ -128,6 +128,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         import stable_baselines3  # noqa: F401
     except ImportError:
         raise ValueError("racing train needs stable-baselines3: pip install 'racing-games[rl]'") from None
+    if args.vector and not args.subprocesses:  # the vectorised races and the planners' re-plans split over the cores
+        _use_cpu_cores("train")
     from experiments.rl.train import TrainConfig, parse_hyperparameter, parse_reward_weight, run_training
     from planners.agents import split_spec_list
 
@@ -137,7 +139,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     config = TrainConfig(
         opponents=opponents, pool=args.pool, pool_cars=args.pool_cars, algo=args.algo,
         timesteps=args.timesteps, track=args.track, laps=args.laps, race_distance=args.race_distance,
-        max_steps=args.max_steps, start=args.start, seed=args.seed, envs=args.envs, subprocesses=args.subprocesses,
+        max_steps=args.max_steps, start=args.start, seed=args.seed, envs=args.envs, vector=args.vector,
+        subprocesses=args.subprocesses,
         normalize=args.normalize,
         on_off_track=args.off_track, on_collision=args.collision, eval_off_track=args.eval_off_track,
         checkpoint_every=args.checkpoint_every,
@@ -378,10 +381,22 @@ def build_parser() -> argparse.ArgumentParser:
                        "--envs on the grid, the odd ones anywhere); evaluations start on the grid")
     train.add_argument("--seed", type=int, default=0, help="seed of the policy and the start grids (default: 0)")
     train.add_argument("--envs", type=int, default=2,
-                       help="copies of the race stepped side by side; in copy k the learner drives car k mod cars (default: 2)")
+                       help="copies of the race stepped side by side; in copy k the learner drives car k mod cars "
+                       "(default: 2; with --vector, 16 to 256 copies train 3 to 6 times as many steps per second). "
+                       "PPO's defaults follow it: n_steps = 4096/envs (a multiple of 8, 16 to 2048) and batch_size "
+                       "= n_steps*envs/8, so an update trains on about 4096 steps in 8 minibatches whatever --envs "
+                       "is; --hyperparameter n_steps=... or batch_size=... win")
+    train.add_argument("--vector", action=argparse.BooleanOptionalAction, default=True,
+                       help="--vector (default): step the copies as vectorised races, all copies of a learner car "
+                       "and start in one compiled call with batched opponents: use it, with many --envs, "
+                       "wherever it runs. --no-vector: one Gymnasium env per copy (SB3's DummyVecEnv), as "
+                       "slow as --envs single races: for an opponent the batched form cannot drive, or to "
+                       "compare the two. Both race the same episodes (to rounding; a --pool draws its drivers "
+                       "differently); only --vector runs (PPO, A2C) resume exactly where Ctrl-C stopped them")
     train.add_argument("--subprocesses", action="store_true",
-                       help="step each copy of the race in a worker process of its own: against planner "
-                       "opponents their solves then use every core (same results as in one process)")
+                       help="step each copy of the race as a Gymnasium env in a worker process of its own "
+                       "(implies --no-vector): for planner opponents the vectorised races cannot batch, whose "
+                       "solves then use every core (same results as in one process)")
     train.add_argument("--no-normalize", dest="normalize", action="store_false",
                        help="do not normalise observations and rewards (VecNormalize)")
     train.add_argument("--off-track", default="terminate", choices=INCIDENT_CHOICES,
@@ -455,7 +470,7 @@ def build_parser() -> argparse.ArgumentParser:
         "compilation cache, so its compile times are real compilations (unless JAX_COMPILATION_CACHE_DIR is set; "
         "the report names the cache in use). Each row is printed as soon as it is measured; with --json the file "
         "is rewritten after every row, and Ctrl-C stops the run, keeps the rows measured so far (marked "
-        '"interrupted": true) and exits with status 130. Sections: env, solvers, agents (the JSON records each '
+        '"interrupted": true) and exits with status 130. Sections: env, solvers, agents, rl (the JSON records each '
         "section's seconds). Guide: docs/performance.md.",
     )
     bench.add_argument("--only", action="append", help="section(s) to run, e.g. --only env (repeatable or comma-separated)")

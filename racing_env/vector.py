@@ -12,7 +12,8 @@ the race core (:mod:`racing_env.race`). Observations are ``(B, O)`` float32, act
 normalised jerks (clipped to ``[-1, 1]``), rewards ``(B,)`` and the flags ``(B,)`` bool.
 
 Opponents, one per opponent car (in car order, skipping the learner; one entry is reused for
-every opponent car): ``None`` (a coasting car), an agent spec (``"lane-keeping"``,
+every opponent car; an agent's actions are rounded to float32, as the single agents round
+theirs): ``None`` (a coasting car), an agent spec (``"lane-keeping"``,
 ``"ilqgame-fb:replan_every=5"``, ``"rl:PATH"``, ...), a list of specs (a pool: each race draws
 its driver at every reset), or an object with the batched opponent interface
 (:class:`planners.agents.batched.BatchedOpponent`). Specs are made by
@@ -277,6 +278,13 @@ class RaceVectorEnv(VectorEnv):
         infos.update({key: value & mask for key, value in infos.items() if key.startswith("_")})
         return obs, infos
 
+    def state(self) -> np.ndarray:
+        """The joint states of the races, ``(B, N, 6)`` (a copy), as
+        :meth:`racing_env.RacingParallelEnv.state` gives one race's."""
+        if self._state is None:
+            raise RuntimeError("call reset() first")
+        return np.array(self._state.x)
+
     def _checked_actions(self, actions: Any) -> np.ndarray:
         """The learner's actions as ``(B, 2)`` float64; raises before anything changes."""
         if self._state is None:
@@ -313,7 +321,8 @@ class RaceVectorEnv(VectorEnv):
             obs_all = np.asarray(self._obs_all)
             for j in self._host_cars:
                 act, diag = self.opponents[j].act(obs_all[:, j], x, racing)
-                all_actions[:, j] = act
+                # an agent's actions are float32 (planners.agents.BaseAgent), a plain callable's as given
+                all_actions[:, j] = act if isinstance(self.opponents[j], _LoopedCallable) else np.float32(act)
                 diagnostics[agent_name(j)] = {k: np.asarray(v) for k, v in diag.items()}
         out = self._step(self._state, all_actions, resetting, x0, self._constants)
         self._state, self._obs_all, obs, reward, ints, floats, final = out
@@ -392,14 +401,15 @@ def _restarted(restart: jax.Array, x0: jax.Array, params: RaceParams, fresh: tup
 
 
 def _race_shardings(num_races: int):
-    """``(per_race, replicated)`` shardings that split the races evenly over the local devices
-    of JAX's default backend (on a CPU, one device per core once
-    :func:`planners.devices.use_cpu_cores` ran), or None on one device or when they do not
-    divide ``num_races``. The races never interact, so the split costs no communication."""
+    """``(per_race, replicated)`` shardings that split the races evenly over the local
+    accelerators, or None on one device, on CPUs and when the devices do not divide
+    ``num_races``. The races never interact, so the split needs no communication; on a CPU
+    split into one device per core (:func:`planners.devices.use_cpu_cores`) it made the step
+    slower at every batch size (docs/performance.md), so CPU races stay on one device."""
     from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
     devices = jax.local_devices()
-    if len(devices) < 2 or num_races % len(devices):
+    if len(devices) < 2 or num_races % len(devices) or devices[0].platform == "cpu":
         return None
     mesh = Mesh(np.asarray(devices), ("races",))
     return NamedSharding(mesh, PartitionSpec("races")), NamedSharding(mesh, PartitionSpec())
@@ -433,7 +443,8 @@ def _compile_step(policies: tuple, cars: tuple[int, ...], learner: int, same_ste
     def step(state: RaceState, actions, resetting, x0, constants):
         params = unpack(constants, layout)
         for policy, car in zip(policies, cars):
-            actions = actions.at[:, car].set(jax.vmap(policy)(state.x))
+            # rounded to float32, as the single agents round their actions
+            actions = actions.at[:, car].set(jax.vmap(policy)(state.x).astype(jnp.float32).astype(actions.dtype))
         stepped, obs_all, rewards, terms, truncs, info = jax.vmap(race.step, in_axes=(None, 0, 0, None))(
             None, state, actions, params)
         terminated = terms[:, learner] & state.status.active[:, learner]

@@ -20,13 +20,16 @@ from racing_env.config import RewardConfig
 from interrupting import ctrl_c_when, start_racing
 from planners.agents import SB3Agent, make_agent, vecnormalize_path
 
-# A short race and small PPO rollouts: 2 copies x 256 steps = one update per 512 steps.
+# A short race and small PPO rollouts: 2 copies x 256 steps = one update per 512 steps. The
+# copies are single Gymnasium envs in a DummyVecEnv (vector=False), which these tests reach
+# into (venv.envs) and compare with worker processes; the vectorised races (the default):
+# tests/test_train_vector.py.
 TINY = dict(opponents=("lane-keeping",), timesteps=1024, race_distance=150.0, max_steps=200, envs=2,
-            checkpoint_every=512, eval_every=512, eval_grids=1,
+            vector=False, checkpoint_every=512, eval_every=512, eval_grids=1,
             hyperparameters=(("n_steps", 256), ("batch_size", 64), ("n_epochs", 2)))
 TINY_ARGS = ["train", "--race-distance", "150", "--max-steps", "200", "--eval-grids", "1",
              "--hyperparameter", "n_steps=256", "--hyperparameter", "batch_size=64",
-             "--hyperparameter", "n_epochs=2", "--no-compile-cache"]
+             "--hyperparameter", "n_epochs=2", "--no-compile-cache", "--no-vector"]
 
 
 def _policy_parameters(path):

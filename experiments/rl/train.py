@@ -4,7 +4,10 @@ The learner drives one car of the Gymnasium view (:class:`racing_env.single_agen
 against agent specs (``lane-keeping``, ``ilqgame-fb``, ``rl:path.zip``, ...) on seeded rolling
 grids, or alone (a time trial, ``opponents=()``). ``envs`` copies of the race run side by
 side, the learner driving car ``copy % cars`` in each; every episode draws its own grid
-order, so the learner starts both in front and behind. Observations (and rewards) are
+order, so the learner starts both in front and behind. The copies are stepped by the
+vectorised race (:class:`experiments.rl.vec_env.RaceVecEnv`, all copies in a few compiled
+calls) unless ``vector=False`` or ``subprocesses``, which step one Gymnasium env per copy
+(SB3's ``DummyVecEnv`` / ``SubprocVecEnv``). Observations (and rewards) are
 normalised by SB3's ``VecNormalize`` unless ``normalize=False``; its statistics
 are saved beside every model, where :class:`planners.agents.SB3Agent` finds them.
 
@@ -21,7 +24,8 @@ Output folder::
     train.json            configuration, status, timesteps, wall time, final evaluation
     model.zip             the final policy (+ model.vecnormalize.pkl): ``rl:OUT/model.zip``
     init_model_widened.zip  (+ statistics) an init_model of fewer cars, widened for this race
-    checkpoints/          step_<timesteps>.zip (+ .vecnormalize.pkl, + .replay_buffer.pkl for the latest)
+    checkpoints/          step_<timesteps>.zip (+ .vecnormalize.pkl; for the latest, + .replay_buffer.pkl
+                          (off-policy) or + .resume.pkl (the races in flight, the random states))
     episodes.jsonl        one line per finished training episode
     evaluations.jsonl     one line per evaluation
     learning_curve.png    episode return and evaluation results against timesteps
@@ -33,9 +37,12 @@ Output folder::
 from __future__ import annotations
 
 import ast
+import copy as copying
 import dataclasses
 import inspect
 import json
+import pickle
+import random
 import re
 import signal
 import time
@@ -70,7 +77,7 @@ IMITATION_ALGOS = ("ppo", "a2c")  # actor-critics with a Gaussian policy, which 
 DEMONSTRATION_SEED = 2_000_000
 _CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
 # the fields of TrainConfig that may change between a run and its resumption
-_RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses")
+_RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses", "vector")
 # the fields of TrainConfig that do not change how the imitated expert drives: demonstrations
 # saved by a run that differed only in these are reused (``demonstrations_source``)
 _NOT_IN_DEMONSTRATIONS = _RESUMABLE_CHANGES + ("imitate_episodes", "imitate_spread", "algo", "hyperparameters",
@@ -78,7 +85,7 @@ _NOT_IN_DEMONSTRATIONS = _RESUMABLE_CHANGES + ("imitate_episodes", "imitate_spre
 TRAINING_STARTS = ("grid", "anywhere", "mixed")  # where training episodes may start (TrainConfig.start)
 # fields added to TrainConfig after runs were saved, with the value those runs had
 _ADDED_LATER = {"start": "grid", "imitate": None, "imitate_episodes": 20, "imitate_noise": 0.2,
-                "imitate_spread": None}
+                "imitate_spread": None, "vector": False}
 # steps (all copies) over which a widened init_model's new observation features are measured
 WIDENING_MEASURE_STEPS = 2048
 EVALUATION_RULE = "penalty"  # what contact (and, unless eval_off_track is set, leaving the track) does in evaluations
@@ -112,10 +119,18 @@ class TrainConfig(RaceSpec):
             ones anywhere. Evaluations always start on the grid.
         seed: seeds the policy, the start grids and the evaluation grids.
         envs: copies of the race stepped side by side; in copy ``k`` the learner drives car
-            ``k % N``.
-        subprocesses: step each copy in a worker process of its own (``SubprocVecEnv``),
-            worth it against planner opponents, whose solves then run on several cores;
-            the results are the same as in one process.
+            ``k % N``. PPO's rollout and minibatch sizes follow it unless given
+            (:func:`default_hyperparameters`).
+        vector: step the copies with the vectorised race (:class:`experiments.rl.vec_env.RaceVecEnv`:
+            the copies of each learner car and start scenario in one compiled call, the
+            opponents batched), the fast way for many copies; False: one Gymnasium env per
+            copy in a ``DummyVecEnv``, for opponents the batched form cannot drive. The
+            copies' episodes are the same either way (to a few ulps; a pool draws its
+            drivers differently), as is the model's interface. Ignored with ``subprocesses``.
+        subprocesses: step each copy in a worker process of its own (``SubprocVecEnv``, one
+            Gymnasium env per copy, whatever ``vector`` says), worth it against planner
+            opponents that the vectorised race cannot batch, whose solves then run on
+            several cores; the results are the same as in one process.
         normalize: train under ``VecNormalize`` (observations and rewards).
         on_off_track / on_collision: the training race's incident rules
             (:data:`racing_env.config.INCIDENT_MODES`). ``terminate`` off track (the default)
@@ -132,7 +147,8 @@ class TrainConfig(RaceSpec):
         reward: weights of the training race's reward terms that differ from
             :class:`racing_env.config.RewardConfig`'s defaults, e.g. ``(("position", 0.05),)``.
         hyperparameters: keyword arguments of the SB3 algorithm, e.g.
-            ``(("n_steps", 1024), ("learning_rate", 1e-4))``.
+            ``(("n_steps", 1024), ("learning_rate", 1e-4))``; they win over
+            :func:`default_hyperparameters`.
         init_model: a saved model of the same algorithm to train further (its VecNormalize
             statistics too), e.g. one trained against the fast lane keeper, before a planner
             opponent; ``None`` starts from a fresh policy. A model of a race with fewer cars
@@ -161,6 +177,7 @@ class TrainConfig(RaceSpec):
     start: str = "grid"
     seed: int = 0
     envs: int = 2
+    vector: bool = True
     subprocesses: bool = False
     normalize: bool = True
     on_off_track: str = "terminate"
@@ -200,6 +217,9 @@ class TrainConfig(RaceSpec):
             if self.imitate_spread is not None and not 0.0 < self.imitate_spread < np.inf:
                 raise ValueError(f"imitate_spread must be a finite standard deviation > 0 (or None: the "
                                  f"imitate_noise), got {self.imitate_spread!r}")
+        for name in ("vector", "subprocesses", "pool", "normalize"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         for name in ("timesteps", "envs", "eval_grids", "imitate_episodes"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
@@ -225,6 +245,11 @@ class TrainConfig(RaceSpec):
                 raise ValueError(f"{self.algo} has no hyperparameter {name!r}; it takes {sorted(known)}")
         for copy in range(min(self.envs, 2)):  # the race of every start the copies use (its own limits)
             self.race_config(copy=copy)
+
+    @property
+    def vectorised(self) -> bool:
+        """Whether the copies are stepped by the vectorised race (``vector`` without ``subprocesses``)."""
+        return self.vector and not self.subprocesses
 
     @property
     def cars(self) -> int:
@@ -268,6 +293,37 @@ class TrainConfig(RaceSpec):
         # the tournaments' rules: incidents penalised, not retiring, unless eval_off_track says otherwise
         return self.to_race_config(self.cars, "grid", on_collision=EVALUATION_RULE,
                                    on_off_track=self.eval_off_track or EVALUATION_RULE)
+
+
+PPO_ROLLOUT = 4096
+"""Samples per PPO update by default (``n_steps * envs``): SB3's ``n_steps=2048`` for the
+default 2 copies, kept for any number of copies so that a step of the policy is trained on
+as often whatever ``envs`` is."""
+PPO_MINIBATCHES = 8
+"""Minibatches per PPO epoch by default: ``batch_size = n_steps * envs / 8`` (512 samples at
+the default rollout), where SB3's ``batch_size=64`` made 64 and the update cost more than
+the races (measured: docs/rl.md)."""
+PPO_MIN_STEPS = 16
+"""The fewest steps per copy in a PPO rollout by default (the generalised advantage
+estimate looks at most this far ahead before it bootstraps from the value)."""
+
+
+def default_hyperparameters(algo: str, envs: int) -> dict[str, Any]:
+    """The SB3 settings a run of ``algo`` over ``envs`` copies gets unless its
+    ``hyperparameters`` give them: for PPO ``n_steps`` (steps per copy per rollout, a
+    multiple of 8 in ``[PPO_MIN_STEPS, 2048]``, about ``PPO_ROLLOUT / envs``) and
+    ``batch_size`` (a ``PPO_MINIBATCHES``-th of the rollout, which it divides). Other
+    algorithms keep SB3's defaults."""
+    if algo != "ppo":
+        return {}
+    n_steps = min(2048, max(PPO_MIN_STEPS, PPO_ROLLOUT // envs // 8 * 8))
+    return {"n_steps": n_steps, "batch_size": n_steps * envs // PPO_MINIBATCHES}
+
+
+def model_settings(config: TrainConfig) -> dict[str, Any]:
+    """The keyword arguments the run's SB3 algorithm is built with: the
+    :func:`default_hyperparameters` for its ``envs``, overridden by its ``hyperparameters``."""
+    return {**default_hyperparameters(config.algo, config.envs), **dict(config.hyperparameters)}
 
 
 def algorithm_parameters(algo: str) -> set[str]:
@@ -371,18 +427,34 @@ class _RaceCopy:
 
 
 def make_training_env(config: TrainConfig):
-    """``config.envs`` monitored copies of the race, the learner as car ``copy % N``, each
-    with opponent agents of its own: a ``DummyVecEnv``, or with ``subprocesses`` a
-    ``SubprocVecEnv`` (one worker process per copy)."""
+    """``config.envs`` monitored copies of the race, the learner as car ``copy % N``: the
+    vectorised race (:func:`make_vector_env`), or with ``vector=False`` a ``DummyVecEnv``
+    of Gymnasium envs, each with opponent agents of its own, or with ``subprocesses`` a
+    ``SubprocVecEnv`` of them (one worker process per copy)."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     from planners.compile_cache import compile_cache_dir
 
+    if config.vectorised:
+        return make_vector_env(config)
     if not config.subprocesses:
         return DummyVecEnv([_RaceCopy(config, k) for k in range(config.envs)])
     cache = compile_cache_dir()
     return _with_float32_rewards(SubprocVecEnv([_RaceCopy(config, k, True, cache) for k in range(config.envs)],
                                                  start_method="spawn"))
+
+
+def make_vector_env(config: TrainConfig):
+    """The ``config.envs`` copies of the training race as one
+    :class:`experiments.rl.vec_env.RaceVecEnv`: copy ``k`` races the learner as car
+    ``k % N`` from the scenario :meth:`TrainConfig.scenario` gives it, against the opponent
+    specs (with ``pool``, every opponent car draws from all of them)."""
+    from experiments.rl.vec_env import RaceVecEnv
+
+    specs = list(config.opponents)
+    opponents = [specs for _ in range(config.cars - 1)] if config.pool else specs
+    races = [(k % config.cars, config.race_config(copy=k)) for k in range(config.envs)]
+    return RaceVecEnv(races, opponents)
 
 
 def _with_float32_rewards(venv):
@@ -411,30 +483,52 @@ def _training_callback(config: TrainConfig, out: Path, console):
     """An SB3 callback that logs finished episodes, and writes checkpoints and evaluates
     right after a policy update (at the start of a rollout), so that a checkpoint's
     timesteps count exactly the steps its policy was trained on. ``updated_at`` is the
-    timesteps of the last update."""
+    timesteps of the last update; ``resume_point`` (on-policy algorithms) the model as it
+    was then (:class:`_ResumePoint`)."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     class Recorder(BaseCallback):
+        rollout_s = 0.0  # wall time collecting rollouts [s]
+        saving_s = 0.0  # wall time in checkpoints and evaluations [s]
+
         def _on_training_start(self) -> None:
             self.updated_at = self.num_timesteps
+            self.resume_point = _resume_point(self.model) if _on_policy(self.model) else None
             self.next_checkpoint = _next_multiple(self.num_timesteps, config.checkpoint_every)
             self.next_eval = _next_multiple(self.num_timesteps, config.eval_every)
 
+        def _resume_state(self) -> dict[str, Any] | None | str:
+            return self.resume_point.state if self.resume_point is not None else _NOW
+
         def _on_rollout_start(self) -> None:
+            began = time.perf_counter()
+            self._save_and_evaluate()
+            self.rollout_began = time.perf_counter()
+            self.saving_s += self.rollout_began - began
+
+        def _on_rollout_end(self) -> None:
+            self.rollout_s += time.perf_counter() - self.rollout_began
+
+        def _save_and_evaluate(self) -> None:
             self.updated_at = self.num_timesteps
+            if _on_policy(self.model):
+                self.resume_point = _resume_point(self.model)
             saved = None
             if self.next_checkpoint is not None and self.num_timesteps >= self.next_checkpoint:
-                saved = checkpoint(self.model, out)
+                saved = checkpoint(self.model, out, self._resume_state())
                 self.next_checkpoint = _next_multiple(self.num_timesteps, config.checkpoint_every)
             if self.next_eval is not None and self.num_timesteps >= self.next_eval:
-                record = evaluate(config, saved or checkpoint(self.model, out), self.num_timesteps)
+                record = evaluate(config, saved or checkpoint(self.model, out, self._resume_state()),
+                                  self.num_timesteps)
                 append_jsonl(out / EVALUATIONS, record)
                 console.print(evaluation_line(record))
                 self.next_eval = _next_multiple(self.num_timesteps, config.eval_every)
 
         def _on_step(self) -> bool:
-            for copy, (done, info) in enumerate(zip(self.locals["dones"], self.locals["infos"])):
-                if done and "episode" in info:
+            infos = self.locals["infos"]
+            for copy in np.flatnonzero(self.locals["dones"]).tolist():
+                info = infos[copy]
+                if "episode" in info:
                     episode = info["episode"]
                     append_jsonl(out / EPISODES, {
                         "timesteps": int(self.num_timesteps), "env": copy, "car": copy % config.cars,
@@ -452,15 +546,147 @@ def _next_multiple(steps: int, every: int) -> int | None:
     return None if every == 0 else (steps // every + 1) * every
 
 
-def checkpoint(model, out: Path) -> Path:
+_NOW = "now"  # checkpoint(): the resume state is the current one
+
+
+def checkpoint(model, out: Path, resume_state: dict[str, Any] | None | str = _NOW) -> Path:
     """Save ``checkpoints/step_<timesteps>.zip`` (with what a resumption needs); only the
-    latest checkpoint keeps an off-policy replay buffer (they are large)."""
+    latest checkpoint keeps an off-policy replay buffer or a resume state (they are large).
+
+    ``resume_state``: the races in flight and random states to resume from
+    (:func:`_resume_state`, taken at the start of the rollout the model's timesteps count
+    to; None: none); default: the current ones, right for a model that has just been updated."""
     path = out / CHECKPOINTS / f"step_{model.num_timesteps:09d}.zip"
+    if resume_state is _NOW:
+        resume_state = _resume_state(model)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if resume_state is not None:
+        replace_atomically(lambda tmp: tmp.write_bytes(pickle.dumps(resume_state)), _resume_path(path))
     save_policy(model, model.get_env(), path, replay_buffer=True)
     for old in (out / CHECKPOINTS).glob("*.replay_buffer.pkl"):
         if old != _replay_buffer_path(path):
             old.unlink()
+    for old in (out / CHECKPOINTS).glob(f"*{RESUME_SUFFIX}"):
+        if resume_state is None or old != _resume_path(path):
+            old.unlink()
     return path
+
+
+# --- exact resumption ---------------------------------------------------------------------------
+# A checkpoint is taken right after a policy update. With the vectorised races and an on-policy
+# algorithm it also keeps the races in flight and the random states (``.resume.pkl``), and a run
+# resumed from it goes on exactly as if it had not stopped. Ctrl-C rewinds the model and the
+# normaliser to the start of the rollout it cut (:class:`_ResumePoint`), so that the checkpoint
+# it writes is that point, whatever the interrupt cut (a rollout, an update, a save).
+RESUME_SUFFIX = ".resume.pkl"
+
+
+def _resume_path(model_path: Path) -> Path:
+    return model_path.with_name(model_path.name[: -len(".zip")] + RESUME_SUFFIX)
+
+
+def _on_policy(model) -> bool:
+    from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+
+    return isinstance(model, OnPolicyAlgorithm)
+
+
+def _resume_state(model) -> dict[str, Any] | None:
+    """What a run resumed from the model's checkpoint needs besides the model and the
+    normaliser's statistics to go on exactly: the races in flight, the normaliser's running
+    returns (B,), the last observations (B, O) and episode starts (B,), Python's, NumPy's and
+    torch's random states. None where it cannot go on exactly (single-env copies, an
+    off-policy algorithm, opponents whose memory is not saved, no rollout collected yet)."""
+    import torch
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from experiments.rl.vec_env import RaceVecEnv
+
+    venv = model.get_env()
+    races = venv.unwrapped
+    if (not _on_policy(model) or not isinstance(races, RaceVecEnv) or not races.exact_state
+            or model._last_obs is None):
+        return None
+    normalizer = venv if isinstance(venv, VecNormalize) else None
+    return {
+        "timesteps": int(model.num_timesteps),
+        "races": races.get_state(),
+        "normalizer": None if normalizer is None else {
+            name: copying.deepcopy(getattr(normalizer, name)) for name in ("returns", "old_obs", "old_reward")},
+        "last_obs": np.array(model._last_obs),
+        "last_episode_starts": np.array(model._last_episode_starts),
+        "random": (random.getstate(), np.random.get_state(), torch.get_rng_state()),
+    }
+
+
+def _restore_resume_state(model, state: dict[str, Any]) -> None:
+    """Put the races, the normaliser's running returns, the last observations and the random
+    states back as :func:`_resume_state` found them (after ``algo.load``, which re-seeds)."""
+    import torch
+
+    venv = model.get_env()
+    venv.unwrapped.set_state(state["races"])
+    if state["normalizer"] is not None:
+        for name, value in state["normalizer"].items():
+            setattr(venv, name, copying.deepcopy(value))
+    model._last_obs = np.array(state["last_obs"])
+    model._last_episode_starts = np.array(state["last_episode_starts"])
+    python, numpy, torch_state = state["random"]
+    random.setstate(python)
+    np.random.set_state(numpy)
+    torch.set_rng_state(torch_state)
+
+
+@dataclasses.dataclass
+class _ResumePoint:
+    """An on-policy model at the start of a rollout, right after its update: what Ctrl-C
+    rewinds to. ``policy``/``optimizer``: state dicts (copies); ``statistics``: the
+    normaliser's ``obs_rms`` and ``ret_rms`` (copies, None without one); ``state``:
+    :func:`_resume_state`."""
+
+    timesteps: int
+    n_updates: int
+    policy: dict[str, Any]
+    optimizer: dict[str, Any]
+    statistics: dict[str, Any] | None
+    state: dict[str, Any] | None
+
+
+def _resume_point(model) -> _ResumePoint:
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    venv = model.get_env()
+    statistics = ({name: copying.deepcopy(getattr(venv, name)) for name in ("obs_rms", "ret_rms")}
+                  if isinstance(venv, VecNormalize) else None)
+    return _ResumePoint(int(model.num_timesteps), int(getattr(model, "_n_updates", 0)),
+                        copying.deepcopy(model.policy.state_dict()),
+                        copying.deepcopy(model.policy.optimizer.state_dict()), statistics, _resume_state(model))
+
+
+def _rewind(model, point: _ResumePoint) -> None:
+    """Put the model and its normaliser's statistics back to ``point`` (the races are not:
+    the checkpoint takes them from ``point.state``)."""
+    model.policy.load_state_dict(point.policy)
+    model.policy.optimizer.load_state_dict(point.optimizer)
+    model.num_timesteps = point.timesteps
+    if hasattr(model, "_n_updates"):
+        model._n_updates = point.n_updates
+    if point.statistics is not None:
+        for name, value in point.statistics.items():
+            setattr(model.get_env(), name, copying.deepcopy(value))
+
+
+def _saved_resume_state(config: TrainConfig, model, path: Path) -> dict[str, Any] | None:
+    """The resume state saved with the checkpoint ``path``, if this run can go on from it
+    (the vectorised races, an on-policy algorithm); else None."""
+    from experiments.rl.vec_env import RaceVecEnv
+
+    saved = _resume_path(path)
+    if not (saved.exists() and config.vectorised and _on_policy(model)
+            and isinstance(model.get_env().unwrapped, RaceVecEnv)):
+        return None
+    state = pickle.loads(saved.read_bytes())
+    return state if state["timesteps"] == model.num_timesteps else None
 
 
 def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] | None):
@@ -471,7 +697,8 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
 
     algo = getattr(sb3, config.algo.upper())
     venv = make_training_env(config)
-    hyperparameters = dict(config.hyperparameters)
+    hyperparameters = dict(config.hyperparameters)  # the user's, named in errors
+    settings = model_settings(config)
     if resume_from is not None:
         steps, path = resume_from
         if config.normalize:
@@ -479,12 +706,16 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
         model = algo.load(path, env=venv, device="cpu")
         if _replay_buffer_path(path).exists():
             model.load_replay_buffer(_replay_buffer_path(path))
-        venv.seed(config.seed + steps)  # the resumed episodes start from grids of their own
+        state = _saved_resume_state(config, model, path)
+        if state is not None:  # the races go on where they were, with the random states of then
+            _restore_resume_state(model, state)
+        else:
+            venv.seed(config.seed + steps)  # the resumed episodes start from grids of their own
         return model
     if config.init_model is None:
         try:
             return algo("MlpPolicy", VecNormalize(venv) if config.normalize else venv, seed=config.seed,
-                        device="cpu", verbose=0, **hyperparameters)
+                        device="cpu", verbose=0, **settings)
         except (TypeError, ValueError, AssertionError) as err:
             if not hyperparameters and isinstance(err, TypeError):
                 raise  # not a setting of the user's: a bug, keep its traceback
@@ -505,7 +736,7 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
         if config.normalize:
             venv = (VecNormalize.load(str(stats), venv) if widening is None
                     else widen_normalizer(stats, venv, widening))
-        model = algo.load(init_model, env=venv, device="cpu", **hyperparameters)
+        model = algo.load(init_model, env=venv, device="cpu", **settings)
     except (TypeError, ValueError, AssertionError, KeyError, AttributeError) as err:  # e.g. a PPO zip for SAC
         raise ValueError(f"{config.algo} cannot train {config.init_model} further in this race "
                          f"(hyperparameters {hyperparameters}): {err}") from err
@@ -547,7 +778,8 @@ def _demonstrations(config: TrainConfig, path: Path, console, progress: bool) ->
         replace_atomically(so_far.save, path)
         kept[0] = so_far.episodes
 
-    envs = [_RaceCopy(config, copy)() for copy in range(config.envs)]
+    # episode k is driven in copy k % envs: the first imitate_episodes copies are all it needs
+    envs = [_RaceCopy(config, copy)() for copy in range(min(config.envs, config.imitate_episodes))]
     try:
         return collect_demonstrations(envs, make_agent(config.imitate), config.imitate_episodes,
                                       DEMONSTRATION_SEED + 10_000 * config.seed, config.imitate_noise, progress,
@@ -593,15 +825,36 @@ def _init_model_widening(config: TrainConfig, saved, venv) -> Widening | None:
                                 race.num_agents, len(race.preview_distances))
 
 
+TORCH_THREADS = 1
+"""torch's threads while training. The policy's networks are small: on 2 cores one thread
+updates PPO as fast as two, and when another process keeps a core busy two threads
+contending for the one left made PPO's updates about 17 times slower (docs/rl.md)."""
+
+
 def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) into ``out``; returns the report also written to ``train.json``
-    (``"status"``: ``completed`` or ``interrupted``, the latter after Ctrl-C, not raised)."""
+    (``"status"``: ``completed`` or ``interrupted``, the latter after Ctrl-C, not raised).
+    torch runs on :data:`TORCH_THREADS` threads meanwhile (restored after)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(TORCH_THREADS)
+    try:
+        return _run_training(config, out, fresh, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _run_training(config: TrainConfig, out: Path, fresh: bool, progress: bool) -> dict[str, Any]:
     import shutil
 
     from rich.console import Console
 
     console = Console(stderr=True)
     check_specs(config.opponents + ((config.imitate,) if config.imitate else ()))
+    if config.subprocesses and config.vector:
+        console.print("subprocesses: each copy of the race is a Gymnasium env in a worker process of its own; the "
+                      "vectorised races are not used")
     config_path = out / CONFIG
     if fresh and out.exists():
         for name in (CONFIG, EPISODES, EVALUATIONS, MODEL, WIDENED_MODEL, "learning_curve.png", DEMONSTRATIONS,
@@ -622,6 +875,8 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     out.mkdir(parents=True, exist_ok=True)
     report: dict[str, Any] = {"config": wanted, "status": "running", "timesteps": 0}
     model = _build_model(config, out, resume_from)
+    report["model_settings"] = {name: getattr(model, name) for name in model_settings(config)
+                                if isinstance(getattr(model, name, None), (int, float, str, bool))}
     if resume_from is not None:
         console.print(f"resuming from {resume_from[1]} ({resume_from[0]:,} of {config.timesteps:,} steps)")
         _drop_episodes_after(out, resume_from[0])
@@ -639,11 +894,14 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     remaining = config.timesteps - model.num_timesteps
     started = time.perf_counter()
     recorder = _training_callback(config, out, console)
+    first_step = model.num_timesteps
     try:
         if remaining > 0:
             with warnings.catch_warnings():  # SB3's progress bar is tqdm's rich bar, which calls itself experimental
                 warnings.filterwarnings("ignore", message="rich is experimental")
                 model.learn(remaining, callback=recorder, reset_num_timesteps=False, progress_bar=progress)
+            report["learn"] = _learn_timing(recorder, model.num_timesteps - first_step,
+                                            time.perf_counter() - started)
             recorder.updated_at = model.num_timesteps  # learn ends with an update
             checkpoint(model, out)  # so that running the command again finds the run complete
         save_policy(model, model.get_env(), out / MODEL)
@@ -655,8 +913,13 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
         report["status"] = "completed"
     except KeyboardInterrupt:
         # the steps collected since the last update are not trained on: they are collected again
-        model.num_timesteps = getattr(recorder, "updated_at", model.num_timesteps)
-        checkpoint(model, out)
+        point = getattr(recorder, "resume_point", None)
+        if point is not None:  # back to the last update, whatever the interrupt cut (a rollout, an update)
+            _rewind(model, point)
+            checkpoint(model, out, point.state)
+        else:
+            model.num_timesteps = getattr(recorder, "updated_at", model.num_timesteps)
+            checkpoint(model, out)
         _drop_episodes_after(out, model.num_timesteps)
         report["status"] = "interrupted"
         console.print(f"interrupted at {model.num_timesteps:,} steps: checkpoint saved; run the same command "
@@ -677,6 +940,16 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
         console.print(f"wrote {out / MODEL} (race it: racing tournament {race_it}), "
                       f"{out / 'learning_curve.png'}, {out / EVALUATIONS}")
     return report
+
+
+def _learn_timing(recorder, steps: int, wall_s: float) -> dict[str, float]:
+    """Where the wall time of ``model.learn`` went [s]: collecting rollouts (races and the
+    policy's actions), checkpoints and evaluations, and the rest, the policy updates; and
+    the ``steps`` trained per second."""
+    saving = recorder.saving_s
+    return {"steps": steps, "wall_s": wall_s, "steps_per_s": steps / wall_s if wall_s > 0 else 0.0,
+            "rollout_s": recorder.rollout_s, "checkpoints_evaluations_s": saving,
+            "update_s": max(0.0, wall_s - recorder.rollout_s - saving)}
 
 
 def _close(venv, interrupted: bool) -> None:
