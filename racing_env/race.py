@@ -179,7 +179,7 @@ def check_starts_behind(finish_s: float, x0: np.ndarray, scenario: str) -> None:
         )
 
 
-def _start_grid(config: RaceConfig, track: Track, game: RaceGame) -> StartGrid:
+def _start_grid(config: RaceConfig, track: Track) -> StartGrid:
     """The :class:`StartGrid` of the config's scenario (``grid``, ``paper``, ``side_by_side``);
     for ``anywhere`` (not drawn in JAX) the unjittered grid, which :func:`draw_start` refuses."""
     from racing_env.scenarios import FIXED_STARTS, make_scenario
@@ -203,7 +203,7 @@ def race_params(config: RaceConfig, track: Track, game: RaceGame, finish_s: floa
         preview=np.asarray(config.preview_distances, dtype=np.float64),
         rules=race_rules(config),
         max_steps=np.int32(config.max_steps),
-        grid=_start_grid(config, track, game),
+        grid=_start_grid(config, track),
     )
 
 

@@ -129,6 +129,24 @@ def make_opponent(opponent: Any, game, index: int, num_races: int):
                      f"opponent or a callable policy(observation, joint_state); got {opponent!r}")
 
 
+def _opponent_cars(opponents: Sequence[Any] | None, learner: int, config: dict[str, Any]
+                   ) -> tuple[int, list[tuple[int, Any]]]:
+    """The number of cars N (``config``'s ``num_agents``, popped, else one more than the
+    opponents) and ``(car, opponent entry)`` for every car but the learner's, in car order:
+    one entry per opponent car, one entry for all, or None (coasting cars)."""
+    opponents = None if opponents is None else list(opponents)
+    num = int(config.pop("num_agents", 2 if opponents is None else len(opponents) + 1))
+    if opponents is None:
+        opponents = [None] * (num - 1)
+    if len(opponents) == 1 and num > 2:
+        opponents = opponents * (num - 1)
+    if len(opponents) != num - 1:
+        raise ValueError(f"need {num - 1} opponents for {num} cars, got {len(opponents)}")
+    if not 0 <= learner < num:
+        raise ValueError(f"learner must be a car index in [0, {num - 1}], got {learner}")
+    return num, list(zip([j for j in range(num) if j != learner], opponents))
+
+
 class RaceVectorEnv(VectorEnv):
     """B races of one learner (``car_<learner>``) against opponents, stepped in one compiled call.
 
@@ -170,23 +188,13 @@ class RaceVectorEnv(VectorEnv):
         self.num_envs = int(num_envs)
         self.autoreset_mode = modes[autoreset_mode]
         self.metadata = {"autoreset_mode": self.autoreset_mode}
-        opponents = None if opponents is None else list(opponents)
-        num = int(config.pop("num_agents", 2 if opponents is None else len(opponents) + 1))
-        if opponents is None:
-            opponents = [None] * (num - 1)
-        if len(opponents) == 1 and num > 2:
-            opponents = opponents * (num - 1)
-        if len(opponents) != num - 1:
-            raise ValueError(f"need {num - 1} opponents for {num} cars, got {len(opponents)}")
-        if not 0 <= learner < num:
-            raise ValueError(f"learner must be a car index in [0, {num - 1}], got {learner}")
+        num, drivers = _opponent_cars(opponents, learner, config)
         # one race built the usual way: its checks, its game and its params serve every race
         self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
         self.config, self.game, self.params = self.race.config, self.race.game, self.race.params
         self.learner = int(learner)
         self.num_cars = num
-        cars = [j for j in range(num) if j != self.learner]
-        self.opponents = {j: make_opponent(o, self.game, j, self.num_envs) for j, o in zip(cars, opponents)}
+        self.opponents = {j: make_opponent(o, self.game, j, self.num_envs) for j, o in drivers}
         self._jax_cars = tuple(j for j, o in self.opponents.items() if o.jax_policy is not None)
         self._host_cars = tuple(j for j, o in self.opponents.items() if o.jax_policy is None)
         learner_agent = agent_name(self.learner)
@@ -500,23 +508,14 @@ class GymnaxRace:
     """
 
     def __init__(self, opponents: Sequence[Any] | None = None, learner: int = 0, **config: Any) -> None:
-        opponents = None if opponents is None else list(opponents)
-        num = int(config.pop("num_agents", 2 if opponents is None else len(opponents) + 1))
         if config.get("scenario", "grid") not in ("grid", "paper", "side_by_side"):
             raise ValueError(f"GymnaxRace draws starts in JAX for scenarios grid, paper and side_by_side, "
                              f"not {config['scenario']!r}")
+        num, drivers = _opponent_cars(opponents, learner, config)
         self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
         self.learner = int(learner)
-        if not 0 <= self.learner < num:
-            raise ValueError(f"learner must be a car index in [0, {num - 1}], got {learner}")
-        opponents = [None] * (num - 1) if opponents is None else opponents
-        if len(opponents) == 1 and num > 2:
-            opponents = opponents * (num - 1)
-        if len(opponents) != num - 1:
-            raise ValueError(f"need {num - 1} opponents for {num} cars, got {len(opponents)}")
-        cars = [j for j in range(num) if j != self.learner]
         self._policies = []
-        for car, opponent in zip(cars, opponents):
+        for car, opponent in drivers:
             if isinstance(opponent, str):
                 opponent = make_opponent(opponent, self.race.game, car, 1)
             policy = getattr(opponent, "jax_policy", opponent) if opponent is not None else coasting
