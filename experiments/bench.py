@@ -675,8 +675,41 @@ def bench_rl() -> Iterator[dict[str, Any]]:
     return rl.bench_rl()
 
 
+def bench_certificates(rounds: int = 7, cars: tuple[int, ...] = (2, 3)) -> Iterator[dict[str, Any]]:
+    """The cost of a certificate (:func:`planners.certificates.certify`) beside the cost of a solve.
+
+    Per number of cars (the scenes of :func:`_solver_game`) and mode: a cold solve (zero
+    inputs) to convergence, the cheap certificate (gradients, dense own-input Hessians, the
+    stage-wise condition for feedback) and the full one (plus the best-response iLQR
+    solves) of that solution, timed in turns (:func:`_interleaved_calls`); milliseconds per
+    call, the full certificate's ratio to the solve, the verdict, and the compile seconds of
+    the certificates' first calls (a mode's second row re-uses what the first compiled for
+    the same shapes).
+    """
+    from planners import ilq
+    from planners.certificates import certify
+
+    for num in cars:
+        game, x0 = _solver_game(num)
+        for mode in ("open_loop", "feedback"):
+            solution = ilq.solve(game, x0, mode=mode)
+            calls = {
+                "solve": lambda: ilq.solve(game, x0, mode=mode).us,
+                "cheap": lambda: certify(game, x0, solution, mode, checks="cheap").numbers.cost,
+                "full": lambda: certify(game, x0, solution, mode).numbers.cost,
+            }
+            timed = _interleaved_calls(calls, rounds)
+            yield {"name": f"certificate_{mode}_N{num}_T{game.horizon}",
+                   "ms_solve": 1e3 * timed.median_s("solve"), "ms_cheap": 1e3 * timed.median_s("cheap"),
+                   "ms_full": 1e3 * timed.median_s("full"),
+                   "full_over_solve": timed.median_s("full") / timed.median_s("solve"),
+                   "compile_s": timed.compile_s("cheap") + timed.compile_s("full"),
+                   "verdict": certify(game, x0, solution, mode).verdict}
+
+
 SECTIONS: dict[str, Callable[[], Iterator[dict[str, Any]]]] = {
-    "env": bench_env, "solvers": bench_solvers, "agents": bench_agents, "rl": bench_rl}
+    "env": bench_env, "solvers": bench_solvers, "agents": bench_agents, "rl": bench_rl,
+    "certificates": bench_certificates}
 
 
 _FIGURE_KEYS = ("steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95",

@@ -1,4 +1,4 @@
-"""The `racing` command line: demo, agents, paper, tournament, convergence, train, sweep, bench.
+"""The `racing` command line: demo, agents, paper, equilibria, tournament, convergence, train, sweep, bench.
 
 Each command's code is imported only when it runs: the RL layer (:mod:`experiments.rl`, torch
 and stable-baselines3) only by ``racing train``. Guide: README.md and docs/.
@@ -41,6 +41,16 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     from experiments.paper import run_paper
 
     run_paper(Path(args.out))
+    return 0
+
+
+def _cmd_equilibria(args: argparse.Namespace) -> int:
+    from experiments.equilibria import EquilibriaConfig, run_equilibria
+
+    config = EquilibriaConfig(scene=args.scene, track=args.track, cars=args.cars, jerk_weight=args.jerk_weight,
+                              modes=tuple(args.modes), solver=args.solver, starts=args.starts, seed=args.seed,
+                              cluster_tolerance=args.cluster_tolerance)
+    run_equilibria(config, Path(args.out))
     return 0
 
 
@@ -253,6 +263,37 @@ def build_parser() -> argparse.ArgumentParser:
         "which the compilation cache saves on the next run. Guide: docs/experiments/paper.md.")
     paper.add_argument("--out", default="runs/paper", help="output folder (default: runs/paper)")
     paper.set_defaults(func=_cmd_paper)
+
+    equilibria = sub.add_parser(
+        "equilibria", parents=[cache],
+        help="the equilibrium landscape of a scene: multi-start solves, clustered and certified (table, JSON, PNG)",
+        description="Solve one scene from --starts initial input sequences per solver mode (zero inputs, lane-change "
+        "pulses of every combination of cars, then seeded random inputs), as one batch; group the converged "
+        "solutions that agree within --cluster-tolerance, and certify each distinct solution as a local Nash "
+        "equilibrium, a saddle (some player gains by deviating alone) or not stationary, with the numbers behind "
+        "it (own-input Hessian eigenvalues, best-response gains). Writes OUT/equilibria.json (after each mode) and "
+        "OUT/equilibria.png (every distinct solution in the s-n plane with its share of the starts and its "
+        "verdict). Guide: docs/solvers.md (Equilibrium landscapes).")
+    equilibria.add_argument("--scene", choices=["paper", "grid", "side_by_side"], default="paper",
+                            help="paper: the paper's overtaking scene (default); grid, side_by_side: --cars cars "
+                            "on --track")
+    equilibria.add_argument("--track", default="trefoil", help="track name or TUMFTM CSV path for grid and "
+                            "side_by_side (default: trefoil)")
+    equilibria.add_argument("--cars", type=int, default=2, help="cars in grid and side_by_side scenes (default: 2)")
+    equilibria.add_argument("--jerk-weight", type=float, default=None,
+                            help="every car's jerk weight r for grid and side_by_side (default: CostWeights' 1)")
+    equilibria.add_argument("--modes", nargs="+", choices=["open_loop", "feedback"], default=["open_loop", "feedback"],
+                            help="solver modes (default: open_loop feedback)")
+    equilibria.add_argument("--solver", choices=["default", "paper"], default="default",
+                            help="default: the solver's defaults; paper: the paper's algorithm as printed (exact "
+                            "Hessians, fixed step 0.1, up to 1000 iterations)")
+    equilibria.add_argument("--starts", type=int, default=64, help="initial guesses per mode (default: 64)")
+    equilibria.add_argument("--seed", type=int, default=0, help="seed of the random guesses (default: 0)")
+    equilibria.add_argument("--cluster-tolerance", type=float, default=0.05,
+                            help="solutions whose trajectories agree within this much in every state entry are one "
+                            "(state units: m, m/s, rad; default: 0.05)")
+    equilibria.add_argument("--out", default="runs/equilibria", help="output folder (default: runs/equilibria)")
+    equilibria.set_defaults(func=_cmd_equilibria)
 
     tour = sub.add_parser(
         "tournament", parents=[cache, backends],

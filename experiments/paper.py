@@ -4,8 +4,13 @@ Scenario (the paper's Section "Exemplary Results", :func:`racing_env.scenarios.p
 ego car_0 (v_max 20 m/s) ahead at 20 m/s on the centre line, opponent car_1 (v_max 25 m/s)
 approaching at 23 m/s, 2 m to the left, on a straight; horizon 50 steps of 0.1 s; inputs
 initialised at zero. Methods: iLQR (opponent predicted at constant speed and offset),
-open-loop and feedback iLQGame, all with the same cost weights. Orchestration only: the math
-lives in ``planners``, the scene in ``racing_env.scenarios``. Results: docs/experiments/paper.md.
+open-loop and feedback iLQGame, all with the same cost weights, and the two game modes once
+more with the paper's algorithm as printed (exact Hessians, a fixed step of 0.1). Every game
+solution is certified (:mod:`planners.certificates`: local Nash equilibrium, saddle or not
+stationary), and the scene's landscape (:mod:`planners.landscape`: 64 starts per mode and
+solver, clustered and certified) says which equilibria the scene has. Orchestration only:
+the math lives in ``planners``, the scene in ``racing_env.scenarios``. Results:
+docs/experiments/paper.md.
 """
 
 from __future__ import annotations
@@ -16,12 +21,17 @@ from typing import Any
 
 import numpy as np
 
+from experiments.equilibria import SOLVERS, explore, plot_landscapes
 from experiments.timing import time_jax_call
 from planners import ilq, ilqr
+from planners.certificates import LOCAL_NASH, SADDLE, certify
 from planners.nash import nash_residual
 from racing_env.dynamics import N_LAT, S
 from racing_env.game import RaceGame
 from racing_env.scenarios import PAPER_WEIGHTS, paper_game  # noqa: F401  (the scene; re-exported here)
+
+#: Initial guesses per mode and solver of the landscapes (:func:`experiments.equilibria.explore`).
+LANDSCAPE_STARTS = 64
 
 #: Opponent collision weights c_c^2 of Figure 2, as multiples of the ego's c_c^1.
 FIG2_RATIOS = (1.0, 2.0, 5.0)
@@ -53,13 +63,16 @@ def trajectory_metrics(game: RaceGame, xs: np.ndarray) -> dict[str, Any]:
     }
 
 
-def _record(game, x0, method: str, res, first_s: float, run_s: float, nash: bool = True) -> dict[str, Any]:
+def _record(game, x0, method: str, res, first_s: float, run_s: float, mode: str | None = None) -> dict[str, Any]:
     """One method's row of ``paper.json`` from its solver result (``ilq.SolverResult``, or an
     ``ilqr.ILQRResult``, whose single-player ``plan`` holds the iteration histories).
 
     ``convergence`` and ``step_sizes`` are the solver's convergence measure (the full-step
-    state change [max abs state entry]) and accepted step size of every iteration.
+    state change [max abs state entry]) and accepted step size of every iteration. A game
+    solution (``mode`` given) carries its first-order Nash residual and its certificate
+    (:func:`planners.certificates.certify`); iLQR's opponent is a prediction, so it has neither.
     """
+    nash = mode is not None
     xs, us = np.asarray(res.xs), np.asarray(res.us)
     iterations = int(res.iterations)
     plan = getattr(res, "plan", res)
@@ -72,6 +85,7 @@ def _record(game, x0, method: str, res, first_s: float, run_s: float, nash: bool
         "compile_and_first_solve_s": first_s,
         **trajectory_metrics(game, xs),
         "nash_residual": None if residual is None else residual.tolist(),
+        "certificate": certify(game, x0, res, mode).as_dict() if nash else None,
         "convergence": np.asarray(plan.history)[:iterations].tolist(),
         "step_sizes": np.asarray(plan.step_history)[:iterations].tolist(),
         "xs": xs,
@@ -83,25 +97,35 @@ def solve_methods(game: RaceGame, x0: np.ndarray) -> dict[str, dict[str, Any]]:
     out = {}
     res, first, run = time_jax_call(lambda: ilqr.solve_ilqr(game, x0, ego=0))
     # iLQR's residual is not a Nash quantity (the opponent is a prediction): not computed
-    out["ilqr"] = _record(game, x0, "iLQR", res, first, run, nash=False)
+    out["ilqr"] = _record(game, x0, "iLQR", res, first, run)
     fb, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode="feedback"))
-    out["feedback"] = _record(game, x0, "feedback iLQGame", fb, first, run)
+    out["feedback"] = _record(game, x0, "feedback iLQGame", fb, first, run, "feedback")
     ol, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode="open_loop"))
-    out["open_loop"] = _record(game, x0, "open-loop iLQGame", ol, first, run)
+    out["open_loop"] = _record(game, x0, "open-loop iLQGame", ol, first, run, "open_loop")
     olfb, first, run = time_jax_call(lambda: ilq.solve(game, x0, init=fb, mode="open_loop"))
-    out["open_loop_from_feedback"] = _record(game, x0, "open-loop iLQGame from the feedback solution", olfb, first, run)
+    out["open_loop_from_feedback"] = _record(game, x0, "open-loop iLQGame from the feedback solution", olfb, first,
+                                             run, "open_loop")
     out["open_loop_from_feedback"]["max_state_change_vs_feedback"] = float(np.max(np.abs(np.asarray(olfb.xs) - np.asarray(fb.xs))))
     guess = left_guess(game.horizon)
     for mode, label in (("open_loop", "open-loop"), ("feedback", "feedback")):
         res, first, run = time_jax_call(lambda: ilq.solve(game, x0, init=guess, mode=mode))
         out[f"{mode}_from_left_guess"] = _record(
-            game, x0, f"{label} iLQGame from a left-steering initial guess", res, first, run
+            game, x0, f"{label} iLQGame from a left-steering initial guess", res, first, run, mode
         )
+    for mode, label in (("open_loop", "open-loop"), ("feedback", "feedback")):
+        res, first, run = time_jax_call(lambda: ilq.solve(game, x0, mode=mode, **SOLVERS["paper"]))
+        out[f"{mode}_printed"] = _record(
+            game, x0, f"{label} iLQGame, the paper's algorithm as printed (exact Hessians, fixed step 0.1)",
+            res, first, run, mode)
     return out
 
 
-def findings(methods: dict[str, dict], fig2: list[dict]) -> list[dict[str, Any]]:
-    """The paper's qualitative claims, each checked against the numbers."""
+def findings(methods: dict[str, dict], fig2: list[dict], landscapes: dict[str, dict[str, dict]] | None = None
+             ) -> list[dict[str, Any]]:
+    """The paper's qualitative claims, each checked against the numbers; with
+    ``landscapes``, also the claims about the scene's equilibria
+    (:func:`landscape_findings`). For a "(revisited)" row, "reproduced" is the truth of
+    the statement."""
     il, fb, ol, olfb = (methods[k] for k in ("ilqr", "feedback", "open_loop", "open_loop_from_feedback"))
     rows = [
         ("iLQR: the ego swerves to the right", il["ego_n_min"] < -0.1, f"ego min n = {il['ego_n_min']:.2f} m"),
@@ -123,7 +147,74 @@ def findings(methods: dict[str, dict], fig2: list[dict]) -> list[dict[str, Any]]
          and min(oll["final_gap_s"], fbl["final_gap_s"]) > 0,
          f"ego max n: open loop {oll['ego_n_max']:.2f} m, feedback {fbl['ego_n_max']:.2f} m; final gap {oll['final_gap_s']:.2f} / {fbl['final_gap_s']:.2f} m")
     )
+    if landscapes is not None:
+        rows += landscape_findings(methods, landscapes)
     return [{"claim": c, "reproduced": bool(ok), "evidence": e} for c, ok, e in rows]
+
+
+def _verdict_share(record: dict[str, Any], verdict: str) -> float:
+    return sum(e["share"] for e in record["equilibria"] if e["certificate"]["verdict"] == verdict)
+
+
+def _ego_ahead(entry: dict[str, Any]) -> bool:
+    """The ego (car 0) ends ahead after moving left, towards the opponent's side: the
+    paper's open-loop "blocking" (Figure 1c)."""
+    return entry["metrics"]["order"][0] == 0 and entry["metrics"]["n_max"][0] > 0.5
+
+
+def _describe(entry: dict[str, Any]) -> str:
+    c, m = entry["certificate"], entry["metrics"]
+    text = (f"{100 * entry['share']:.0f}% of starts: {c['verdict']} (ego n max {m['n_max'][0]:.2f} m, "
+            f"opponent ends at n = {m['n_final'][1]:.2f} m")
+    gains = [(i, g) for i, g in enumerate(c["best_response_gain"]) if g is not None and c["verdict"] == SADDLE and g > 1e-6]
+    lows = [(i, lo) for i, lo in enumerate(c["min_eigenvalue"]) if lo is not None and lo < 0]
+    if lows:
+        text += "; lambda_min " + ", ".join(f"{('ego', 'opponent')[i]} {lo:.3g}" for i, lo in lows)
+    if gains:
+        text += "; a best response gains " + ", ".join(f"{('ego', 'opponent')[i]} {g:.3g}" for i, g in gains)
+    return text + ")"
+
+
+def landscape_findings(methods: dict[str, dict], landscapes: dict[str, dict[str, dict]]) -> list[tuple[str, bool, str]]:
+    """Claims about the scene's equilibria, from the certified solutions and the landscapes
+    (``{solver: {mode: landscape record}}``, :func:`experiments.equilibria.explore`)."""
+    printed, default = landscapes["paper"], landscapes["default"]
+    olp = methods["open_loop_printed"]
+    rows = [(
+        "(revisited) the paper's algorithm as printed blocks in open loop from zero inputs",
+        olp["final_gap_s"] > 0 and olp["ego_n_max"] > 0.5,
+        f"ego n max {olp['ego_n_max']:.2f} m, final gap {olp['final_gap_s']:.2f} m: {olp['certificate']['verdict']}",
+    )]
+    saddle = {mode: _verdict_share(printed[mode], SADDLE) for mode in printed}
+    rows.append((
+        "(revisited) the printed algorithm converges to saddles, reported as converged",
+        max(saddle.values()) > 0,
+        "; ".join(f"{mode}: {100 * saddle[mode]:.0f}% of {printed[mode]['starts']} starts" for mode in saddle)
+        + "; default solver: " + ", ".join(f"{mode} {100 * _verdict_share(default[mode], SADDLE):.0f}%" for mode in default),
+    ))
+    ahead = [e for e in printed["open_loop"]["equilibria"] if _ego_ahead(e)]
+    rows.append((
+        "(revisited) open-loop blocking (the ego ends ahead after moving left) is a local Nash equilibrium",
+        any(e["certificate"]["verdict"] == LOCAL_NASH for e in ahead),
+        "; ".join(_describe(e) for e in ahead) or "no converged open-loop solution has the ego ahead",
+    ))
+    fb_ahead = [e for e in default["feedback"]["equilibria"] if _ego_ahead(e) and e["certificate"]["verdict"] == LOCAL_NASH]
+    rows.append((
+        "(revisited) blocking is specific to open loop",
+        not fb_ahead,
+        "feedback has it too: " + "; ".join(_describe(e) for e in fb_ahead) if fb_ahead
+        else "no certified feedback equilibrium has the ego ahead",
+    ))
+    for mode in ("open_loop", "feedback"):
+        nash = [e for e in default[mode]["equilibria"] if e["certificate"]["verdict"] == LOCAL_NASH]
+        rows.append((
+            f"(revisited) distinct certified {mode.replace('_', '-')} equilibria of the scene",
+            True,
+            f"{len(nash)}: " + "; ".join(
+                f"{100 * e['share']:.0f}% of starts, {'ego' if e['metrics']['order'][0] == 0 else 'opponent'} ahead, "
+                f"ego n {e['metrics']['n_min'][0]:.2f}/{e['metrics']['n_max'][0]:.2f} m" for e in nash),
+        ))
+    return rows
 
 
 def plot_methods(game: RaceGame, panels: list[tuple[str, np.ndarray]], path: Path, title: str) -> None:
@@ -202,7 +293,7 @@ def run_paper(out: Path) -> dict[str, Any]:
     for ratio in FIG2_RATIOS:
         g2, _ = paper_game(opponent_collision=ratio * base_cc)
         res, first, run = time_jax_call(lambda: ilq.solve(g2, x0, mode="feedback"))
-        rec = _record(g2, x0, f"feedback, c_c^2 = {ratio:g} c_c^1", res, first, run)
+        rec = _record(g2, x0, f"feedback, c_c^2 = {ratio:g} c_c^1", res, first, run, "feedback")
         rec["ratio"] = ratio
         fig2.append(rec)
     plot_methods(game, [("a) iLQR (opponent predicted at constant speed and offset)", methods["ilqr"]["xs"]),
@@ -215,7 +306,14 @@ def run_paper(out: Path) -> dict[str, Any]:
     plot_convergence([methods[k] for k in ("ilqr", "feedback", "open_loop", "open_loop_from_feedback",
                                            "open_loop_from_left_guess", "feedback_from_left_guess")],
                      ilq.SolverOptions().tolerance, out / "fig3_convergence.png")
-    checks = findings(methods, fig2)
+    console.print(f"exploring the scene's landscape: {LANDSCAPE_STARTS} starts per mode and solver ...")
+    landscapes = {solver: explore(game, x0, ("open_loop", "feedback"), solver, LANDSCAPE_STARTS, 0, 0.05)
+                  for solver in ("default", "paper")}
+    for solver, name in (("default", "fig4_landscape_default.png"), ("paper", "fig5_landscape_printed.png")):
+        label = "the default solver" if solver == "default" else "the paper's algorithm as printed"
+        plot_landscapes(game, landscapes[solver], out / name,
+                        f"Distinct solutions of the paper's scene from {LANDSCAPE_STARTS} starts, {label}")
+    checks = findings(methods, fig2, landscapes)
     strip = lambda r: {k: v for k, v in r.items() if k != "xs"}  # noqa: E731
     report = {
         "scenario": {"x0": x0.tolist(), "dt": game.dt, "horizon": game.horizon,
@@ -223,21 +321,26 @@ def run_paper(out: Path) -> dict[str, Any]:
         "methods": {k: strip(v) for k, v in methods.items()},
         "figure2": [strip(r) for r in fig2],
         "findings": checks,
+        "landscapes": {solver: {mode: {k: v for k, v in record.items() if k != "labels"}
+                                for mode, record in by_mode.items()} for solver, by_mode in landscapes.items()},
         # where set, compile_and_first_solve_s may be a load of a solver compiled by an earlier run
         "compile_cache": compile_cache_dir(),
     }
     (out / "paper.json").write_text(json.dumps(report, indent=2))
     table = Table(title="paper scenario")
-    for col in ("method", "conv", "iters", "solve [ms]", "ego n min/max", "opp n min/max", "gap [m]", "min dist [m]", "Nash residual"):
+    for col in ("method", "conv", "iters", "solve [ms]", "ego n min/max", "opp n min/max", "gap [m]", "min dist [m]",
+                "Nash residual", "certificate"):
         table.add_column(col)
     for r in list(methods.values()) + fig2:
         res = "-" if r["nash_residual"] is None else " ".join(f"{v:.1e}" for v in r["nash_residual"])
         table.add_row(r["method"], str(r["converged"]), str(r["iterations"]), f"{1e3 * r['solve_time_s']:.1f}",
                       f"{r['ego_n_min']:.2f}/{r['ego_n_max']:.2f}", f"{r['opponent_n_min']:.2f}/{r['opponent_n_max']:.2f}",
-                      f"{r['final_gap_s']:.2f}", f"{r['min_distance']:.2f}", res)
+                      f"{r['final_gap_s']:.2f}", f"{r['min_distance']:.2f}", res,
+                      "-" if r["certificate"] is None else r["certificate"]["verdict"])
     console.print(table)
     for row in checks:
         console.print(f"{'[green]yes[/]' if row['reproduced'] else '[red]no[/]'}  {row['claim']}: {row['evidence']}")
-    figures = ", ".join(str(out / name) for name in ("fig1_methods.png", "fig2_collision_weight.png", "fig3_convergence.png"))
+    figures = ", ".join(str(out / name) for name in ("fig1_methods.png", "fig2_collision_weight.png", "fig3_convergence.png",
+                                                     "fig4_landscape_default.png", "fig5_landscape_printed.png"))
     console.print(f"wrote {figures}, {out / 'paper.json'}")
     return report

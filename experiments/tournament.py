@@ -166,7 +166,9 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     for a lone car, a time trial), the ``overtakes`` and, per car, its place on the grid
     (``start_place``, 1 = in front), place, finish time, distance, mean speed, contact
     steps, time off track, whether an incident rule ``retired`` it, action times, solver
-    failures and the ``error`` of a car that faulted.
+    failures, the shares of its re-plans that converged and (a game agent with ``certify``
+    on; else None) that were certified local Nash equilibria (``certified_share``), and the
+    ``error`` of a car that faulted.
     Faults are recorded, never raised: a car that raises or blows ``step_budget_s`` is last.
     """
     from experiments.race import run_race
@@ -220,6 +222,7 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             "act_time_max_s": float(np.max(times)) if times else float("nan"),
             "solver_failures": int(summary.get("fallbacks", 0)),
             "solver_converged_fraction": summary.get("converged_fraction"),
+            "certified_share": summary.get("certified_share"),
             "actions_clipped_fraction": summary.get("clipped_fraction"), "error": faults.get(i),
         })
     record = {"steps": result.steps, "order": [lineup[i] for i in order], "gap": gap,
@@ -253,7 +256,8 @@ def wilson_interval(wins: int, n: int, z: float = 1.96) -> tuple[float, float]:
 
 def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict[str, Any]:
     """Win rates with intervals, head-to-head matrix and Plackett-Luce ratings (openskill),
-    and finish times. A time trial (``cars = 1``) is ranked by races finished, then mean
+    finish times, and for planners the mean shares of converged and of certified re-plans
+    (None without any). A time trial (``cars = 1``) is ranked by races finished, then mean
     finish time; its ratings stay at the prior and its head-to-head matrix is empty."""
     from openskill.models import PlackettLuce
 
@@ -264,7 +268,7 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
     ratings = {n: model.rating(name=n) for n in names}
     h2h = np.zeros((len(names), len(names)), dtype=int)
     stats = {n: {"races": 0, "wins": 0, "finished": 0, "retired": 0, "errors": 0, "collision_steps": 0, "act_times": [],
-                 "margins": [], "finish_times": [], "off_track_s": 0.0, "converged": []} for n in names}
+                 "margins": [], "finish_times": [], "off_track_s": 0.0, "converged": [], "certified": []} for n in names}
     for record in records:
         order = record["order"]
         if len(order) > 1:  # a time trial has no one to be rated against
@@ -288,6 +292,8 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
                 st["act_times"].append(car["act_time_mean_s"])
             if car.get("solver_converged_fraction") is not None:  # planners only
                 st["converged"].append(car["solver_converged_fraction"])
+            if car.get("certified_share") is not None:  # game agents with certify on; none in older records
+                st["certified"].append(car["certified_share"])
             others = [c["finish_time"] for c in record["cars"] if c is not car]
             if others and car["finish_time"] is not None and all(t is not None for t in others):
                 st["margins"].append(float(np.mean(others)) - car["finish_time"])
@@ -308,7 +314,9 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
                      "time_off_track_s": st["off_track_s"],
                      "mean_act_time_s": float(np.mean(st["act_times"])) if st["act_times"] else float("nan"),
                      # a planner's share of re-plans that converged, averaged over its races
-                     "converged_fraction": float(np.mean(st["converged"])) if st["converged"] else None})
+                     "converged_fraction": float(np.mean(st["converged"])) if st["converged"] else None,
+                     # its share of certified re-plans at a local Nash equilibrium, averaged over its races
+                     "certified_share": float(np.mean(st["certified"])) if st["certified"] else None})
     if config.cars == 1:  # a time trial: the most races finished, then the fastest
         rows.sort(key=lambda row: (-row["finished"], row["mean_finish_time_s"] or math.inf))
     else:
@@ -340,20 +348,29 @@ def plot_head_to_head(table: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+def _certified_cells(board: dict[str, Any]) -> tuple[tuple[str, ...], list[tuple[str, ...]]]:
+    """The ``certified`` column of the tables, ``(header, cells by row)``: empty when no
+    agent certified its re-plans."""
+    if all(row.get("certified_share") is None for row in board["rows"]):
+        return (), [() for _ in board["rows"]]
+    return ("certified",), [(or_dash(row.get("certified_share"), "{:.0%}"),) for row in board["rows"]]
+
+
 def _time_trial_table(board: dict[str, Any], records: list[dict[str, Any]], config: TournamentConfig, retire: bool):
     """The leaderboard of a time trial as a rich table: finish times, not wins."""
     from rich.table import Table
 
     table = Table(title=f"time trial: {len(records)} laps alone on {config.track}")
+    certified_header, certified = _certified_cells(board)
     for col in ("#", "agent", "finished", "mean finish time [s]", "best [s]", "off track [s]",
-                *(("retired",) if retire else ()), "errors", "act [ms]", "converged"):
+                *(("retired",) if retire else ()), "errors", "act [ms]", "converged", *certified_header):
         table.add_column(col, overflow="fold")
     for k, row in enumerate(board["rows"], 1):
         table.add_row(str(k), row["agent"], f"{row['finished']}/{row['races']}", or_dash(row["mean_finish_time_s"], "{:.2f}"),
                       or_dash(row["best_finish_time_s"], "{:.2f}"), f"{row['time_off_track_s']:.1f}",
                       *((str(row["retired"]),) if retire else ()), str(row["errors"]),
                       f"{1e3 * row['mean_act_time_s']:.1f}",
-                      or_dash(row["converged_fraction"], "{:.0%}"))
+                      or_dash(row["converged_fraction"], "{:.0%}"), *certified[k - 1])
     return table
 
 
@@ -424,8 +441,10 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
         console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}{gif_note}")
         return board
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
+    certified_header, certified = _certified_cells(board)
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "finished",
-                *(("retired",) if retire else ()), "margin [s]", "errors", "contact steps", "act [ms]", "converged"):
+                *(("retired",) if retire else ()), "margin [s]", "errors", "contact steps", "act [ms]", "converged",
+                *certified_header):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
         lo, hi = row["win_rate_ci95"]
@@ -435,7 +454,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
                       or_dash(row["mean_margin_s"], "{:+.2f}"), str(row["errors"]),
                       str(row["collision_steps"]),
                       f"{1e3 * row['mean_act_time_s']:.1f}",
-                      or_dash(row["converged_fraction"], "{:.0%}"))
+                      or_dash(row["converged_fraction"], "{:.0%}"), *certified[k - 1])
     console.print(table)
     console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'head_to_head.png'}"
                   + (f", {out / GIF}" if (out / GIF).exists() else ""))

@@ -45,12 +45,16 @@ joint start state ``x0 (N, 6)``::
     game, x0 = paper_game()                          # the paper's overtaking scene
     result = solve(game, x0, mode="feedback")        # SolverResult: xs (T+1, N, 6), us (T, N, 2), K, ...
     nash_residual(game, x0, result.us)               # (N,): |dJ^i/du^i|, ~0 at an open-loop equilibrium
+    certify(game, x0, result, "feedback").verdict    # "local Nash equilibrium", "saddle" or "not stationary"
 
 :func:`solve` is the iterative LQ game solver (feedback or open-loop Nash, options in
 :class:`SolverOptions`), :func:`solve_batch` solves many start states in one compiled call,
 :func:`solve_ilqr` is the sequential baseline (one player against predictions), and
 :func:`solve_feedback` / :func:`solve_open_loop` solve LQ games exactly.
 :func:`problem_from_race_game` is the racing game's Gauss-Newton form as a :class:`GameProblem`.
+:func:`certify` tells a local Nash equilibrium from a saddle (second-order conditions and
+best responses, :mod:`planners.certificates`); :func:`find_equilibria` solves a scene from many
+starts and certifies every distinct solution (:mod:`planners.landscape`).
 
 Importing ``planners`` imports :mod:`racing_env` first, whose JAX settings (float64, the
 solvers' loops compiled as single XLA:CPU kernels) must be in place before the first
@@ -78,10 +82,12 @@ from planners.agents import (
     make_batched_opponent,
     reset_agents,
 )
+from planners.certificates import Certificate, certify
 from planners.game_problem import GameProblem
 from planners.ilq import SolverOptions, SolverResult, solve
 from planners.ilq_batch import solve_batch
 from planners.ilqr import solve_ilqr
+from planners.landscape import find_equilibria
 from planners.lq_game import solve_feedback, solve_open_loop
 from planners.nash import nash_residual
 from planners.race_problem import problem_from_race_game  # also lets the solvers take a RaceGame
@@ -91,6 +97,7 @@ __all__ = [
     "Agent",
     "BaseAgent",
     "BatchedOpponent",
+    "Certificate",
     "ConstantSpeedAgent",
     "FeedbackGameAgent",
     "GameProblem",
@@ -101,6 +108,8 @@ __all__ = [
     "SolverOptions",
     "SolverResult",
     "agent_options",
+    "certify",
+    "find_equilibria",
     "make_agent",
     "make_batched_opponent",
     "nash_residual",

@@ -257,3 +257,12 @@ def test_rl_rows_measure_the_vectorised_env_and_its_opponents():
     planner = rows[1]
     assert planner["target_steps_per_s"] == 2_000 and 0.0 <= planner["converged_share"] <= 1.0
     assert planner["iterations_median"] >= 1
+
+
+def test_certificates_section_times_solve_and_certificates_of_each_mode():
+    rows = list(bench.bench_certificates(rounds=1, cars=(2,)))
+    assert [row["name"] for row in rows] == ["certificate_open_loop_N2_T50", "certificate_feedback_N2_T50"]
+    for row in rows:
+        assert row["ms_solve"] > 0 and row["ms_cheap"] > 0 and row["ms_full"] > 0
+        assert row["full_over_solve"] == pytest.approx(row["ms_full"] / row["ms_solve"], rel=1e-12)
+        assert row["verdict"] == "local Nash equilibrium"  # the default solver's solutions of the paper scene

@@ -107,7 +107,8 @@ def test_paper_reproduction_writes_figures_and_json(tmp_path):
     """`racing paper` solves every method, writes both figures and a complete paper.json."""
     assert main(["paper", "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "paper.json").read_text())
-    for name in ("fig1_methods.png", "fig2_collision_weight.png", "fig3_convergence.png"):
+    for name in ("fig1_methods.png", "fig2_collision_weight.png", "fig3_convergence.png",
+                 "fig4_landscape_default.png", "fig5_landscape_printed.png"):
         assert (tmp_path / name).stat().st_size > 0
     for key in ("ilqr", "feedback", "open_loop", "open_loop_from_feedback"):
         method = report["methods"][key]
@@ -118,6 +119,30 @@ def test_paper_reproduction_writes_figures_and_json(tmp_path):
     assert report["methods"]["open_loop"]["converged"]
     assert max(report["methods"]["open_loop"]["nash_residual"]) < 1e-4
     assert len(report["findings"]) >= 6
+    # every game solution is certified; the default solver's are local Nash equilibria
+    for key in ("feedback", "open_loop", "open_loop_printed", "feedback_printed"):
+        assert report["methods"][key]["certificate"]["verdict"] in ("local Nash equilibrium", "saddle", "not stationary")
+    assert report["methods"]["open_loop"]["certificate"]["verdict"] == "local Nash equilibrium"
+    assert set(report["landscapes"]) == {"default", "paper"}
+    for by_mode in report["landscapes"].values():
+        for record in by_mode.values():
+            assert sum(e["count"] for e in record["equilibria"]) <= record["starts"] == paper.LANDSCAPE_STARTS
+
+
+def test_equilibria_writes_the_certified_landscape(tmp_path, capsys):
+    """`racing equilibria` on the paper scene with three starts (zero inputs and two pulses)."""
+    out = tmp_path / "eq"
+    assert main(["equilibria", "--modes", "open_loop", "--starts", "3", "--out", str(out)]) == 0
+    report = json.loads((out / "equilibria.json").read_text())
+    record = report["landscapes"]["open_loop"]
+    assert record["starts"] == 3 and record["kinds"] == ["zero", "pulse", "pulse"]
+    assert sum(e["count"] for e in record["equilibria"]) == 3 * record["converged_share"]
+    zero = next(e for e in record["equilibria"] if 0 in e["starts"])
+    assert zero["certificate"]["verdict"] == "local Nash equilibrium"  # the default solver from zero inputs
+    assert zero["metrics"]["order"] == [1, 0]  # the faster opponent ends ahead
+    assert (out / "equilibria.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "local Nash equilibrium" in capsys.readouterr().out
+    assert main(["equilibria", "--starts", "0", "--out", str(out)]) == 2  # refused with a message
 
 
 def test_convergence_figure_is_written(tmp_path):

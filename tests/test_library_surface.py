@@ -25,6 +25,8 @@ DOCUMENTED = {
     # solvers
     "solve", "solve_batch", "nash_residual", "SolverOptions", "SolverResult", "GameProblem",
     "problem_from_race_game", "solve_ilqr", "solve_feedback", "solve_open_loop",
+    # certificates and landscapes
+    "certify", "Certificate", "find_equilibria",
 }
 
 SPEC_CLASSES = {
@@ -48,7 +50,7 @@ def test_planners_exports_exactly_the_documented_names():
 
 
 def test_the_exported_names_are_the_modules_own():
-    from planners import agents, game_problem, ilq_batch, ilqr, lq_game, nash, race_problem
+    from planners import agents, certificates, game_problem, ilq_batch, ilqr, landscape, lq_game, nash, race_problem
 
     assert planners.solve is ilq.solve and planners.SolverOptions is ilq.SolverOptions
     assert planners.SolverResult is ilq.SolverResult and planners.GameProblem is game_problem.GameProblem
@@ -56,6 +58,8 @@ def test_the_exported_names_are_the_modules_own():
     assert planners.problem_from_race_game is race_problem.problem_from_race_game
     assert planners.solve_ilqr is ilqr.solve_ilqr
     assert planners.solve_feedback is lq_game.solve_feedback and planners.solve_open_loop is lq_game.solve_open_loop
+    assert planners.certify is certificates.certify and planners.Certificate is certificates.Certificate
+    assert planners.find_equilibria is landscape.find_equilibria
     assert planners.AGENTS is agents.AGENTS is agents.AGENT_SPECS
     assert planners.SB3Agent is agents.SB3Agent
 

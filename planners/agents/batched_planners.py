@@ -128,6 +128,10 @@ class BatchedPlanner(BatchedOpponent):
             :func:`default_solve_sizes`. Each must be a multiple of the device count, and the
             largest at least ``num_races``.
 
+    Raises:
+        ValueError: for an agent it cannot batch, or one with ``certify`` on (its
+            certificates are not batched).
+
     Diagnostics per race: ``replanned``, ``converged``, ``iterations`` (of this step's
     solve; False / 0 without one), ``fallback``, ``brake``, ``recovering`` (planned in
     recovery from a standstill) and ``leading`` (planned with the leading weights).
@@ -138,6 +142,9 @@ class BatchedPlanner(BatchedOpponent):
     def __init__(self, agent: BaseAgent, game: Any, index: int, num_races: int, *, spec: str | None = None,
                  batching: str = "auto", devices: Sequence[Any] | None = None,
                  solve_sizes: Sequence[int] | None = None) -> None:
+        if getattr(agent, "certify", False):
+            raise ValueError(f"{spec or agent.spec!r}: the option certify is not supported by batched opponents "
+                             "(certify single agents' re-plans, e.g. in a tournament); drop certify=true")
         reason = unbatchable(agent)
         if reason is not None:
             raise ValueError(f"{reason}; use planners.agents.LoopedOpponent")

@@ -217,7 +217,8 @@ class BaseAgent:
         return dict(self._last)
 
     def summary(self) -> dict:
-        """Aggregates over the steps since reset: re-plans, solve-time percentiles, fallbacks."""
+        """Aggregates over the steps since reset: re-plans, solve-time percentiles, fallbacks,
+        shares of converged (and, where certified, locally Nash) re-plans."""
         times = np.array([r["solve_time"] for r in self.history if r.get("solve_time") is not None])
         iters = [r["iterations"] for r in self.history if r.get("iterations") is not None]
         converged = [bool(r["converged"]) for r in self.history if r.get("converged") is not None]
@@ -234,6 +235,9 @@ class BaseAgent:
         recovering = [bool(r["recovering"]) for r in self.history if r.get("recovering") is not None]
         if any(recovering):  # re-plans made in recovery from a standstill (recovery_track_scale)
             out["recovery_replans"] = int(sum(recovering))
+        certified = [bool(r["certified"]) for r in self.history if r.get("certified") is not None]
+        if certified:  # a game agent with certify on: share of its certified re-plans at a local Nash equilibrium
+            out["certified_share"] = float(np.mean(certified))
         leading = [bool(r["leading"]) for r in self.history if r.get("leading") is not None]
         if leading:  # place-dependent weights: share of re-plans made in the lead
             out["leading_fraction"] = float(np.mean(leading))

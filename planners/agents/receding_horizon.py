@@ -11,7 +11,8 @@ that the observation flags as no longer racing (finished or retired: frozen by t
 no car collides with) are ghosts in the plan (``RaceGame.with_racing``): no collision cost
 with them, and their progress does not count. The state's ``s`` is cumulative on closed
 tracks; the game wraps it itself (curvature, widths and gaps), so the agents pass the joint
-state through unchanged. See docs/agents.md.
+state through unchanged. With ``certify`` on, the game agents certify each adopted re-plan
+(:func:`certificate_record`). See docs/agents.md.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from planners import ilq, ilqr, prediction as prediction_models
+from planners.certificates import LOCAL_NASH, certify as certify_solution
 from planners.agents.protocol import BaseAgent, empty_record
 from planners.agents.weights import (
     PLACE_PREFIXES,
@@ -46,6 +48,7 @@ __all__ = [
     "REPLAN_TOLERANCE",
     "RecedingHorizonAgent",
     "STOPPED_SPEED",
+    "certificate_record",
 ]
 
 
@@ -218,6 +221,11 @@ class RecedingHorizonAgent(BaseAgent):
     def _solve(self, game, x0: np.ndarray, init: np.ndarray | None):
         raise NotImplementedError
 
+    def _adopted(self, game: Any, x0: np.ndarray, result: Any, record: dict) -> None:
+        """Called with a re-plan's game, start state ``x0 (N, 6)`` and solver result when
+        its plan is adopted (not at a fallback), before the step's action; it may add to
+        the step's ``record``. The base loop adds nothing."""
+
     def _game_at_speed(self, x: np.ndarray, record: dict) -> Any:
         """The planning game, with this car's own track weight scaled by
         ``recovery_track_scale`` while it recovers from a standstill (recorded as
@@ -290,6 +298,7 @@ class RecedingHorizonAgent(BaseAgent):
                 record["traceback"] = traceback.format_exc(limit=3)
             record["solve_time"] = time.perf_counter() - t0
             if error is None:
+                self._adopted(game, x, res, record)
                 self._plan = {"us": us, "xs": xs, "K": K}
                 self._age = 0
                 u = self._follow(x, 0)
@@ -310,11 +319,56 @@ class RecedingHorizonAgent(BaseAgent):
         return self._finish(np.asarray(u) / self.jerk_max, x, record)
 
 
+def certificate_record(game: Any, x0: np.ndarray, result: Any, mode: str) -> dict[str, Any]:
+    """The cheap certificate of a re-plan (:func:`planners.certificates.certify` with
+    ``checks="cheap"``) as diagnostics: ``certified`` (the verdict is a local Nash
+    equilibrium), ``verdict`` and ``certify_time`` [s]. A certificate that raises is not
+    certified: ``verdict`` None and the exception in ``certify_error``.
+
+    Args:
+        game: the :class:`racing_env.RaceGame` that was solved.
+        x0: the joint state it was solved from, ``(N, 6)``.
+        result: the :class:`planners.ilq.SolverResult` of the solve.
+        mode: ``"feedback"`` or ``"open_loop"``: the strategies the players are tested against.
+    """
+    t0 = time.perf_counter()
+    try:
+        verdict = certify_solution(game, x0, result, mode, checks="cheap").verdict
+    except Exception as exc:  # noqa: BLE001 - a diagnostic must not stop the race
+        return {"certified": False, "verdict": None, "certify_error": f"{type(exc).__name__}: {exc}",
+                "certify_time": time.perf_counter() - t0}
+    return {"certified": verdict == LOCAL_NASH, "verdict": verdict, "certify_time": time.perf_counter() - t0}
+
+
 class _GameAgent(RecedingHorizonAgent):
     """A game method: the whole game solved by :func:`planners.ilq.solve` in the solver
-    mode that the method's name stands for (:data:`planners.methods.GAME_MODES`)."""
+    mode that the method's name stands for (:data:`planners.methods.GAME_MODES`).
+
+    Args:
+        certify: certify every adopted re-plan in the cheap form (:func:`certificate_record`,
+            about 17 ms for two cars at T = 50 on one CPU core): its diagnostics carry
+            ``certified``, ``verdict`` and ``certify_time``, and :meth:`summary` the
+            ``certified_share`` of the certified re-plans. Off: none of these.
+        kwargs: as :class:`RecedingHorizonAgent`.
+    """
 
     planned_players = 2  # at least: every car of the race
+
+    def __init__(self, certify: bool = False, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.certify = bool(certify)
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        return {**super().spec_options(), "certify": bool}
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        return {**super().spec_defaults(), "certify": False}
+
+    def _adopted(self, game, x0, result, record):
+        if self.certify:
+            record.update(certificate_record(game, x0, result, self.mode))
 
     def _solve(self, game, x0, init):
         res = ilq.solve(

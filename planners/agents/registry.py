@@ -147,6 +147,11 @@ _LOOP_HELP = {
                             f"{RECOVERED_SPEED} m/s, to rejoin across the edge (0: no track term then; 1: off)",
 }
 
+_GAME_HELP = {
+    "certify": ("certify every adopted re-plan as a local Nash equilibrium or not (cheap form, ~17 ms for "
+                "2 cars at T=50): diagnostics' certified and verdict, the race record's certified_share"),
+}
+
 _SOLVER_HELP = {
     "tolerance": "convergence: largest state change of a full step [m, m/s, ...]",
     "step_control": (f"trust_region (shrink the step to stay inside trust_radius), residual ({OPEN_LOOP_GAME} "
@@ -204,7 +209,7 @@ def _weight_help() -> dict[str, str]:
     return lines
 
 
-OPTION_HELP: dict[str, str] = {**_LOOP_HELP, **_SOLVER_HELP, **_PREDICTION_HELP, **_SCRIPTED_HELP, **_weight_help()}
+OPTION_HELP: dict[str, str] = {**_LOOP_HELP, **_GAME_HELP, **_SOLVER_HELP, **_PREDICTION_HELP, **_SCRIPTED_HELP, **_weight_help()}
 """Spec option -> one line on what it does, for every option of the registered agents."""
 
 
