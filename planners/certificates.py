@@ -411,8 +411,11 @@ def _solution_arrays(problem: GameProblem, solution, mode: str | None, dtype) ->
 
 
 def certificate_numbers(problem_or_game, x0, solution, mode: str | None = None, *, checks: str = "full",
-                        best_response_options=None, escape_step: float = 1.0) -> tuple[CertificateNumbers, str]:
-    """The numbers of :func:`certify` (NumPy arrays) and the mode, without a verdict."""
+                        tolerances: CertificateTolerances | None = None, best_response_options=None,
+                        escape_step: float = 1.0) -> tuple[CertificateNumbers, str]:
+    """The numbers of :func:`certify` (NumPy arrays) and the mode, without a verdict
+    (``tolerances`` decide only which eigenvalues count as negative for the second
+    best-response start)."""
     from planners import ilq
 
     if checks not in ("full", "cheap"):
@@ -440,7 +443,8 @@ def certificate_numbers(problem_or_game, x0, solution, mode: str | None = None, 
     if checks == "full":
         # from the solution, and displaced along its most negative curvature: a Gauss-Newton
         # iLQR started exactly at a stationary point does not move, even at a saddle
-        negative = lo < -CertificateTolerances().curvature * np.maximum(np.abs(lo), np.abs(hi))
+        curvature = (tolerances or CertificateTolerances()).curvature
+        negative = lo < -curvature * np.maximum(np.abs(lo), np.abs(hi))
         displaced = np.swapaxes(np.asarray(us), 0, 1) + np.where(negative, escape_step, 0.0)[:, None, None] * v
         starts = np.stack([np.swapaxes(np.asarray(us), 0, 1), displaced], axis=1)  # (N, 2, T, m)
         options = best_response_options or ilq.SolverOptions(mode=methods.FEEDBACK)
@@ -505,7 +509,7 @@ def certify(problem_or_game, x0, solution, mode: str | None = None, *, checks: s
         :class:`Certificate`.
     """
     tolerances = tolerances or CertificateTolerances()
-    numbers, mode = certificate_numbers(problem_or_game, x0, solution, mode, checks=checks,
+    numbers, mode = certificate_numbers(problem_or_game, x0, solution, mode, checks=checks, tolerances=tolerances,
                                         best_response_options=best_response_options, escape_step=escape_step)
     verdict, reasons, strict = verdict_of(numbers, tolerances)
     return Certificate(verdict, mode, numbers, tolerances, checks, reasons, strict)

@@ -21,6 +21,8 @@ import pytest
 from lq_games import random_lq_game
 from planners import ilq, lq_game
 from planners.certificates import (
+    _lanczos_extremes,
+    _local_numbers,
     LOCAL_NASH,
     NOT_STATIONARY,
     SADDLE,
@@ -156,6 +158,25 @@ def test_the_deviation_cost_derivatives_match_finite_differences():
                        + cost(u - h * e - h * f)) / (4 * h * h) for f in basis] for e in basis])
     np.testing.assert_allclose(g, fd_g, rtol=1e-7, atol=1e-9)  # central differences: O(h^2) ~ 1e-10
     np.testing.assert_allclose(H, fd_H, rtol=1e-4, atol=1e-5)  # O(h^2) truncation plus eps / h^2 ~ 1e-6 round-off
+
+
+def test_lanczos_on_hessian_vector_products_matches_the_dense_eigenvalues():
+    """The matrix-free path (for long horizons) against the dense one, on a small game."""
+    problem = double_well(horizon=8)
+    rng = np.random.default_rng(1)
+    us = jnp.asarray(0.5 * rng.standard_normal((8, 2, 1)))
+    K = jnp.asarray(0.3 * rng.standard_normal((8, 2, 1, 2)))
+    x0 = jnp.asarray(X0)
+    xs = rollout(problem, x0, us)
+    _, _, lo, hi, _, _, _ = _local_numbers(problem, x0, xs, us, K, dense_hessian=True, stagewise=False)
+    lanczos_lo, lanczos_hi, lanczos_v = _lanczos_extremes(problem, x0, xs, us, K)
+    np.testing.assert_allclose(lanczos_lo, lo, rtol=1e-8)  # eigsh's tolerance 1e-10, relative
+    np.testing.assert_allclose(lanczos_hi, hi, rtol=1e-8)
+    for i in range(2):  # an eigenvector of the smallest eigenvalue (player 1's is repeated: any in its space)
+        H = jax.hessian(deviation_cost(problem, x0, xs, us, K, i))(us[:, i]).reshape(8, 8)
+        w = lanczos_v[i].reshape(-1)
+        np.testing.assert_allclose(np.linalg.norm(w), 1.0, rtol=1e-12)
+        np.testing.assert_allclose(H @ w, lanczos_lo[i] * w, atol=1e-6 * np.abs(hi[i]))
 
 
 def test_refuses_bad_input():
