@@ -254,10 +254,16 @@ def build_parser() -> argparse.ArgumentParser:
     agents.set_defaults(func=_cmd_agents)
 
     paper = sub.add_parser(
-        "paper", parents=[cache], help="reproduce the paper's figures and claims (PNG figures + paper.json)",
+        "paper", parents=[cache],
+        help="reproduce the paper's figures and claims, certify every solution, map the scene's equilibria "
+        "(PNG figures + paper.json)",
         description="Solve the scene of the paper's Figure 1 (two cars on a straight, inputs initialised at zero) "
-        "with iLQR, open-loop and feedback iLQGame and the variants of Figure 2 and of the paper's claims; write "
-        "fig1_methods.png, fig2_collision_weight.png, fig3_convergence.png and paper.json (per method: converged, "
+        "with iLQR, open-loop and feedback iLQGame and the variants of Figure 2 and of the paper's claims, and the "
+        "game modes again with the paper's algorithm as printed (exact Hessians, fixed step 0.1); certify every "
+        "game solution (local Nash equilibrium, saddle or not stationary) and map the scene's distinct solutions "
+        "from 64 starts per mode and solver; write fig1_methods.png, fig2_collision_weight.png, "
+        "fig3_convergence.png, fig4_landscape_default.png, fig5_landscape_printed.png and paper.json (per method: "
+        "converged, "
         "iterations, solve time, each car's lateral extent, final gap, minimum distance, first-order Nash "
         "residual, the convergence measure and step size of every iteration). Most of its time is compilation, "
         "which the compilation cache saves on the next run. Guide: docs/experiments/paper.md.")
@@ -266,7 +272,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     equilibria = sub.add_parser(
         "equilibria", parents=[cache],
-        help="the equilibrium landscape of a scene: multi-start solves, clustered and certified (table, JSON, PNG)",
+        help="the equilibrium landscape of a scene: multi-start solves, clustered and certified as local Nash "
+        "equilibrium or saddle (table, JSON, PNG)",
         description="Solve one scene from --starts initial input sequences per solver mode (zero inputs, lane-change "
         "pulses of every combination of cars, then seeded random inputs), as one batch; group the converged "
         "solutions that agree within --cluster-tolerance, and certify each distinct solution as a local Nash "
