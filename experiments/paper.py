@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from experiments.equilibria import SOLVERS, explore, plot_landscapes
+from experiments.equilibria import SOLVERS, explore, plot_landscapes, solution_metrics
 from experiments.timing import time_jax_call
 from planners import ilq, ilqr
 from planners.certificates import LOCAL_NASH, SADDLE, certify
@@ -50,16 +50,16 @@ def left_guess(horizon: int = 50, amplitude: float = 2.0) -> np.ndarray:
 
 
 def trajectory_metrics(game: RaceGame, xs: np.ndarray) -> dict[str, Any]:
-    """Lateral extremes, final gap and closest approach of a 2-car trajectory ``(T+1, 2, 6)``."""
-    ds = np.asarray(game.track.wrap_ds(xs[:, 1, S] - xs[:, 0, S]))
-    dn = xs[:, 1, N_LAT] - xs[:, 0, N_LAT]
+    """Lateral extremes, final gap and closest approach of a 2-car trajectory ``(T+1, 2, 6)``
+    (:func:`experiments.equilibria.solution_metrics` named for the ego and the opponent)."""
+    metrics = solution_metrics(game, xs)
     return {
-        "ego_n_min": float(xs[:, 0, N_LAT].min()),
-        "ego_n_max": float(xs[:, 0, N_LAT].max()),
-        "opponent_n_min": float(xs[:, 1, N_LAT].min()),
-        "opponent_n_max": float(xs[:, 1, N_LAT].max()),
+        "ego_n_min": metrics["n_min"][0],
+        "ego_n_max": metrics["n_max"][0],
+        "opponent_n_min": metrics["n_min"][1],
+        "opponent_n_max": metrics["n_max"][1],
         "final_gap_s": float(xs[-1, 0, S] - xs[-1, 1, S]),  # > 0: ego still ahead
-        "min_distance": float(np.min(np.hypot(ds, dn))),
+        "min_distance": metrics["min_distance"],
     }
 
 

@@ -395,15 +395,15 @@ def _solution_arrays(problem: GameProblem, solution, mode: str | None, dtype) ->
         raise ValueError(f"the solution's inputs must have shape (T, N, m) = {(T, N, m)}, got {us.shape}")
     if not np.all(np.isfinite(us)):
         raise ValueError("the solution's inputs contain non-finite values")
-    K = getattr(solution, "K", None)
-    K = np.zeros((T, N, m, n), dtype) if K is None else np.asarray(K, dtype)
+    gains = getattr(solution, "K", None)
+    K = np.zeros((T, N, m, n), dtype) if gains is None else np.asarray(gains, dtype)
     if K.shape != (T, N, m, n):
         raise ValueError(f"the solution's gains K must have shape (T, N, m, n) = {(T, N, m, n)}, got {K.shape}")
     if mode is None:
         mode = methods.FEEDBACK if np.any(K != 0) else methods.OPEN_LOOP
     if mode not in methods.SOLVER_MODES:
         raise ValueError(f"mode must be 'feedback' or 'open_loop', got {mode!r}")
-    if mode == methods.FEEDBACK and getattr(solution, "K", None) is None:
+    if mode == methods.FEEDBACK and gains is None:
         raise ValueError("a feedback certificate needs the solution's gains: pass the SolverResult, not its inputs")
     if mode == methods.OPEN_LOOP:
         K = np.zeros_like(K)  # the others' input sequences, whatever gains the solve reported
@@ -445,8 +445,9 @@ def certificate_numbers(problem_or_game, x0, solution, mode: str | None = None, 
         # iLQR started exactly at a stationary point does not move, even at a saddle
         curvature = (tolerances or CertificateTolerances()).curvature
         negative = lo < -curvature * np.maximum(np.abs(lo), np.abs(hi))
-        displaced = np.swapaxes(np.asarray(us), 0, 1) + np.where(negative, escape_step, 0.0)[:, None, None] * v
-        starts = np.stack([np.swapaxes(np.asarray(us), 0, 1), displaced], axis=1)  # (N, 2, T, m)
+        own = np.swapaxes(np.asarray(us), 0, 1)  # (N, T, m)
+        displaced = own + np.where(negative, escape_step, 0.0)[:, None, None] * v
+        starts = np.stack([own, displaced], axis=1)  # (N, 2, T, m)
         options = best_response_options or ilq.SolverOptions(mode=methods.FEEDBACK)
         best = np.asarray(_best_response_costs(problem, x0, xs, us, K, jnp.asarray(starts), options))
     numbers = CertificateNumbers(J, g, lo, hi, stage_lo, stage_hi, best)

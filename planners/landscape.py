@@ -187,17 +187,18 @@ def find_equilibria(problem_or_game, x0, mode: str = methods.OPEN_LOOP, starts: 
                                      amplitude, random_scale)
     x0 = np.asarray(x0, float)
     batch = solve_batch(problem_or_game, np.repeat(x0[None], starts, axis=0), guesses, options=options)
-    xs, us = np.asarray(batch.xs), np.asarray(batch.us)
-    converged = np.asarray(batch.converged)
+    batch = ilq.SolverResult(*(np.asarray(leaf) for leaf in batch))
+    xs, us = batch.xs, batch.us
+    converged = batch.converged
     labels = cluster_trajectories(xs, converged, cluster_tolerance)
     found = []
     for label in range(labels.max() + 1):
         members = np.flatnonzero(labels == label)
         head = members[0]
-        solution = ilq.SolverResult(*(np.asarray(leaf)[head] for leaf in batch))
+        solution = ilq.SolverResult(*(leaf[head] for leaf in batch))
         certificate = certify(problem_or_game, x0, solution, mode, checks=checks, tolerances=tolerances)
         spread = float(np.max(np.abs(xs[members] - xs[head])))
-        found.append(Equilibrium(xs[head], us[head], np.asarray(batch.costs)[head], len(members),
+        found.append(Equilibrium(xs[head], us[head], batch.costs[head], len(members),
                                  len(members) / starts, tuple(int(b) for b in members), certificate, spread))
     order = sorted(range(len(found)), key=lambda k: (-found[k].count, found[k].starts[0]))
     relabel = np.full(len(found) + 1, -1)  # the last entry keeps -1 for the unconverged (label -1)
