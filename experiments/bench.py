@@ -707,12 +707,88 @@ def bench_certificates(rounds: int = 7, cars: tuple[int, ...] = (2, 3)) -> Itera
                    "verdict": certify(game, x0, solution, mode).verdict}
 
 
+def _planned_scene(env, steps_ahead: int = 50):
+    """The race's scene now, with every car's plan ``(steps_ahead + 1, N, 2)``: each car
+    holding its speed and lateral offset (the drawing cost of a plan depends on its
+    length and where it lies, not on how it was solved)."""
+    from racing_env.dynamics import N_LAT, S, V
+
+    x = env.state()
+    ahead = np.arange(steps_ahead + 1)[:, None] * env.config.dt * x[None, :, V]
+    plan = np.stack([x[None, :, S] + ahead, np.broadcast_to(x[:, N_LAT], ahead.shape)], axis=-1).astype(np.float32)
+    return env.scene(plans=[plan] * env.num_cars)
+
+
+def bench_render(rounds: int = 30, tracks: tuple[str, ...] = ("trefoil", "random")) -> Iterator[dict[str, Any]]:
+    """What drawing costs, and what recording costs a race that is not drawn.
+
+    Per track: milliseconds per 512 px frame of a duel mid-lap with the whole-track camera,
+    the follow camera (inset map, labels, heads-up lines) and the follow camera with both
+    cars' plans and predictions (51 steps each), timed in turns. Then a race of two lane
+    keepers: steps per second of :func:`experiments.race.run_race` (which records the
+    states, statuses and positions a replay needs) beside the bare env loop with the same
+    drivers, in turns, and the milliseconds to make and write its replay.
+    """
+    import tempfile
+    from pathlib import Path
+
+    from experiments.race import run_race
+    from experiments.replay import replay_of, save_replay
+    from planners.agents import make_agent, reset_agents
+    from racing_env import parallel_env
+    from racing_env.render import Renderer
+
+    for track in tracks:
+        env = parallel_env(track=track, num_agents=2, laps=1)
+        env.reset(seed=0)
+        for _ in range(40):
+            env.step({a: np.array([0.5, 0.0], dtype=np.float32) for a in env.agents})
+        scene, planned = env.scene(), _planned_scene(env)
+        renderers = {camera: Renderer(env.track, env.game.vehicles, size=512, camera=camera)
+                     for camera in ("track", "follow")}
+        calls = {"track": lambda: renderers["track"].draw(scene), "follow": lambda: renderers["follow"].draw(scene),
+                 "follow_plans": lambda: renderers["follow"].draw(planned)}
+        timed = _interleaved_calls(calls, rounds)
+        yield {"name": f"frame_{track}", "track": track, "ms_track_camera": 1e3 * timed.median_s("track"),
+               "ms_follow": 1e3 * timed.median_s("follow"), "ms_per_frame": 1e3 * timed.median_s("follow_plans"),
+               "target_ms": 5.0}
+
+    env = parallel_env(track="trefoil", num_agents=2, laps=1)
+    drivers = [make_agent("lane-keeping"), make_agent("lane-keeping")]
+
+    def bare() -> int:
+        reset_agents(drivers, env, seed=0)
+        observations, _ = env.reset(seed=0)
+        steps = 0
+        while env.agents:
+            state = env.state()
+            observations, *_ = env.step({a: drivers[i](observations[a], state)
+                                         for i, a in enumerate(env.possible_agents) if a in env.agents})
+            steps += 1
+        return steps
+
+    def recorded() -> int:
+        reset_agents(drivers, env, seed=0)
+        return run_race(env, drivers, seed=0).steps
+
+    steps = bare()
+    timed = _interleaved_calls({"bare": bare, "recorded": recorded}, rounds=3)
+    record = run_race(env, drivers, seed=0)
+    with tempfile.TemporaryDirectory() as folder:
+        start = time.perf_counter()
+        save_replay(replay_of(record, env), Path(folder) / "race.npz")
+        write_ms = 1e3 * (time.perf_counter() - start)
+    yield {"name": "race_recording_trefoil", "race_steps": steps,
+           "bare_steps_per_s": steps / timed.median_s("bare"), "steps_per_s": steps / timed.median_s("recorded"),
+           "throughput_ratio": timed.median_s("bare") / timed.median_s("recorded"), "ms_replay_write": write_ms}
+
+
 SECTIONS: dict[str, Callable[[], Iterator[dict[str, Any]]]] = {
     "env": bench_env, "solvers": bench_solvers, "agents": bench_agents, "rl": bench_rl,
-    "certificates": bench_certificates}
+    "certificates": bench_certificates, "render": bench_render}
 
 
-_FIGURE_KEYS = ("steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95",
+_FIGURE_KEYS = ("ms_per_frame", "steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95",
                 "us_per_step", "ns_per_lane_step", "gflop_per_s", "converged_fraction")
 
 
@@ -733,7 +809,7 @@ _TARGETS = {
     "target_steps_per_s": ("steps_per_s", True),
     "target_ratio": ("throughput_ratio", True),
     "target_ms_p95": ("ms_p95", False),
-    "target_ms": (("ms_per_iter", "ms_per_solve"), False),
+    "target_ms": (("ms_per_iter", "ms_per_solve", "ms_per_frame"), False),
 }
 
 

@@ -1,4 +1,4 @@
-"""The `racing` command line: demo, agents, paper, equilibria, tournament, convergence, train, sweep, bench.
+"""The `racing` command line: demo, agents, paper, equilibria, tournament, replay, convergence, train, sweep, bench.
 
 Each command's code is imported only when it runs: the RL layer (:mod:`experiments.rl`, torch
 and stable-baselines3) only by ``racing train``. Guide: README.md and docs/.
@@ -67,7 +67,30 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
     )
     _check_ray(args.backend)
     run_tournament(config, Path(args.out), gif=not args.no_gif, fresh=args.fresh, backend=args.backend,
-                   workers=args.workers, address=args.address)
+                   workers=args.workers, address=args.address, plans=args.plans, report=args.report)
+    return 0
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from experiments.replay import print_races, render_race
+
+    run = Path(args.run)
+    if not run.is_dir():
+        raise ValueError(f"{run} is not a run folder (a tournament's or a sweep's --out)")
+    if args.race is None:
+        print_races(run)
+        return 0
+    steps = None
+    if args.steps is not None:
+        try:
+            steps = [int(k) for k in args.steps.split(",") if k.strip()]
+        except ValueError:
+            raise ValueError(f"--steps takes step indices separated by commas, e.g. 0,20,40; got {args.steps!r}") from None
+    suffix = ".png" if steps is not None else ".gif"
+    path = Path(args.out) if args.out else run / f"replay-{args.race}{suffix}"
+    render_race(run, args.race, path, every=args.every, size=args.size, camera=args.camera, plans=args.plans,
+                steps=steps)
+    print(f"wrote {path}")
     return 0
 
 
@@ -172,7 +195,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     _check_ray(args.backend)
     out = Path(args.out) if args.out else Path("runs/sweep") / Path(args.file).stem
     report = run_sweep(config, out, backend=args.backend, workers=args.workers, address=args.address,
-                       fresh=args.fresh)
+                       fresh=args.fresh, plans=args.plans, report=args.report)
     return 130 if report["interrupted"] else 0
 
 
@@ -201,6 +224,17 @@ def _backend_options() -> argparse.ArgumentParser:
     return parent
 
 
+def _recording_options() -> argparse.ArgumentParser:
+    """``--plans`` and ``--no-report``, shared by the commands whose races keep replays."""
+    parent = argparse.ArgumentParser(add_help=False)
+    parent.add_argument("--plans", action="store_true",
+                        help="keep each planner's plan and predictions of the others at every step in the replays "
+                        "(OUT/replays; about 10x larger files), so racing replay can draw them")
+    parent.add_argument("--no-report", dest="report", action="store_false",
+                        help="do not write OUT/report.html (the results page with replays of selected races)")
+    return parent
+
+
 def _check_ray(backend: str) -> None:
     if backend == "ray":
         try:
@@ -212,6 +246,7 @@ def _check_ray(backend: str) -> None:
 def build_parser() -> argparse.ArgumentParser:
     cache = _compile_cache_option()
     backends = _backend_options()
+    recording = _recording_options()
     parser = argparse.ArgumentParser(
         prog="racing",
         description="racing-games: race game-theoretic planners (iLQR, open-loop and feedback iLQGame) and "
@@ -303,13 +338,14 @@ def build_parser() -> argparse.ArgumentParser:
     equilibria.set_defaults(func=_cmd_equilibria)
 
     tour = sub.add_parser(
-        "tournament", parents=[cache, backends],
-        help="round robin of agents over seeded start grids (resumable; leaderboard, CSV, PNG, GIF)",
+        "tournament", parents=[cache, backends, recording],
+        help="round robin of agents over seeded start grids (resumable; leaderboard, report.html, replays)",
         description="Every combination of --cars agents races on --grids start grids, once per rotation of "
-        "the starting slots. Results are appended to OUT/results.jsonl as races end; rerunning the same "
-        "command resumes. Races run here, on --workers local processes, or on Ray (--backend ray); the "
-        "leaderboard is the same. Prints the leaderboard; writes OUT/summary.csv, leaderboard.json, "
-        "head_to_head.png and race.gif (the first race). Agent specs: racing agents; guide: docs/sweeps.md.",
+        "the starting slots. Results are appended to OUT/results.jsonl as races end, every race's replay to "
+        "OUT/replays; rerunning the same command resumes. Races run here, on --workers local processes, or on "
+        "Ray (--backend ray); the leaderboard is the same. Prints the leaderboard; writes OUT/summary.csv, "
+        "leaderboard.json, head_to_head.png, race.gif (the first race, with the planners' plans) and "
+        "report.html (open it in a browser). Agent specs: racing agents; guide: docs/sweeps.md.",
     )
     tour.add_argument("--agents", nargs="+", default=["ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping"],
                       help="agent specs (space- or comma-separated)")
@@ -347,6 +383,31 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--no-gif", action="store_true", help="do not render a GIF of the first race")
     tour.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")
     tour.set_defaults(func=_cmd_tournament)
+
+    replay = sub.add_parser(
+        "replay", help="draw a recorded race of a tournament or sweep again, to a GIF or MP4",
+        description="Tournaments and sweeps keep every race's replay in OUT/replays. Without --race, lists the "
+        "recorded races of RUN (index, id, order, steps, whether plans were kept). With --race K, renders race "
+        "K with the follow camera, the agents' names, a heads-up line and (when the run kept them with --plans) "
+        "each planner's plan and predictions. Guide: docs/viewing.md.",
+    )
+    replay.add_argument("run", metavar="RUN", help="a tournament's or a sweep's output folder")
+    replay.add_argument("--race", type=int, default=None, metavar="K",
+                        help="the race to render: its index in the run's schedule (racing replay RUN lists them)")
+    replay.add_argument("--out", default=None,
+                        help="the file to write: .gif or .mp4 (MP4 needs the video extra), or .png with --steps "
+                        "(default: RUN/replay-K.gif, or RUN/replay-K.png with --steps)")
+    replay.add_argument("--steps", default=None, metavar="K,K,...",
+                        help="instead of a video, the frames of these steps side by side in one PNG (a figure)")
+    replay.add_argument("--every", type=int, default=3,
+                        help="draw every this many steps of 0.1 s (default: 3; the video plays in race time)")
+    replay.add_argument("--size", type=int, default=480, help="frame side [px] (default: 480)")
+    replay.add_argument("--camera", default="auto", choices=["auto", "follow", "track"],
+                        help="follow: a window that keeps the cars large, with an inset map; track: the whole "
+                        "circuit; auto (default): follow for up to 4 cars")
+    replay.add_argument("--no-plans", dest="plans", action="store_false",
+                        help="do not draw the plans and predictions even when the replay has them")
+    replay.set_defaults(func=_cmd_replay)
 
     conv = sub.add_parser(
         "convergence", parents=[cache],
@@ -498,12 +559,13 @@ def build_parser() -> argparse.ArgumentParser:
     train.set_defaults(func=_cmd_train)
 
     sweep = sub.add_parser(
-        "sweep", parents=[cache, backends],
+        "sweep", parents=[cache, backends, recording],
         help="races over a grid of settings from a TOML file, on local worker processes or a Ray cluster",
         description="Race a lineup of agents at every combination of the parameters in a TOML file (its keys: "
         "docs/sweeps.md; examples: docs/sweeps/*.toml), on --grids seeded grids per point, once per rotation "
         "of the starting slots. Records go to OUT/results.jsonl as races end; rerunning the same command resumes. "
-        "Prints a table per point and agent; writes summary.csv, summary.json and sweep.png. Backends: local "
+        "Prints a table per point and agent; writes summary.csv, summary.json, sweep.png, report.html and every "
+        "race's replay (OUT/replays, for racing replay). Backends: local "
         "(--workers processes; 1 runs in this process) or ray (--address of a running cluster, or a local one "
         "with --workers CPUs).",
     )

@@ -34,7 +34,7 @@ def run_demo(out: Path, track: str = "trefoil", laps: int = 1, seed: int = 0, gi
     names = ["lane-keeping", "constant-speed 20 m/s"]
     length = f"{laps} lap(s)" if race_distance is None else f"{race_distance:g} m"
     console.print(f"[bold]racing demo[/]: {names[0]} vs {names[1]} on {env.track!r}, {length}")
-    record = run_race(env, policies, seed=seed, render_every=gif_every, progress=True)
+    record = run_race(env, policies, seed=seed, render_every=gif_every, progress=True, labels=names)
     table = Table(title=f"result ({record.steps} steps of {env.config.dt} s)")
     for column in ("pos", "car", "driver", "finish [s]", "mean speed [m/s]", "contact steps", "off track [s]"):
         table.add_column(column)

@@ -1,4 +1,9 @@
-"""Run one race in the PettingZoo env with one policy per car and record it."""
+"""Run one race in the PettingZoo env with one policy per car and record it.
+
+The record keeps what a frame of every step shows (the joint states, each car's status
+and position, and on request the planners' plans), so that the frames drawn while the
+race runs and those drawn later from its replay (``experiments.replay``) are the same.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +15,9 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from tqdm import tqdm
 
+from racing_env.dynamics import N_LAT, S
 from racing_env.env import RacingParallelEnv
+from racing_env.render import FINISHED, RACING, RETIRED, Scene
 
 Policy = Callable[[np.ndarray, np.ndarray], Any]
 
@@ -26,6 +33,14 @@ class RaceRecord:
             ``mean_speed`` [m/s], ``collision_steps``, ``time_off_track`` [s].
         frames: rendered RGB frames (empty unless ``render_every``).
         steps: env steps taken.
+        status: ``(T+1, N)`` int8 each car's status at each step
+            (:data:`racing_env.render.RACING`, ``FINISHED`` or ``RETIRED``).
+        position: ``(T+1, N)`` int16 race positions (1 = leading).
+        plans: with ``plans`` on: per step ``0..T`` and car, None or what the car's agent
+            planned from that step's state, ``(H, N, 2)`` float32 ``[s, n]`` [m] (its own
+            plan in its row, its predictions of the others in theirs); else None.
+        labels: a name per car for frames (the agents' names unless given).
+        dt: the env's time step [s].
         act_times: per car, the wall time [s] of every action after the first (which may
             compile).
         faults: car index -> what went wrong (a raised exception or a blown time budget);
@@ -38,6 +53,28 @@ class RaceRecord:
     steps: int
     act_times: list[list[float]] = dataclasses.field(default_factory=list)
     faults: dict[int, str] = dataclasses.field(default_factory=dict)
+    status: np.ndarray | None = None
+    position: np.ndarray | None = None
+    plans: list[list[np.ndarray | None]] | None = None
+    labels: tuple[str, ...] = ()
+    dt: float = 0.1
+
+    def scene(self, k: int) -> Scene:
+        """What the frame of step ``k`` shows (:class:`racing_env.render.Scene`)."""
+        return Scene(x=self.xs[k], time=k * self.dt, status=np.asarray(self.status[k], dtype=np.int8),
+                     position=np.asarray(self.position[k], dtype=np.int16), labels=self.labels,
+                     plans=None if self.plans is None else self.plans[k])
+
+
+def plan_of(policy: Policy) -> np.ndarray | None:
+    """What a policy's agent plans now: its diagnostics' ``plan`` ``(H, N, 6)`` as
+    ``(H, N, 2)`` float32 ``[s, n]`` (None for a policy without a plan). ``policy``: an
+    agent, or an agent's bound ``act``."""
+    agent = policy if hasattr(policy, "diagnostics") else getattr(policy, "__self__", None)
+    plan = agent.diagnostics().get("plan") if hasattr(agent, "diagnostics") else None
+    if plan is None:
+        return None
+    return np.asarray(plan)[:, :, [S, N_LAT]].astype(np.float32)
 
 
 def run_race(
@@ -48,10 +85,15 @@ def run_race(
     progress: bool = False,
     step_budget_s: float | None = None,
     catch_errors: bool = False,
+    plans: bool = False,
+    labels: Sequence[str] | None = None,
 ) -> RaceRecord:
     """Race ``policies`` (one per car, ``policy(observation, joint_state) -> action``).
 
-    Renders every ``render_every``-th step when > 0 (the env needs ``render_mode='rgb_array'``).
+    Renders every ``render_every``-th step when > 0 with the env's renderer (after the
+    policies acted, so a frame shows the plans they acted on), labelling the cars with
+    ``labels`` (default: the agents' names). ``plans`` records what each policy's agent
+    planned at every step (:func:`plan_of`) into the record and the frames.
     With ``catch_errors`` a policy that raises is recorded in ``faults`` instead of raising;
     with ``step_budget_s`` an action slower than that (the first action exempt) is a fault.
     Either fault ends the race after the step in which it happened.
@@ -59,18 +101,32 @@ def run_race(
     if len(policies) != env.num_cars:
         raise ValueError(f"need {env.num_cars} policies, got {len(policies)}")
     index = {agent: i for i, agent in enumerate(env.possible_agents)}
+    labels = tuple(env.possible_agents) if labels is None else tuple(str(label) for label in labels)
+    if len(labels) != env.num_cars:
+        raise ValueError(f"need {env.num_cars} labels, got {len(labels)}")
     observations, infos = env.reset(seed=seed)
-    xs, frames = [env.state()], []
+    record = RaceRecord(xs=np.empty(0), summary=[], frames=[], steps=0, labels=labels, dt=env.config.dt,
+                        plans=[] if plans else None)
+    xs, status, position = [env.state()], [], []
     off_steps = np.zeros(env.num_cars, dtype=int)
     contact_steps = np.zeros(env.num_cars, dtype=int)
     act_times: list[list[float]] = [[] for _ in range(env.num_cars)]
     faults: dict[int, str] = {}
     last_info = dict(infos)
+
+    def standing() -> None:  # each car's status and position now, from its last info (plain lists: cheap)
+        infos_now = [last_info[a] for a in env.possible_agents]
+        status.append([RETIRED if info["out"] else FINISHED if info["finished"] else RACING for info in infos_now])
+        position.append([info["position"] for info in infos_now])
+
+    def draw(k: int) -> None:
+        record.xs, record.status, record.position = xs, status, position  # lists: scene(k) indexes them
+        record.frames.append(env.renderer.draw(record.scene(k)))
+
+    standing()
     bar = tqdm(total=env.config.max_steps, desc="race", disable=not progress, leave=False)
     step = 0
     while env.agents and not faults:
-        if render_every and step % render_every == 0:
-            frames.append(env.render())
         state = env.state()
         actions = {}
         for agent in env.agents:
@@ -88,6 +144,11 @@ def run_race(
                 act_times[i].append(elapsed)
                 if step_budget_s is not None and elapsed > step_budget_s:
                     faults[i] = f"step {step}: took {elapsed:.3f} s, over the budget of {step_budget_s} s"
+        if plans:
+            record.plans.append([plan_of(policies[index[a]]) if a in actions else None
+                                 for a in env.possible_agents])
+        if render_every and step % render_every == 0:
+            draw(step)
         if faults:
             break
         observations, _, _, _, infos = env.step(actions)
@@ -97,11 +158,14 @@ def run_race(
             contact_steps[i] += info["collided"]
             last_info[agent] = info
         xs.append(env.state())
+        standing()
         step += 1
         bar.update(1)
     bar.close()
-    if render_every:
-        frames.append(env.render())
+    if plans:
+        record.plans.extend([None] * env.num_cars for _ in range(len(xs) - len(record.plans)))
+    if render_every and not (faults and step % render_every == 0):  # the final state (unless just drawn)
+        draw(len(xs) - 1)
     xs = np.stack(xs)
     dt = env.config.dt
     summary = []
@@ -120,4 +184,6 @@ def run_race(
                 "time_off_track": float(off_steps[i] * dt),
             }
         )
-    return RaceRecord(xs=xs, summary=summary, frames=frames, steps=step, act_times=act_times, faults=faults)
+    record.xs, record.status, record.position = xs, np.array(status, np.int8), np.array(position, np.int16)
+    record.summary, record.steps, record.act_times, record.faults = summary, step, act_times, faults
+    return record

@@ -6,15 +6,22 @@ what is done; run again with the same settings, it skips the jobs already record
 the rest on a backend (:func:`experiments.backends.run_jobs`: this process, local worker
 processes or a Ray cluster). The records are read back in schedule order, so what is built
 from them does not depend on the backend, the number of workers or interruptions.
+
+A job's record may carry its race's :class:`experiments.replay.Replay` under ``"replay"``:
+it is written to ``out/replays`` before the record's line (so a recorded race always has
+its replay), and the line says ``"race": K`` (the job's index in the schedule) and
+``"replay"``: the file's path relative to ``out``.
 """
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from experiments.backends import run_jobs
 from experiments.jsonl import append_jsonl, open_run_log
+from experiments.replay import REPLAYS, replay_file, save_replay
 
 
 class JobLog:
@@ -31,6 +38,9 @@ class JobLog:
         self.out = out
         self.path = out / log
         self.jobs = list(jobs)
+        self._index = {job["id"]: k for k, job in enumerate(self.jobs)}
+        if fresh:
+            shutil.rmtree(out / REPLAYS, ignore_errors=True)
         self.done = open_run_log(out, log, settings_file, settings, fresh, what, outputs=outputs)
 
     @property
@@ -44,7 +54,14 @@ class JobLog:
             console.print(f"resuming: {len(self.done)} of {len(self.jobs)} races already in {self.path}")
 
     def add(self, record: dict[str, Any]) -> None:
-        """Append a job's record (it carries the job's ``id``) and count it as done."""
+        """Append a job's record (it carries the job's ``id``) and count it as done; its
+        replay, if it carries one, is written first."""
+        replay = record.pop("replay", None)
+        if replay is not None:
+            race = self._index[record["id"]]
+            replay.race, replay.id = race, record["id"]
+            save_replay(replay, self.out / replay_file(race))
+            record = {**record, "race": race, "replay": replay_file(race)}
         append_jsonl(self.path, record)
         self.done[record["id"]] = record
 

@@ -251,10 +251,10 @@ def schedule(config: SweepConfig) -> list[dict[str, Any]]:
     return jobs
 
 
-def run_job(config: SweepConfig, job: dict[str, Any]) -> dict[str, Any]:
+def run_job(config: SweepConfig, job: dict[str, Any], plans: bool = False) -> dict[str, Any]:
     """Race one job and return its record: the job, and per agent (by lineup index) its
     car's result in that race (start place, place, finish time, distance, speed, incidents,
-    errors)."""
+    errors), and the race's replay (with the planners' plans when ``plans``)."""
     from experiments.tournament import race_lineup
 
     cars = len(config.lineup)
@@ -262,12 +262,12 @@ def run_job(config: SweepConfig, job: dict[str, Any]) -> dict[str, Any]:
     order = [(slot + rotation) % cars for slot in range(cars)]  # the agent index in each slot
     specs = config.lineup_specs(job["point"])
     record, _ = race_lineup(config.race_config(job["point"], rotation), [specs[a] for a in order],
-                            job["seed"], step_budget_s=config.step_budget_s)
+                            job["seed"], step_budget_s=config.step_budget_s, plans=plans)
     by_agent = [None] * cars
     for slot, agent in enumerate(order):
         by_agent[agent] = {**record["cars"][slot], "slot": slot}
     return {**job, "steps": record["steps"], "overtakes": record["overtakes"], "gap": record["gap"],
-            "agents": by_agent}
+            "agents": by_agent, "replay": record["replay"]}
 
 
 def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -328,9 +328,12 @@ def read_results(out: Path) -> list[dict[str, Any]]:
 
 
 def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: int = 1,
-              address: str | None = None, fresh: bool = False, progress: bool = True) -> dict[str, Any]:
+              address: str | None = None, fresh: bool = False, progress: bool = True, plans: bool = False,
+              report: bool = True) -> dict[str, Any]:
     """Run (or resume) a sweep into ``out``; returns ``{"rows": summary, "interrupted": bool}``
-    and writes ``results.jsonl``, ``summary.csv``, ``summary.json`` and ``sweep.png``."""
+    and writes ``results.jsonl``, ``summary.csv``, ``summary.json``, ``sweep.png``, every
+    race's replay in ``replays/`` (with the planners' plans when ``plans``) and, with
+    ``report``, ``report.html``."""
     from rich.console import Console
 
     from planners.agents import check_specs
@@ -347,10 +350,15 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
     log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG, settings=settings_json(config, ADDED_LATER),
                  what="sweep", fresh=fresh)
     log.announce(console)
-    interrupted = log.run(functools.partial(run_job, config), backend, workers, address, progress=progress,
+    interrupted = log.run(functools.partial(run_job, config, plans=plans), backend, workers, address, progress=progress,
                           desc="sweep")
-    rows = summarize(config, log.records())
+    records = log.records()
+    rows = summarize(config, records)
     _write_summary(config, rows, out, console)
+    if report:
+        from experiments.report import write_sweep_report
+
+        console.print(f"wrote {write_sweep_report(out, config, rows, records)}")
     if interrupted:
         console.print(f"interrupted: {len(log.done)} of {len(log.jobs)} races in {out / RESULTS}; run the same "
                       "command to resume")

@@ -159,7 +159,8 @@ def race_config(config: TournamentConfig, render: bool = False) -> RaceConfig:
 
 
 def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: float | None = None,
-                render_every: int = 0) -> tuple[dict[str, Any], list[np.ndarray]]:
+                render_every: int = 0, plans: bool = False,
+                replay: bool = True) -> tuple[dict[str, Any], list[np.ndarray]]:
     """Race agent specs (one per starting slot) on grid ``seed``; returns ``(record, frames)``.
 
     The record holds the finishing ``order`` (specs), the ``gap`` to the second car (None
@@ -170,6 +171,10 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     on; else None) that were certified local Nash equilibria (``certified_share``), and the
     ``error`` of a car that faulted.
     Faults are recorded, never raised: a car that raises or blows ``step_budget_s`` is last.
+    With ``replay`` the record's ``"replay"`` is the race's :class:`experiments.replay.Replay`
+    (with the planners' plans when ``plans``), which :class:`experiments.runner.JobLog`
+    writes beside the records; frames (every ``render_every``-th step) are labelled with the
+    specs and show the plans when ``plans``.
     """
     from experiments.race import run_race
     from planners.agents import make_agent
@@ -182,13 +187,13 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
         try:
             agent = make_agent(spec)
             agent.reset(seed, i, env)
-            policies.append(agent.act)
+            policies.append(agent)
         except Exception as err:  # noqa: BLE001 - a broken agent loses, the tournament goes on
             agent = None
             policies.append(_failed_setup(f"setup: {type(err).__name__}: {err}"))
         agents.append(agent)
-    result = run_race(env, policies, seed=seed, render_every=render_every,
-                      step_budget_s=step_budget_s, catch_errors=True)
+    result = run_race(env, policies, seed=seed, render_every=render_every, step_budget_s=step_budget_s,
+                      catch_errors=True, plans=plans, labels=lineup)
     xs, faults = result.xs, result.faults
     final_s = xs[-1, :, 0]
     finish = [car["finish_time"] for car in result.summary]
@@ -222,11 +227,16 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             "act_time_max_s": float(np.max(times)) if times else float("nan"),
             "solver_failures": int(summary.get("fallbacks", 0)),
             "solver_converged_fraction": summary.get("converged_fraction"),
+            "solver_iterations_mean": summary.get("iterations_mean"),
             "certified_share": summary.get("certified_share"),
             "actions_clipped_fraction": summary.get("clipped_fraction"), "error": faults.get(i),
         })
     record = {"steps": result.steps, "order": [lineup[i] for i in order], "gap": gap,
               "overtakes": count_overtakes(xs[:, :, 0]), "cars": cars}
+    if replay:
+        from experiments.replay import replay_of
+
+        record["replay"] = replay_of(result, env)
     env.close()
     return record, result.frames
 
@@ -237,10 +247,11 @@ def won_race(car: dict[str, Any], num_cars: int) -> bool:
     return car["place"] == 1 and (num_cars > 1 or car["finish_time"] is not None)
 
 
-def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0):
-    """Race one scheduled lineup; returns ``(record, frames)``. Faults are recorded, never raised."""
+def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0, plans: bool = False):
+    """Race one scheduled lineup; returns ``(record, frames)`` (the record with its replay,
+    with the planners' plans when ``plans``). Faults are recorded, never raised."""
     record, frames = race_lineup(race_config(config, render=bool(render_every)), race["lineup"], race["seed"],
-                                 step_budget_s=config.step_budget_s, render_every=render_every)
+                                 step_budget_s=config.step_budget_s, render_every=render_every, plans=plans)
     return {"id": race["id"], "grid": race["grid"], "seed": race["seed"], **record}, frames
 
 
@@ -380,24 +391,29 @@ def load_results(out: Path) -> list[dict[str, Any]]:
     return read_jsonl(out / RESULTS)
 
 
-def _race_record(config: TournamentConfig, race: dict[str, Any]) -> dict[str, Any]:
+def _race_record(config: TournamentConfig, plans: bool, race: dict[str, Any]) -> dict[str, Any]:
     """The record of one scheduled race (a job for :func:`experiments.backends.run_jobs`)."""
-    return run_one_race(config, race)[0]
+    return run_one_race(config, race, plans=plans)[0]
 
 
 def _drawn_race(config: TournamentConfig, out: Path, race: dict[str, Any]) -> dict[str, Any]:
-    """The record of one scheduled race, drawn into ``out/race.gif`` (every third step)."""
+    """The record of one scheduled race, drawn into ``out/race.gif`` (every third step) with
+    its planners' plans."""
     from racing_env.render import save_gif
 
-    record, frames = run_one_race(config, race, render_every=3)
+    record, frames = run_one_race(config, race, render_every=3, plans=True)
     save_gif(frames, out / GIF, fps=10.0 / 3)
     return record
 
 
 def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progress: bool = True,
                    fresh: bool = False, backend: str = "local", workers: int = 1,
-                   address: str | None = None) -> dict[str, Any]:
+                   address: str | None = None, plans: bool = False, report: bool = True) -> dict[str, Any]:
     """Run (or resume) a tournament into ``out``; returns the leaderboard.
+
+    Every race's replay goes to ``out/replays`` (:mod:`experiments.replay`), with the
+    planners' plans when ``plans``; ``report`` writes ``out/report.html``
+    (:mod:`experiments.report`) with the leaderboard and replays of selected races.
 
     The races run in this process, or with ``workers > 1`` or ``backend="ray"`` on worker
     processes or a Ray cluster (:func:`experiments.backends.run_jobs`; the race drawn as a
@@ -420,7 +436,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     # with no race recorded a GIF here is not this run's (e.g. results.jsonl deleted by hand): draw it
     # again; a resumed run keeps the GIF of its first race
     draw = gif and (not log.done or not (out / GIF).exists())
-    if log.run(functools.partial(_race_record, config), backend, workers, address, progress=progress,
+    if log.run(functools.partial(_race_record, config, plans), backend, workers, address, progress=progress,
                desc="tournament", here_first=functools.partial(_drawn_race, config, out) if draw else None):
         raise KeyboardInterrupt  # the races run so far are kept in results.jsonl; no leaderboard
     records = log.records()
@@ -434,11 +450,16 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     if config.cars > 1:
         plot_head_to_head(board["head_to_head"], out / "head_to_head.png")
     (out / "leaderboard.json").write_text(json.dumps(board, indent=2))
+    written = [out / RESULTS, out / "summary.csv"] + ([out / "head_to_head.png"] if config.cars > 1 else [])
+    written += [out / GIF] if (out / GIF).exists() else []
+    if report:
+        from experiments.report import write_tournament_report
+
+        written.append(write_tournament_report(out, config, board, records))
     retire = config.on_collision in RETIRING_MODES or config.on_off_track in RETIRING_MODES
     if config.cars == 1:
         console.print(_time_trial_table(board, records, config, retire))
-        gif_note = f", {out / GIF}" if (out / GIF).exists() else ""
-        console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}{gif_note}")
+        console.print(f"wrote {', '.join(map(str, written))}")
         return board
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
     certified_header, certified = _certified_cells(board)
@@ -456,6 +477,5 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
                       f"{1e3 * row['mean_act_time_s']:.1f}",
                       or_dash(row["converged_fraction"], "{:.0%}"), *certified[k - 1])
     console.print(table)
-    console.print(f"wrote {out / RESULTS}, {out / 'summary.csv'}, {out / 'head_to_head.png'}"
-                  + (f", {out / GIF}" if (out / GIF).exists() else ""))
+    console.print(f"wrote {', '.join(map(str, written))}")
     return board

@@ -195,6 +195,7 @@ class RacingParallelEnv(ParallelEnv):
             for a in _race_start(self._constants, self._layout, x0)
         )
         obs = obs.copy()  # writable
+        self._position = ints[:, 4]
         per_car = self._infos(floats.tolist(), ints.tolist(), with_terms=False)
         infos = {a: per_car[i] for i, a in enumerate(self.agents)}
         observations = {a: obs[self._index[a]] for a in self.agents}
@@ -266,7 +267,7 @@ class RacingParallelEnv(ParallelEnv):
         obs = obs.copy()  # writable, as users may normalise observations in place
         flags = ints[:, :3].astype(bool)  # columns of _per_car_rows: active, finished, out, place, ...
         self._active, self._finished, self._out = flags[:, 0], flags[:, 1], flags[:, 2]
-        self._place = ints[:, 3]
+        self._place, self._position = ints[:, 3], ints[:, 4]
         self._finish_time = floats[:, 0]  # finish_time, reward, terms
 
         floats, ints = floats.tolist(), ints.tolist()
@@ -328,17 +329,33 @@ class RacingParallelEnv(ParallelEnv):
         return self._active.copy()
 
     # --- rendering ------------------------------------------------------------------------
+    @property
+    def renderer(self):
+        """The race's :class:`racing_env.render.Renderer` (made at first use, with the
+        config's ``render_size`` and ``camera``)."""
+        from racing_env.render import Renderer
+
+        if self._renderer is None:
+            laps = None if self.config.race_distance is not None or not self.track.closed else self.config.laps
+            self._renderer = Renderer(self.track, self.game.vehicles, size=self.config.render_size,
+                                      camera=self.config.camera, laps=laps, finish_s=self.finish_s)
+        return self._renderer
+
+    def scene(self, labels=None, plans=None):
+        """What a frame of the race now shows (:class:`racing_env.render.Scene`): the joint
+        state, time, each car's status and position, ``labels`` (default: the agents'
+        names) and ``plans`` (per car: None or its plan ``(H, N, 2)`` of ``[s, n]``)."""
+        from racing_env.render import Scene, car_status
+
+        return Scene(x=self._x.copy(), time=self._steps * self.config.dt,
+                     status=car_status(self._finished, self._out), position=self._position.copy(),
+                     labels=tuple(self.possible_agents) if labels is None else tuple(labels), plans=plans)
+
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
             return None
-        from racing_env.render import Renderer
-
-        if self._renderer is None:
-            self._renderer = Renderer(
-                self.track, self.game.vehicles, size=self.config.render_size, camera=self.config.camera
-            )
-        frame = self._renderer.frame(self._x, self._active, title=f"t = {self._steps * self.config.dt:5.1f} s")
+        frame = self.renderer.draw(self.scene())
         if self.render_mode == "human":
             self._renderer.show(frame)
             return None

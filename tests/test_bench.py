@@ -266,3 +266,14 @@ def test_certificates_section_times_solve_and_certificates_of_each_mode():
         assert row["ms_solve"] > 0 and row["ms_cheap"] > 0 and row["ms_full"] > 0
         assert row["full_over_solve"] == pytest.approx(row["ms_full"] / row["ms_solve"], rel=1e-12)
         assert row["verdict"] == "local Nash equilibrium"  # the default solver's solutions of the paper scene
+
+
+def test_render_section_times_each_camera_and_the_recording_of_a_race():
+    rows = list(bench.bench_render(rounds=1, tracks=("trefoil",)))
+    assert [row["name"] for row in rows] == ["frame_trefoil", "race_recording_trefoil"]
+    frame, race = rows
+    assert frame["ms_track_camera"] > 0 and frame["ms_follow"] > 0 and frame["ms_per_frame"] > 0
+    assert bench._target_verdict(frame) is not None  # judged against the few-milliseconds target
+    assert race["race_steps"] > 100 and race["bare_steps_per_s"] > 0 and race["steps_per_s"] > 0
+    assert race["throughput_ratio"] == pytest.approx(race["steps_per_s"] / race["bare_steps_per_s"], rel=1e-12)
+    assert race["ms_replay_write"] > 0

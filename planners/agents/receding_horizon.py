@@ -263,6 +263,21 @@ class RecedingHorizonAgent(BaseAgent):
                 u = u - plan["K"][t, self.index] @ dx
         return u
 
+    def current_plan(self) -> np.ndarray | None:
+        """The plan the last action followed, from that step on: the joint trajectory
+        ``(H, N, 6)`` of the last adopted solution (this car's plan in its own row; in the
+        others' rows what it expects of them: the equilibrium's other players for a game,
+        the prediction it planned against for iLQR). None before the first plan and after a
+        braking fallback. A view into the stored plan, not a copy."""
+        if self._plan is None or self._age >= self._plan["xs"].shape[0]:
+            return None
+        return self._plan["xs"][self._age:]
+
+    def diagnostics(self) -> dict:
+        """The last step's record, with ``plan``: :meth:`current_plan` (kept out of the
+        history, so a race's diagnostics do not hold every plan)."""
+        return {**super().diagnostics(), "plan": self.current_plan()}
+
     def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
         self._require_reset()
         x = np.asarray(joint_state, dtype=np.float64)
