@@ -263,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="A round robin (both starting orders, one start grid) of iLQR, open-loop iLQGame, feedback "
         "iLQGame and the lane-keeping baseline over one lap (--laps, --race-distance) of a built-in circuit "
         "(a few minutes, most of it compiling the planners). Prints the leaderboard; writes OUT/results.jsonl, "
-        "summary.csv, head_to_head.png and race.gif. --scripted instead races two scripted cars (seconds). "
+        "summary.csv, head_to_head.png, race.gif, report.html and the races' replays. --scripted instead races two scripted cars (seconds). "
         "A fresh run each time; for a resumable one use racing tournament.",
     )
     demo.add_argument("--out", default="runs/demo", help="output folder (default: runs/demo)")
@@ -580,7 +580,7 @@ def build_parser() -> argparse.ArgumentParser:
         "compilation cache, so its compile times are real compilations (unless JAX_COMPILATION_CACHE_DIR is set; "
         "the report names the cache in use). Each row is printed as soon as it is measured; with --json the file "
         "is rewritten after every row, and Ctrl-C stops the run, keeps the rows measured so far (marked "
-        '"interrupted": true) and exits with status 130. Sections: env, solvers, agents, rl (the JSON records each '
+        '"interrupted": true) and exits with status 130. Sections: env, solvers, agents, rl, certificates, render (the JSON records each '
         "section's seconds). Guide: docs/performance.md.",
     )
     bench.add_argument("--only", action="append", help="section(s) to run, e.g. --only env (repeatable or comma-separated)")

@@ -18,7 +18,7 @@ of every other car). :class:`Renderer` draws scenes with Pillow:
 
 A frame is a pure function of the scene and the renderer's settings, so a race drawn
 again from its recorded scenes (``experiments.replay``) gives the same frames. Drawing
-costs a few milliseconds (docs/performance.md, "Rendering"). Plots use matplotlib.
+costs a few milliseconds (docs/performance.md, "Rendering (`racing bench --only render`)"). Plots use matplotlib.
 """
 
 from __future__ import annotations
