@@ -50,7 +50,8 @@ SECTIONS = ("run", "leaderboard", "head-to-head", "solver-health", "races", "rep
 TOURNAMENT_FILES = ("tournament.json", "results.jsonl", "summary.csv", "leaderboard.json", "head_to_head.png",
                     "race.gif")
 SWEEP_FILES = ("sweep.json", "results.jsonl", "summary.csv", "summary.json", "sweep.png")
-REPLAY_EVERY = 4  # a replay GIF draws every 4th step (0.4 s of race per frame)
+REPLAY_EVERY = 4  # a replay GIF draws every 4th step (0.4 s of race per frame) ...
+REPLAY_FRAMES = 150  # ... or fewer, so that a GIF has at most this many frames (about 1 MB at 360 px)
 REPLAY_SIZE = 360  # [px] its side
 
 _CSS = """
@@ -273,9 +274,17 @@ def pick_replays(races: Sequence[RaceRow], count: int) -> list[tuple[RaceRow, st
     return picks
 
 
+def replay_every(steps: int) -> int:
+    """Every how many steps a race of ``steps`` steps is drawn in the report: every
+    :data:`REPLAY_EVERY`-th, or fewer so that the GIF has at most :data:`REPLAY_FRAMES` frames."""
+    # the drawn steps are 0, every, 2 every, ... and the last: at most steps // every + 2 of them
+    return max(REPLAY_EVERY, math.ceil(steps / (REPLAY_FRAMES - 1)))
+
+
 def _render_replays(out: Path, picks: Sequence[tuple[RaceRow, str]]) -> list[tuple[RaceRow, str, bytes]]:
-    """The picked races drawn as GIFs by :func:`experiments.replay.render_race` (in a
-    temporary folder, read back as bytes); a race whose replay went missing is left out."""
+    """The picked races drawn as GIFs by :func:`experiments.replay.render_race` (every
+    :func:`replay_every` steps, in a temporary folder, read back as bytes); a race whose
+    replay went missing is left out."""
     if not picks:
         return []
     from experiments.replay import render_race
@@ -285,7 +294,7 @@ def _render_replays(out: Path, picks: Sequence[tuple[RaceRow, str]]) -> list[tup
         for race, why in picks:
             path = Path(tmp) / f"race-{race.index:05d}.gif"
             try:
-                render_race(out, race.index, path, every=REPLAY_EVERY, size=REPLAY_SIZE)
+                render_race(out, race.index, path, every=replay_every(race.steps), size=REPLAY_SIZE)
             except FileNotFoundError:
                 continue
             drawn.append((race, why, path.read_bytes()))
@@ -334,12 +343,13 @@ def _replays_section(out: Path, races: Sequence[RaceRow], count: int) -> tuple[s
         return _note("The chosen races' replay files could not be found."), set()
     figures = []
     for race, why, gif in drawn:
-        caption = f"Race {race.index} ({race.id}): {why}; {_outcome(race)}."
+        caption = f"Race {race.index} ({race.id}): {why}; {_outcome(race)}; every {replay_every(race.steps)} steps."
         figures.append(f'<figure id="replay-{race.index}"><img src="{_data_uri(gif, "image/gif")}" '
                        f'alt="{_esc(f"replay of race {race.index}")}" width="{REPLAY_SIZE}">'
                        f"<figcaption>{_esc(caption)}</figcaption></figure>")
-    intro = _note(f"{len(drawn)} of the races with a recorded replay, drawn every {REPLAY_EVERY} steps: the closest "
-                  "finish, the most overtakes, then the first race.")
+    intro = _note(f"{len(drawn)} of the races with a recorded replay, drawn every {REPLAY_EVERY} steps (more for "
+                  f"races over {(REPLAY_FRAMES - 1) * REPLAY_EVERY} steps): the closest finish, the most overtakes, then "
+                  "the first race.")
     return intro + "".join(figures), {race.index for race, _, _ in drawn}
 
 

@@ -497,3 +497,13 @@ def test_report_renders_in_chromium_with_a_readable_leaderboard(tmp_path):
         assert normal(row["agent"]) in text
         lo, hi = row["win_rate_ci95"]
         assert normal(f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]") in text
+
+
+def test_a_long_race_is_drawn_in_at_most_the_frame_cap():
+    from experiments.report import REPLAY_EVERY, REPLAY_FRAMES, replay_every
+
+    for steps in (0, 90, 596, 597, 600, 3000, 12_345):
+        every = replay_every(steps)
+        frames = len(range(0, steps + 1, every)) + (steps % every > 0)  # the steps Replay.frames draws
+        assert every >= REPLAY_EVERY and frames <= REPLAY_FRAMES
+        assert (every == REPLAY_EVERY) == (steps <= (REPLAY_FRAMES - 1) * REPLAY_EVERY)
