@@ -419,7 +419,7 @@ def save_video(frames: Sequence[np.ndarray], path: str | Path, fps: float = 10.0
     try:
         import imageio_ffmpeg  # noqa: F401 - the writer imageio uses for MP4
     except ImportError as err:
-        raise RuntimeError("writing MP4 needs imageio-ffmpeg: pip install 'racing-games[video]'") from err
+        raise ValueError("writing MP4 needs imageio-ffmpeg: pip install 'racing-games[video]' (or write a .gif)") from err
     import imageio.v2 as imageio
 
     path.parent.mkdir(parents=True, exist_ok=True)
