@@ -23,7 +23,7 @@ def run_demo(out: Path, track: str = "trefoil", laps: int = 1, seed: int = 0, gi
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed (--seed) must be an integer >= 0, got {seed!r}")
     config = RaceConfig(track=track, num_agents=2, scenario="grid", laps=laps, race_distance=race_distance,
-                        render_mode="rgb_array", render_size=480)  # checks the race before out is made
+                        render_size=480)  # checks the race before out is made
     out.mkdir(parents=True, exist_ok=True)
     env = RacingParallelEnv(config)
     vehicles = [env.game.vehicles.car(i) for i in range(2)]

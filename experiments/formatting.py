@@ -1,6 +1,18 @@
-"""Formatting shared by the experiments' tables and progress lines."""
+"""Formatting, and the means of optional numbers, shared by the experiments' tables,
+progress lines and reports."""
 
 from __future__ import annotations
+
+from typing import Iterable
+
+import numpy as np
+
+
+def mean_or_none(values: Iterable[float | None]) -> float | None:
+    """The mean of the values that are not None (None if there are none: e.g. the converged
+    share of an agent that never plans)."""
+    present = [v for v in values if v is not None]
+    return float(np.mean(present)) if present else None
 
 
 def or_dash(value: float | None, form: str) -> str:

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from racing_env.dynamics import N_LAT, S
 from racing_env.env import RacingParallelEnv
-from racing_env.render import FINISHED, RACING, RETIRED, Scene
+from racing_env.render import Scene, car_status
 
 Policy = Callable[[np.ndarray, np.ndarray], Any]
 
@@ -114,9 +114,9 @@ def run_race(
     faults: dict[int, str] = {}
     last_info = dict(infos)
 
-    def standing() -> None:  # each car's status and position now, from its last info (plain lists: cheap)
+    def standing() -> None:  # each car's status and position now, from its last info
         infos_now = [last_info[a] for a in env.possible_agents]
-        status.append([RETIRED if info["out"] else FINISHED if info["finished"] else RACING for info in infos_now])
+        status.append(car_status([info["finished"] for info in infos_now], [info["out"] for info in infos_now]))
         position.append([info["position"] for info in infos_now])
 
     def draw(k: int) -> None:

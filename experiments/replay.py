@@ -147,10 +147,9 @@ def replay_of(record: Any, env: Any, race: int | None = None, id: str | None = N
     track = env.config.track
     if not isinstance(track, Track) and os.path.isfile(os.fspath(track)):
         track = os.path.abspath(track)  # a CSV file: found again from any working folder
-    laps = None if env.config.race_distance is not None or not env.track.closed else int(env.config.laps)
     return Replay(xs=np.asarray(record.xs, dtype=np.float64), status=np.asarray(record.status, np.int8),
                   position=np.asarray(record.position, np.int16), labels=tuple(record.labels), dt=float(record.dt),
-                  track=track, cars=cars, laps=laps, finish_s=float(env.finish_s),
+                  track=track, cars=cars, laps=env.race_laps, finish_s=float(env.finish_s),
                   plans=None if record.plans is None else pad_plans(record.plans, num), race=race, id=id)
 
 

@@ -35,10 +35,8 @@ import urllib.parse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Sequence
 
-import numpy as np
-
 from experiments.files import replace_atomically
-from experiments.formatting import or_dash
+from experiments.formatting import mean_or_none, or_dash
 
 if TYPE_CHECKING:  # the run modules import this one to write their reports
     from experiments.sweep import SweepConfig
@@ -96,12 +94,6 @@ def _esc(value: Any) -> str:
 def _num(value: float | None, form: str) -> str:
     """``form`` applied to ``value``, or ``-`` for no value (None) or not a number (NaN)."""
     return or_dash(None if value is None or (isinstance(value, float) and math.isnan(value)) else value, form)
-
-
-def _mean(values: Iterable[float | None]) -> float | None:
-    """The mean of the values that are not None (None if there are none)."""
-    present = [v for v in values if v is not None]
-    return float(np.mean(present)) if present else None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -363,11 +355,11 @@ def solver_health(cars: Sequence[dict[str, Any]]) -> dict[str, Any]:
     that fell back to a safe action, summed), ``errors`` (cars that faulted) and the mean
     ``certified`` share; a mean over no races (agents that are no planners) is None."""
     return {"races": len(cars),
-            "converged": _mean(car.get("solver_converged_fraction") for car in cars),
-            "iterations": _mean(car.get("solver_iterations_mean") for car in cars),
+            "converged": mean_or_none(car.get("solver_converged_fraction") for car in cars),
+            "iterations": mean_or_none(car.get("solver_iterations_mean") for car in cars),
             "fallbacks": sum(int(car.get("solver_failures") or 0) for car in cars),
             "errors": sum(car.get("error") is not None for car in cars),
-            "certified": _mean(car.get("certified_share") for car in cars)}
+            "certified": mean_or_none(car.get("certified_share") for car in cars)}
 
 
 def _health_columns(rows: Sequence[dict[str, Any]]) -> list[_Column]:

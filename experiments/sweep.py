@@ -44,7 +44,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from experiments.backends import check_backend
-from experiments.formatting import or_dash
+from experiments.formatting import mean_or_none, or_dash
 from experiments.jsonl import read_jsonl, settings_json
 from experiments.race_spec import RACE_FIELDS, RaceSpec
 from experiments.runner import JobLog
@@ -312,14 +312,9 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
                 "contact_steps": sum(car["collision_steps"] for car in mine),
                 "time_off_track_s": float(sum(car["time_off_track"] for car in mine)),
                 "errors": sum(car["error"] is not None for car in mine),
-                "converged_fraction": _mean_or_none(car.get("solver_converged_fraction") for car in mine),
+                "converged_fraction": mean_or_none(car.get("solver_converged_fraction") for car in mine),
             })
     return rows
-
-
-def _mean_or_none(values: Iterable[float | None]) -> float | None:
-    present = [v for v in values if v is not None]
-    return float(np.mean(present)) if present else None
 
 
 def read_results(out: Path) -> list[dict[str, Any]]:

@@ -151,11 +151,11 @@ def _failed_setup(message: str):
     return policy
 
 
-def race_config(config: TournamentConfig, render: bool = False) -> RaceConfig:
+def race_config(config: TournamentConfig) -> RaceConfig:
     """The race a tournament's lineups run: its start (a seeded rolling grid by default) on
     its track, its length, step cap and incident rules, and the planners' jerk weight in
     the game."""
-    return config.to_race_config(config.cars, config.scenario, render_mode="rgb_array" if render else None)
+    return config.to_race_config(config.cars, config.scenario)
 
 
 def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: float | None = None,
@@ -250,7 +250,7 @@ def won_race(car: dict[str, Any], num_cars: int) -> bool:
 def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0, plans: bool = False):
     """Race one scheduled lineup; returns ``(record, frames)`` (the record with its replay,
     with the planners' plans when ``plans``). Faults are recorded, never raised."""
-    record, frames = race_lineup(race_config(config, render=bool(render_every)), race["lineup"], race["seed"],
+    record, frames = race_lineup(race_config(config), race["lineup"], race["seed"],
                                  step_budget_s=config.step_budget_s, render_every=render_every, plans=plans)
     return {"id": race["id"], "grid": race["grid"], "seed": race["seed"], **record}, frames
 

@@ -328,6 +328,14 @@ class RacingParallelEnv(ParallelEnv):
         """Which cars are still racing, ``(N,)`` bool (a copy)."""
         return self._active.copy()
 
+    @property
+    def race_laps(self) -> int | None:
+        """The race's laps when it is raced over laps (a closed track, no ``race_distance``),
+        else None: a race over a distance, to :attr:`finish_s`."""
+        if self.config.race_distance is not None or not self.track.closed:
+            return None
+        return int(self.config.laps)
+
     # --- rendering ------------------------------------------------------------------------
     @property
     def renderer(self):
@@ -336,9 +344,8 @@ class RacingParallelEnv(ParallelEnv):
         from racing_env.render import Renderer
 
         if self._renderer is None:
-            laps = None if self.config.race_distance is not None or not self.track.closed else self.config.laps
             self._renderer = Renderer(self.track, self.game.vehicles, size=self.config.render_size,
-                                      camera=self.config.camera, laps=laps, finish_s=self.finish_s)
+                                      camera=self.config.camera, laps=self.race_laps, finish_s=self.finish_s)
         return self._renderer
 
     def scene(self, labels=None, plans=None):

@@ -160,7 +160,7 @@ class Renderer:
         self._reach = float(np.max(np.hypot(steps[:, 0], steps[:, 1]))) if len(steps) else 0.0
         self.camera = camera
         self._fonts = {k: _font(max(9, round(self.size * k / 512))) for k in (11, 13)}
-        self._backgrounds: dict[str, Image.Image] = {}
+        self._whole_track: Image.Image | None = None
         self._inset: tuple[Image.Image, np.ndarray, float, int] | None = None
         self._figure = None
 
@@ -212,11 +212,10 @@ class Renderer:
 
     def _background(self) -> Image.Image:
         """The whole track, drawn once (camera ``track``)."""
-        if "track" not in self._backgrounds:
-            image = Image.new("RGB", (self.size, self.size), GRASS)
-            self._draw_track(ImageDraw.Draw(image), *self._track_view)
-            self._backgrounds["track"] = image
-        return self._backgrounds["track"]
+        if self._whole_track is None:
+            self._whole_track = Image.new("RGB", (self.size, self.size), GRASS)
+            self._draw_track(ImageDraw.Draw(self._whole_track), *self._track_view)
+        return self._whole_track
 
     def _inset_map(self) -> tuple[Image.Image, np.ndarray, float, int]:
         """The inset map's image (drawn once), its centre and span [m] and side [px]."""
