@@ -4,7 +4,9 @@ Rows: the PettingZoo env and the vectorised env (:mod:`racing_env.vector`) at B 
 1,024 races with random actions, in the same run; the vectorised env against each kind of
 opponent at B = 64, re-planning every step and every 5 steps; and stable-baselines3 PPO
 training against the lane keeper and against feedback iLQGame, today's path (copies of the
-single env in a ``DummyVecEnv``) beside the vectorised one. Every rate counts race-steps (one
+single env in a ``DummyVecEnv``) beside the vectorised one; and the JAX learner
+(:mod:`experiments.rl.train_jax`) on the same tasks: the lane keeper inside its compiled
+update at B = 256 and 1,024, feedback iLQGame re-planning every 5 steps at B = 64. Every rate counts race-steps (one
 step of one race) per second of run time after a first call that compiles; the compile time
 is reported apart.
 """
@@ -186,6 +188,51 @@ def training_rows() -> Iterator[dict[str, Any]]:
             yield training_row(opponent, path, envs, vector, target=target)
 
 
+#: (opponent spec, envs, target steps/s) of the JAX learner's rows: the lane keeper inside the compiled
+#: update, and feedback iLQGame re-planning every 5 steps on the host races (its batched solves).
+JAX_TRAINING = (("lane-keeping", 256, 50_000), ("lane-keeping", 1024, 50_000),
+                ("ilqgame-fb:replan_every=5", 64, 5_000))
+
+
+def jax_training_row(opponent: str, envs: int, updates: int = 4, target: float | None = None,
+                     hyperparameters: tuple = ()) -> dict[str, Any]:
+    """The JAX learner's training steps per second on the trefoil against ``opponent``
+    (:mod:`experiments.rl.train_jax`, the PPO settings ``racing train --learner jax`` gives
+    ``envs`` races): a first update (compiling the update, or the policy's steps and the
+    opponent's solves) timed apart, then ``updates`` more, rollouts and fits together."""
+    import jax
+
+    from experiments.rl import ppo_jax
+    from experiments.rl.train import TrainConfig
+    from experiments.rl.train_jax import make_races, ppo_settings
+
+    config = TrainConfig(opponents=(opponent,), envs=envs, learner="jax", seed=0, hyperparameters=hyperparameters)
+    settings = ppo_settings(config)
+    races = make_races(config, settings)
+    learner = ppo_jax.init_learner(jax.random.PRNGKey(0), races.observation_size, envs, settings)
+    learner, in_flight = races.start(learner, 0)
+    start = time.perf_counter()
+    learner, in_flight, _, _ = races.update(learner, in_flight)
+    jax.block_until_ready(learner.params)
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    for _ in range(updates):
+        learner, in_flight, _, _ = races.update(learner, in_flight)
+    jax.block_until_ready(learner.params)
+    seconds = time.perf_counter() - start
+    races.close()
+    steps = updates * settings.n_steps * envs
+    return {"name": f"jax_ppo_{opponent}_B{envs}", "opponent": opponent, "envs": envs, "races": races.kind,
+            "steps_per_s": steps / seconds, "steps": steps, "first_update_s": compile_s,
+            "n_steps": settings.n_steps, "batch_size": settings.batch_size, "n_epochs": settings.n_epochs,
+            "target_steps_per_s": target}
+
+
+def jax_training_rows() -> Iterator[dict[str, Any]]:
+    for opponent, envs, target in JAX_TRAINING:
+        yield jax_training_row(opponent, envs, updates=20 if opponent == "lane-keeping" else 4, target=target)
+
+
 def bench_rl() -> Iterator[dict[str, Any]]:
     """The rows of ``racing bench --only rl`` (module docstring)."""
     baseline = pettingzoo_row()
@@ -193,3 +240,4 @@ def bench_rl() -> Iterator[dict[str, Any]]:
     yield from vector_rows(baseline["steps_per_s"])
     yield from opponent_rows()
     yield from training_rows()
+    yield from jax_training_rows()

@@ -1,4 +1,5 @@
-"""The `racing` command line: demo, agents, paper, equilibria, tournament, replay, convergence, train, sweep, bench.
+"""The `racing` command line: demo, agents, paper, equilibria, tournament, replay, convergence, train, exploit, sweep,
+bench.
 
 Each command's code is imported only when it runs: the RL layer (:mod:`experiments.rl`, torch
 and stable-baselines3) only by ``racing train``. Guide: README.md and docs/.
@@ -21,6 +22,10 @@ DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping")
 INCIDENT_CHOICES = ("penalty", "terminate", "both", "ignore")
 SCENARIO_CHOICES = ("grid", "paper", "side_by_side", "anywhere")
 START_CHOICES = ("grid", "anywhere", "mixed")
+# racing train --envs by --learner (experiments.rl.train.LEARNERS)
+DEFAULT_ENVS = {"sb3": 2, "jax": 256}
+# experiments.exploit.DEFAULT_TARGETS (not imported here: JAX)
+EXPLOIT_TARGETS = ("lane-keeping", "ilqr", "ilqgame-ol", "ilqgame-fb")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -157,10 +162,13 @@ def _cmd_convergence(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    try:
-        import stable_baselines3  # noqa: F401
-    except ImportError:
-        raise ValueError("racing train needs stable-baselines3: pip install 'racing-games[rl]'") from None
+    needed = ("stable_baselines3", "flax", "optax") if args.learner == "jax" else ("stable_baselines3",)
+    for module in needed:
+        try:
+            __import__(module)
+        except ImportError:
+            raise ValueError(f"racing train --learner {args.learner} needs {module}: "
+                             "pip install 'racing-games[rl]'") from None
     if args.vector and not args.subprocesses:  # the vectorised races and the planners' re-plans split over the cores
         _use_cpu_cores("train")
     from experiments.rl.train import TrainConfig, parse_hyperparameter, parse_reward_weight, run_training
@@ -172,7 +180,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     config = TrainConfig(
         opponents=opponents, pool=args.pool, pool_cars=args.pool_cars, algo=args.algo,
         timesteps=args.timesteps, track=args.track, laps=args.laps, race_distance=args.race_distance,
-        max_steps=args.max_steps, start=args.start, seed=args.seed, envs=args.envs, vector=args.vector,
+        max_steps=args.max_steps, start=args.start, seed=args.seed, vector=args.vector, learner=args.learner,
+        envs=args.envs if args.envs is not None else DEFAULT_ENVS[args.learner],
         subprocesses=args.subprocesses,
         normalize=args.normalize,
         on_off_track=args.off_track, on_collision=args.collision, eval_off_track=args.eval_off_track,
@@ -186,6 +195,25 @@ def _cmd_train(args: argparse.Namespace) -> int:
     )
     report = run_training(config, Path(args.out), fresh=args.fresh)
     return 130 if report["status"] == "interrupted" else 0
+
+
+def _cmd_exploit(args: argparse.Namespace) -> int:
+    _check_ray(args.backend)
+    if args.backend == "local" and args.workers == 1:  # the trainings run here: their races split over the cores
+        _use_cpu_cores("exploit")
+    from experiments.exploit import ExploitConfig, run_exploit
+    from experiments.rl.train import parse_hyperparameter
+    from planners.agents import split_spec_list
+
+    config = ExploitConfig(
+        targets=tuple(split_spec_list(args.targets)), seeds=args.seeds, timesteps=args.timesteps,
+        learner=args.learner, envs=args.envs, grids=args.grids, eval_every=args.eval_every,
+        hyperparameters=tuple(parse_hyperparameter(text) for text in args.hyperparameter or ()),
+        track=args.track, laps=args.laps, race_distance=args.race_distance, max_steps=args.max_steps,
+    )
+    report = run_exploit(config, Path(args.out), backend=args.backend, workers=args.workers, address=args.address,
+                         fresh=args.fresh)
+    return 130 if report["interrupted"] else 0
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
@@ -455,7 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = sub.add_parser(
         "train", parents=[cache],
-        help="train a stable-baselines3 agent against planner or scripted opponents (resumable)",
+        help="train an RL agent (stable-baselines3, or PPO in JAX with --learner jax) against planner or scripted opponents (resumable)",
         description="Train an SB3 policy (MlpPolicy) to drive one car against --opponents (or alone: "
         "--time-trial) on seeded rolling grids, "
         "--envs copies of the race side by side (the learner a different car in each). Every --eval-every "
@@ -489,9 +517,17 @@ def build_parser() -> argparse.ArgumentParser:
                        "so that on a long circuit the policy meets every corner early) or mixed (the even copies of "
                        "--envs on the grid, the odd ones anywhere); evaluations start on the grid")
     train.add_argument("--seed", type=int, default=0, help="seed of the policy and the start grids (default: 0)")
-    train.add_argument("--envs", type=int, default=2,
+    train.add_argument("--learner", default="sb3", choices=["sb3", "jax"],
+                       help="sb3 (default): stable-baselines3, every --algo. jax: PPO in JAX, the model in "
+                       "OUT/model.npz (raced as rl:OUT/model.npz); against opponents that are JAX functions of the "
+                       "state (lane-keeping, constant-speed, a time trial) from the grid, the races and the updates "
+                       "are one compiled program (tens of thousands of steps/s), against planners the races step "
+                       "from Python with batched re-plans. Same outputs, evaluations and resumption as sb3; "
+                       "--hyperparameter takes PPO's names (n_steps, batch_size, n_epochs, learning_rate, ...)")
+    train.add_argument("--envs", type=int, default=None,
                        help="copies of the race stepped side by side; in copy k the learner drives car k mod cars "
-                       "(default: 2; with --vector, 16 to 256 copies train 3 to 6 times as many steps per second). "
+                       "(default: 2, or 256 with --learner jax; with --vector, 16 to 256 copies train 3 to 6 times "
+                       "as many steps per second). "
                        "PPO's defaults follow it: n_steps = 4096/envs (a multiple of 8, 16 to 2048) and batch_size "
                        "= n_steps*envs/8, so an update trains on about 4096 steps in 8 minibatches whatever --envs "
                        "is; --hyperparameter n_steps=... or batch_size=... win")
@@ -557,6 +593,50 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--out", default="runs/train", help="output folder (default: runs/train)")
     train.add_argument("--fresh", action="store_true", help="discard an earlier run in --out and start over")
     train.set_defaults(func=_cmd_train)
+
+    exploit = sub.add_parser(
+        "exploit", parents=[cache, backends],
+        help="exploitability: train best responses against agents and race them against every agent (resumable)",
+        description="For every target agent, train a best response per seed (--seeds) with a budget of --timesteps "
+        "steps (racing train against the target alone), then race each best response against its own target and "
+        "every other target (cross-play), two cars, from both starting slots on --grids seeded grids, the same "
+        "grids for every best response. Prints and writes (OUT/exploit.json) each target's exploitability: its "
+        "best responses' win rate against it with a 95% Wilson interval (races pooled over seeds and grids) and a "
+        "95% t interval over the seeds' win rates, and their mean finish margin [s] with a t interval; the "
+        "cross-play matrix as cross_play.csv and cross_play.png; learning_curves.png; every training in "
+        "OUT/best-responses/<target>/seed-<k> (training.jsonl lists them) and every race in results.jsonl, with "
+        "its replay in OUT/replays. A training that fails is reported and its best response left out; a car that "
+        "raises loses its race. Ctrl-C keeps what is done; the same command resumes (trainings from their last "
+        "checkpoint, skipping recorded races); --fresh starts over.",
+    )
+    exploit.add_argument("--targets", nargs="+", default=list(EXPLOIT_TARGETS), metavar="SPEC",
+                         help="agent specs to train best responses against (default: "
+                         f"{' '.join(EXPLOIT_TARGETS)}); options allowed, e.g. ilqgame-fb:replan_every=5, rl:PATH")
+    exploit.add_argument("--seeds", type=int, default=3, help="best responses per target, seeds 0.. (default: 3)")
+    exploit.add_argument("--timesteps", type=int, default=200_000,
+                         help="environment steps each best response trains for (default: 200000)")
+    exploit.add_argument("--learner", choices=["jax", "sb3"], default=None,
+                         help="jax (the JAX PPO) or sb3 (stable-baselines3 PPO) (default: jax where installed, else "
+                         "sb3)")
+    exploit.add_argument("--envs", type=int, default=None,
+                         help="copies of the training race stepped side by side (default: 256 with jax, 16 with sb3)")
+    exploit.add_argument("--grids", type=int, default=2,
+                         help="seeded start grids of the cross-play and of each training's evaluations, each raced "
+                         "from both slots (default: 2)")
+    exploit.add_argument("--eval-every", type=int, default=0,
+                         help="steps between a training's evaluations (default: 0: only the final one)")
+    exploit.add_argument("--track", default="trefoil", help="built-in track name or TUMFTM CSV path (default: trefoil)")
+    exploit.add_argument("--laps", type=int, default=1, help="laps per race on closed tracks (default: 1)")
+    exploit.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
+    exploit.add_argument("--max-steps", type=int, default=3000,
+                         help="a race (and a training episode) is truncated after this many steps (default: 3000)")
+    exploit.add_argument("--hp", "--hyperparameter", dest="hyperparameter", action="append", metavar="NAME=VALUE",
+                         help="a setting of the learner (repeatable), as racing train --hyperparameter, e.g. "
+                         "n_steps=256")
+    exploit.add_argument("--out", default="runs/exploit", help="output folder (default: runs/exploit)")
+    exploit.add_argument("--fresh", action="store_true",
+                         help="discard an earlier study in --out (trainings and races) and start over")
+    exploit.set_defaults(func=_cmd_exploit)
 
     sweep = sub.add_parser(
         "sweep", parents=[cache, backends, recording],

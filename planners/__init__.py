@@ -24,6 +24,7 @@ name                   class                           what it does
 ``lane-keeping``       :class:`LaneKeepingAgent`       scripted: an offset at a cruise speed
 ``constant-speed``     :class:`ConstantSpeedAgent`     scripted: the centre line at a constant speed
 ``rl:PATH``            :class:`SB3Agent`               a saved stable-baselines3 policy
+``rl:PATH.npz``        :class:`JaxPolicyAgent`         a policy saved by the JAX learner
 =====================  ==============================  ==========================================
 
 For vectorised race envs, :func:`make_batched_opponent` makes one :class:`BatchedOpponent`
@@ -75,6 +76,7 @@ from planners.agents import (
     ConstantSpeedAgent,
     FeedbackGameAgent,
     ILQRAgent,
+    JaxPolicyAgent,
     LaneKeepingAgent,
     OpenLoopGameAgent,
     agent_options,
@@ -102,6 +104,7 @@ __all__ = [
     "FeedbackGameAgent",
     "GameProblem",
     "ILQRAgent",
+    "JaxPolicyAgent",
     "LaneKeepingAgent",
     "OpenLoopGameAgent",
     "SB3Agent",

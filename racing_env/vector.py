@@ -496,7 +496,7 @@ class GymnaxRace:
     (obs, state, reward, done, info)`` are pure: jit and vmap them for many races. ``step``
     resets a race that ends (gymnax's autoreset): ``done`` marks the step that ended it and
     ``obs`` is then the new race's; ``info`` holds ``terminated``, ``truncated`` and the
-    learner's ``position``, ``finished`` and ``finish_time``. Starts are drawn with
+    learner's ``position``, ``finished``, ``out`` (retired) and ``finish_time``. Starts are drawn with
     :func:`racing_env.race.draw_start` (scenarios ``grid``, ``paper``, ``side_by_side``).
 
     Args:
@@ -563,6 +563,7 @@ class GymnaxRace:
             "truncated": truncated,
             "position": race_info.position[self.learner],
             "finished": stepped.status.finished[self.learner],
+            "out": stepped.status.out[self.learner],
             "finish_time": stepped.status.finish_time[self.learner],
         }
         return (jnp.where(done, start_obs[self.learner], obs[self.learner]), new_state, rewards[self.learner],

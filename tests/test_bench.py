@@ -277,3 +277,13 @@ def test_render_section_times_each_camera_and_the_recording_of_a_race():
     assert race["race_steps"] > 100 and race["bare_steps_per_s"] > 0 and race["steps_per_s"] > 0
     assert race["throughput_ratio"] == pytest.approx(race["steps_per_s"] / race["bare_steps_per_s"], rel=1e-12)
     assert race["ms_replay_write"] > 0
+
+
+def test_jax_learner_row_times_updates_after_the_compiling_one():
+    from experiments import bench_rl
+
+    small = (("n_steps", 16), ("batch_size", 64), ("n_epochs", 1))
+    row = bench_rl.jax_training_row("lane-keeping", 8, updates=2, target=50_000, hyperparameters=small)
+    assert row["races"] == "compiled" and row["steps"] == 2 * 16 * 8
+    assert row["steps_per_s"] > 0 and row["first_update_s"] > 0
+    assert bench._target_verdict(row) is not None

@@ -19,7 +19,7 @@ from racing_env.scenarios import PAPER_WEIGHTS, paper_game
 DOCUMENTED = {
     # agents
     "Agent", "BaseAgent", "FeedbackGameAgent", "OpenLoopGameAgent", "ILQRAgent", "LaneKeepingAgent",
-    "ConstantSpeedAgent", "SB3Agent", "make_agent", "AGENTS", "agent_options", "reset_agents",
+    "ConstantSpeedAgent", "SB3Agent", "JaxPolicyAgent", "make_agent", "AGENTS", "agent_options", "reset_agents",
     # batched opponents (one object drives one car in B races)
     "BatchedOpponent", "make_batched_opponent",
     # solvers

@@ -47,18 +47,21 @@ def evaluate(config: TrainConfig, model_path: Path, timesteps: int) -> dict[str,
 
 @contextlib.contextmanager
 def _global_rngs_kept():
-    """Restore Python's, NumPy's and torch's global random states on exit."""
+    """Restore Python's, NumPy's and (where installed) torch's global random states on exit."""
     import random
 
-    import torch
-
-    states = random.getstate(), np.random.get_state(), torch.get_rng_state()
+    try:
+        import torch
+    except ImportError:  # the JAX learner needs no torch
+        torch = None
+    states = random.getstate(), np.random.get_state(), None if torch is None else torch.get_rng_state()
     try:
         yield
     finally:
         random.setstate(states[0])
         np.random.set_state(states[1])
-        torch.set_rng_state(states[2])
+        if torch is not None:
+            torch.set_rng_state(states[2])
 
 
 def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int) -> dict[str, Any]:

@@ -85,7 +85,8 @@ _NOT_IN_DEMONSTRATIONS = _RESUMABLE_CHANGES + ("imitate_episodes", "imitate_spre
 TRAINING_STARTS = ("grid", "anywhere", "mixed")  # where training episodes may start (TrainConfig.start)
 # fields added to TrainConfig after runs were saved, with the value those runs had
 _ADDED_LATER = {"start": "grid", "imitate": None, "imitate_episodes": 20, "imitate_noise": 0.2,
-                "imitate_spread": None, "vector": False}
+                "imitate_spread": None, "vector": False, "learner": "sb3"}
+LEARNERS = ("sb3", "jax")  # TrainConfig.learner
 # steps (all copies) over which a widened init_model's new observation features are measured
 WIDENING_MEASURE_STEPS = 2048
 EVALUATION_RULE = "penalty"  # what contact (and, unless eval_off_track is set, leaving the track) does in evaluations
@@ -167,6 +168,11 @@ class TrainConfig(RaceSpec):
         imitate_spread: the cloned policy's standard deviation per action (normalised
             units), which the reinforcement learning that follows explores with; None: the
             ``imitate_noise`` (with no noise, PPO's initial one).
+        learner: ``sb3`` (stable-baselines3, every ``algo``) or ``jax`` (PPO in JAX,
+            :mod:`experiments.rl.train_jax`: with opponents that are JAX functions of the
+            state the races and the updates are one compiled program). The JAX learner takes
+            ``ppo`` only, no ``init_model``, ``imitate`` or ``subprocesses``; its
+            ``hyperparameters`` are :class:`experiments.rl.ppo_jax.PPOSettings` fields.
     """
 
     opponents: tuple[str, ...] = ("lane-keeping",)
@@ -192,6 +198,7 @@ class TrainConfig(RaceSpec):
     imitate_episodes: int = 20
     imitate_noise: float = 0.2
     imitate_spread: float | None = None
+    learner: str = "sb3"
 
     def __post_init__(self) -> None:
         super().__post_init__()  # the race's fields
@@ -199,6 +206,16 @@ class TrainConfig(RaceSpec):
             raise ValueError("a pool needs at least one opponent spec to draw from (e.g. lane-keeping)")
         if self.algo not in SB3_ALGOS:
             raise ValueError(f"algo must be one of {SB3_ALGOS}, got {self.algo!r}")
+        if self.learner not in LEARNERS:
+            raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
+        if self.learner == "jax":
+            refused = [name for name, bad in (("algo other than ppo", self.algo != "ppo"),
+                                              ("init_model", self.init_model is not None),
+                                              ("imitate", self.imitate is not None),
+                                              ("subprocesses", self.subprocesses)) if bad]
+            if refused:
+                raise ValueError(f"the JAX learner trains PPO from a fresh policy in one process: drop "
+                                 f"{', '.join(refused)} (or use --learner sb3)")
         if self.start not in TRAINING_STARTS:
             raise ValueError(f"start must be one of {TRAINING_STARTS}, got {self.start!r}")
         if not isinstance(self.pool_cars, (int, np.integer)) or self.pool_cars < 2:
@@ -239,10 +256,10 @@ class TrainConfig(RaceSpec):
         if self.init_model is not None and not any(Path(p).is_file() for p in (self.init_model,
                                                                                  f"{self.init_model}.zip")):
             raise ValueError(f"init_model {self.init_model} does not exist")
-        known = algorithm_parameters(self.algo)
+        known = algorithm_parameters(self.algo) if self.learner == "sb3" else jax_ppo_parameters()
         for name, _ in self.hyperparameters:
             if name not in known:
-                raise ValueError(f"{self.algo} has no hyperparameter {name!r}; it takes {sorted(known)}")
+                raise ValueError(f"{self.learner} {self.algo} has no hyperparameter {name!r}; it takes {sorted(known)}")
         for copy in range(min(self.envs, 2)):  # the race of every start the copies use (its own limits)
             self.race_config(copy=copy)
 
@@ -326,6 +343,19 @@ def model_settings(config: TrainConfig) -> dict[str, Any]:
     return {**default_hyperparameters(config.algo, config.envs), **dict(config.hyperparameters)}
 
 
+def jax_ppo_parameters() -> set[str]:
+    """The hyperparameters of the JAX learner (:class:`experiments.rl.ppo_jax.PPOSettings`;
+    ``normalize`` is the configuration's own field)."""
+    from experiments.rl.ppo_jax import PPOSettings
+
+    return {f.name for f in dataclasses.fields(PPOSettings)} - {"normalize"}
+
+
+def model_file(config: TrainConfig) -> str:
+    """The final model's file name in a run's folder: ``model.zip`` (SB3) or ``model.npz`` (JAX)."""
+    return "model.npz" if config.learner == "jax" else MODEL
+
+
 def algorithm_parameters(algo: str) -> set[str]:
     """The keyword arguments an SB3 algorithm's constructor takes (besides policy and env)."""
     import stable_baselines3 as sb3
@@ -356,7 +386,8 @@ def parse_reward_weight(text: str) -> tuple[str, float]:
         raise ValueError(f"expected TERM=NUMBER (e.g. position=0.05), got {text!r}") from None
 
 
-def _config_json(config: TrainConfig) -> dict[str, Any]:
+def config_json(config: TrainConfig) -> dict[str, Any]:
+    """The configuration as ``train.json`` keeps it."""
     data = dataclasses.asdict(config)
     data["hyperparameters"] = dict(config.hyperparameters)
     data["reward"] = dict(config.reward)
@@ -752,7 +783,7 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
 def demonstrations_source(config: TrainConfig) -> str:
     """The settings that decide how ``config.imitate`` drives its demonstrations (JSON):
     saved demonstrations of a run whose source differs are not its own."""
-    settings = _config_json(config)
+    settings = config_json(config)
     return json.dumps({k: v for k, v in settings.items() if k not in _NOT_IN_DEMONSTRATIONS}, sort_keys=True)
 
 
@@ -831,10 +862,31 @@ updates PPO as fast as two, and when another process keeps a core busy two threa
 contending for the one left made PPO's updates about 17 times slower (docs/rl.md)."""
 
 
+def check_resumable(config: TrainConfig, out: Path, has_checkpoint: bool) -> None:
+    """Refuse to train into ``out`` when it holds a run (a checkpoint or episodes) made with
+    settings other than ``config``'s (besides those a resumption may change)."""
+    config_path = out / CONFIG
+    if not config_path.exists():
+        return
+    wanted = config_json(config)
+    previous = json.loads(config_path.read_text())["config"]
+    differs = sorted(k for k in wanted
+                     if k not in _RESUMABLE_CHANGES and previous.get(k, _ADDED_LATER.get(k)) != wanted[k])
+    if differs and (has_checkpoint or (out / EPISODES).exists()):
+        raise ValueError(f"{out} holds a training run with other settings ({', '.join(differs)}); "
+                         "use another --out folder or --fresh to start over")
+
+
 def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) into ``out``; returns the report also written to ``train.json``
     (``"status"``: ``completed`` or ``interrupted``, the latter after Ctrl-C, not raised).
-    torch runs on :data:`TORCH_THREADS` threads meanwhile (restored after)."""
+    With ``config.learner == "jax"`` the JAX learner trains (:mod:`experiments.rl.train_jax`);
+    else stable-baselines3, with torch on :data:`TORCH_THREADS` threads meanwhile (restored after)."""
+    if config.learner == "jax":
+        from experiments.rl.train_jax import run_jax_training
+
+        check_specs(config.opponents)
+        return run_jax_training(config, out, fresh=fresh, progress=progress)
     import torch
 
     threads = torch.get_num_threads()
@@ -863,15 +915,9 @@ def _run_training(config: TrainConfig, out: Path, fresh: bool, progress: bool) -
         for name in (MODEL, WIDENED_MODEL, IMITATION_MODEL):
             vecnormalize_path(out / name).unlink(missing_ok=True)
         shutil.rmtree(out / CHECKPOINTS, ignore_errors=True)
-    wanted = _config_json(config)
+    wanted = config_json(config)
     resume_from = latest_checkpoint(out)
-    if config_path.exists():
-        previous = json.loads(config_path.read_text())["config"]
-        differs = sorted(k for k in wanted
-                         if k not in _RESUMABLE_CHANGES and previous.get(k, _ADDED_LATER.get(k)) != wanted[k])
-        if differs and (resume_from or (out / EPISODES).exists()):
-            raise ValueError(f"{out} holds a training run with other settings ({', '.join(differs)}); "
-                             "use another --out folder or --fresh to start over")
+    check_resumable(config, out, resume_from is not None)
     out.mkdir(parents=True, exist_ok=True)
     report: dict[str, Any] = {"config": wanted, "status": "running", "timesteps": 0}
     model = _build_model(config, out, resume_from)

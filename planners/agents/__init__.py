@@ -12,6 +12,8 @@ The modules, one job each:
   (:mod:`~planners.agents.weights`: their beliefs and private cost weights);
 * :mod:`~planners.agents.scripted`: :class:`LaneKeepingAgent`, :class:`ConstantSpeedAgent`;
 * :mod:`~planners.agents.sb3`: :class:`SB3Agent` (loaded on first use: the RL layer);
+* :mod:`~planners.agents.jax_policy`: :class:`JaxPolicyAgent`, a JAX learner's policy
+  (flax loaded when one is built);
 * :mod:`~planners.agents.registry`: :data:`AGENTS` (name -> class), :func:`make_agent`,
   :func:`check_specs`, :func:`agent_options`, the spec parser and the options' help text;
 * :mod:`~planners.agents.batched`: :class:`BatchedOpponent`, one object driving one car in B
@@ -56,6 +58,7 @@ from planners.agents.registry import (
     split_spec_list,
     with_options,
 )
+from planners.agents.jax_policy import JaxPolicyAgent
 from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent
 
 _SB3_NAMES = ("SB3Agent", "SB3_ALGOS", "VECNORMALIZE_SUFFIX", "vecnormalize_path")
@@ -74,6 +77,7 @@ __all__ = [
     "ConstantSpeedAgent",
     "FeedbackGameAgent",
     "ILQRAgent",
+    "JaxPolicyAgent",
     "LaneKeepingAgent",
     "LoopedOpponent",
     "OpenLoopGameAgent",

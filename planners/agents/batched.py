@@ -17,7 +17,8 @@ reset. The kinds:
 * :class:`planners.agents.batched_planners.BatchedPlanner` (``ilqgame-fb``, ``ilqgame-ol``,
   ``ilqr``): the receding-horizon loop of :class:`planners.agents.RecedingHorizonAgent` with
   one batched solve (:func:`planners.ilq_batch.solve_batch`) of the races due to re-plan;
-* :class:`BatchedSB3` (``rl:PATH``): the saved model predicts for all B observations at once;
+* :class:`BatchedSB3` (``rl:PATH``, a stable-baselines3 ``.zip`` or a JAX learner's ``.npz``):
+  the saved model predicts for all B observations at once;
 * :class:`BatchedPool` (a list of specs): each race's driver drawn from its own seed;
 * :class:`LoopedOpponent`: B single agents, one race at a time, for what cannot be batched.
 
@@ -245,21 +246,26 @@ class BatchedScripted(BatchedOpponent):
 class BatchedSB3(BatchedOpponent):
     """A saved stable-baselines3 model (:class:`planners.agents.SB3Agent`) in B races: one
     ``predict(observations (R, obs_dim), deterministic=True)`` call per step, observations
-    normalised with the model's saved ``VecNormalize`` statistics as the single agent does.
+    normalised with the model's saved ``VecNormalize`` statistics as the single agent does;
+    or a JAX learner's policy (:class:`planners.agents.jax_policy.JaxPolicyAgent`), one
+    compiled call per step.
     A race whose action is not finite brakes; a failed prediction brakes in every race.
     Observations of another size than the model reads are refused (ValueError): the env
     races another number of cars or preview distances, which no race can drive with."""
 
     def __init__(self, agent: BaseAgent, game: Any, index: int, num_races: int, spec: str | None = None) -> None:
+        from planners.agents.jax_policy import JaxPolicyAgent
         from planners.agents.sb3 import SB3Agent
 
-        if not isinstance(agent, SB3Agent):
-            raise TypeError(f"BatchedSB3 needs an SB3Agent, got {type(agent).__name__}")
+        if not isinstance(agent, (SB3Agent, JaxPolicyAgent)):
+            raise TypeError(f"BatchedSB3 needs an SB3Agent or a JaxPolicyAgent, got {type(agent).__name__}")
         super().__init__(spec or agent.name, game, index, num_races)
         agent.reset(None, self.index, self.game)
         self.agent = agent
 
     def _act_rows(self, rows, observations, x, racing):
+        if hasattr(self.agent, "predict_many"):  # a JAX learner's policy
+            return self._act_jax(rows, observations, x)
         model, normalizer = self.agent.model, self.agent.normalizer
         expected = tuple(model.observation_space.shape)
         if observations.shape[1:] != expected:
@@ -273,6 +279,19 @@ class BatchedSB3(BatchedOpponent):
                 obs = normalizer.normalize_obs(obs)
             actions, _ = model.predict(obs, deterministic=True)
             actions = np.asarray(actions, dtype=np.float64).reshape(rows.size, 2)
+        except Exception:  # noqa: BLE001 - any policy failure: brake, as the single agent does
+            actions = np.full((rows.size, 2), np.nan)
+        return self._finish(actions, x, diagnostics), diagnostics
+
+    def _act_jax(self, rows, observations, x):
+        expected = self.agent.model.observation_size
+        if observations.shape[1:] != (expected,):
+            raise ValueError(f"{self.agent.path} reads observations of shape ({expected},), got "
+                             f"{observations.shape[1:]} per race (trained with another number of cars or preview "
+                             "distances?)")
+        diagnostics = empty_diagnostics(self.diagnostic_fields, rows.size)
+        try:
+            actions = self.agent.predict_many(observations).reshape(rows.size, 2)
         except Exception:  # noqa: BLE001 - any policy failure: brake, as the single agent does
             actions = np.full((rows.size, 2), np.nan)
         return self._finish(actions, x, diagnostics), diagnostics

@@ -10,6 +10,7 @@ Python (:func:`make_agent`): an agent name, optionally followed by ``:`` and com
     ilqgame-fb:leading.c_collision=10,trailing.c_collision=1    weights by race position
     lane-keeping:target_speed=20,target_n=1.5
     rl:path/to/model.zip                             a saved stable-baselines3 policy
+    rl:path/to/model.npz                             a policy saved by the JAX learner
 
 The names are those of :mod:`planners.methods`, and :data:`AGENTS` maps each to its class,
 whose ``spec`` attribute is that name. Values are converted to the option's type (``int``,
@@ -110,6 +111,12 @@ def make_agent(spec: str, **kwargs: Any) -> Agent:
             raise ValueError(
                 f"agent spec {spec!r} needs a model path (rl:path/to/model.zip); valid specs: {', '.join(valid)}"
             )
+        from planners.agents.jax_policy import JaxPolicyAgent, is_jax_model
+
+        if is_jax_model(rest):  # a JAX learner's model file
+            if kwargs.get("algo") not in (None, "ppo"):
+                raise ValueError(f"agent spec {spec!r}: a JAX learner's model is a PPO policy, not {kwargs['algo']}")
+            return JaxPolicyAgent(rest)
         return SB3Agent(rest, **kwargs)
     name, raw = split_spec(key)
     if name not in AGENTS:

@@ -1,0 +1,412 @@
+"""`racing train --learner jax`: PPO in JAX (:mod:`experiments.rl.ppo_jax`), with the SB3 learner's outputs.
+
+Two ways to run the races, chosen from the configuration:
+
+* **compiled** (opponents that are JAX functions of the state: ``lane-keeping``,
+  ``constant-speed``, ...; or a time trial; ``start="grid"``; no pool): the races are a
+  :class:`racing_env.vector.GymnaxRace` and a whole update, ``n_steps`` steps of all
+  ``envs`` races and PPO's epochs, is one compiled call. The learner drives car 0; the
+  grid's order is drawn per episode, so it starts in every slot.
+* **host** (any other opponents: planners, ``rl:`` models, pools, ``start`` anywhere or
+  mixed): the races are the SB3 learner's :class:`experiments.rl.vec_env.RaceVecEnv` (the
+  same copies, seeds and episodes; the learner drives car ``copy % N``), stepped from Python
+  with the planners' batched solves; the policy's steps and PPO's update are compiled.
+
+The output folder is the SB3 learner's (:mod:`experiments.rl.train`), with the model in a
+``.npz`` (:mod:`planners.agents.jax_policy`), raced as ``rl:OUT/model.npz``::
+
+    train.json          configuration, status, timesteps, timing, the PPO settings, final evaluation
+    model.npz           the final policy with its observation statistics
+    checkpoints/        step_<timesteps>.npz (the policy at each checkpoint) and resume.pkl
+                        (the whole training state at the latest one: policy, optimiser,
+                        statistics, the races in flight, random keys)
+    episodes.jsonl      one line per finished training episode
+    evaluations.jsonl   one line per evaluation (tournament rules, experiments.rl.evaluation)
+    learning_curve.png  episode returns and evaluations against timesteps
+
+A checkpoint is taken right after an update, every ``checkpoint_every`` steps and at Ctrl-C;
+the same command resumes from it and goes on exactly as if it had not stopped (the same
+policies, bit for bit, in the compiled form).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pickle
+import shutil
+import time
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from experiments.files import replace_atomically, write_json_atomically
+from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
+from experiments.rl import ppo_jax
+from experiments.rl.evaluation import evaluate, evaluation_line, plot_learning_curve
+from planners.agents.jax_policy import save_model
+
+__all__ = ["JAX_MODEL", "compiled_races", "ppo_settings", "run_jax_training"]
+
+JAX_MODEL = "model.npz"
+RESUME = "resume.pkl"
+_STATE_VERSION = 1
+
+
+def ppo_settings(config) -> ppo_jax.PPOSettings:
+    """The PPO settings of a run: the SB3 learner's defaults for its ``envs``
+    (:func:`experiments.rl.train.default_hyperparameters`), then its ``hyperparameters``."""
+    from experiments.rl.train import default_hyperparameters
+
+    values = {**default_hyperparameters("ppo", config.envs), **dict(config.hyperparameters)}
+    if "hidden" in values:
+        values["hidden"] = tuple(int(h) for h in np.atleast_1d(values["hidden"]))
+    settings = ppo_jax.PPOSettings(normalize=config.normalize, **values)
+    settings.check(config.envs)
+    return settings
+
+
+def compiled_races(config):
+    """The run's races as a :class:`racing_env.vector.GymnaxRace` when they can be compiled
+    with the policy (module docstring), else None (the host form)."""
+    from planners.agents.batched import make_batched_opponent
+    from racing_env.env import RacingParallelEnv
+    from racing_env.vector import GymnaxRace
+
+    if config.pool or config.start != "grid":
+        return None
+    race = config.race_config(training=True)
+    policies = []
+    if config.opponents:
+        game = RacingParallelEnv(race).game
+        for car, spec in enumerate(config.opponents, start=1):
+            policy = getattr(make_batched_opponent(spec, game, car, 1), "jax_policy", None)
+            if policy is None:
+                return None
+            policies.append(policy)
+    fields = {f.name: getattr(race, f.name) for f in dataclasses.fields(race) if f.name != "num_agents"}
+    return GymnaxRace(opponents=policies, learner=0, num_agents=race.num_agents, **fields)
+
+
+# --- the two forms of an update ----------------------------------------------------------------
+class _Compiled:
+    """Races inside the compiled update (:func:`experiments.rl.ppo_jax.compiled_update`)."""
+
+    kind = "compiled"
+
+    def __init__(self, env, settings: ppo_jax.PPOSettings, num_envs: int) -> None:
+        self.env, self.settings, self.num_envs = env, settings, num_envs
+        self.update_fn = ppo_jax.compiled_update(env, settings)
+        self.races = None
+
+    @property
+    def observation_size(self) -> int:
+        return int(self.env.observation_space().shape[0])
+
+    def start(self, learner: ppo_jax.Learner, seed: int):
+        """``(learner, races)``: the races started from ``seed``."""
+        return ppo_jax.start_races(self.env, self.settings, learner, jax.random.PRNGKey(seed + 1_000_003),
+                                   self.num_envs)
+
+    def update(self, learner: ppo_jax.Learner, races):
+        """One update; returns ``(learner, races, episode records (step, race, car, fields), metrics)``."""
+        learner, races, log, metrics = self.update_fn(learner, races)
+        log = {name: np.asarray(value) for name, value in log.items()}
+        episodes = []
+        for t, b in zip(*np.nonzero(log["done"])):
+            episodes.append((int(t), int(b), 0, {
+                "return": float(log["return"][t, b]), "length": int(log["length"][t, b]),
+                "finished": bool(log["finished"][t, b]), "place": int(log["position"][t, b]),
+                "out": bool(log["out"][t, b]),
+                "finish_time": None if np.isnan(log["finish_time"][t, b]) else float(log["finish_time"][t, b]),
+                "truncated": bool(log["truncated"][t, b])}))
+        return learner, races, episodes, metrics
+
+    def saved(self, races) -> Any:
+        return jax.device_get(races)
+
+    def restore(self, saved: Any):
+        return jax.tree_util.tree_map(jnp.asarray, saved)
+
+    def close(self) -> None:
+        pass
+
+
+class _Host:
+    """Races stepped from Python (:class:`experiments.rl.vec_env.RaceVecEnv`), the policy's
+    steps and the fit compiled."""
+
+    kind = "host"
+
+    def __init__(self, config, settings: ppo_jax.PPOSettings) -> None:
+        from experiments.rl.train import make_vector_env
+
+        self.config, self.settings = config, settings
+        self.venv = make_vector_env(config)
+        self.cars = config.cars
+        self.obs = None
+        self._act = jax.jit(lambda learner, obs: ppo_jax.policy_step(settings, learner, obs))
+        self._after = jax.jit(lambda learner, raw, reward, done: ppo_jax.after_env_step(settings, learner, raw,
+                                                                                        reward, done))
+        self._start = jax.jit(lambda learner, raw: ppo_jax.observe_start(settings, learner, raw))
+        self._fit = jax.jit(lambda learner, rollout, last: ppo_jax.fit(settings, learner, rollout, last))
+
+    @property
+    def observation_size(self) -> int:
+        return int(self.venv.observation_space.shape[0])
+
+    def start(self, learner: ppo_jax.Learner, seed: int):
+        """``(learner, races)``: the races started from ``seed``."""
+        self.venv.seed(seed)
+        learner, obs = self._start(learner, jnp.asarray(self.venv.reset()))
+        return learner, self._snapshot(obs)
+
+    def _snapshot(self, obs) -> dict[str, Any]:
+        """The races as they stand (None where the opponents' memory cannot be saved) with
+        the policy's next observations ``(B, O)``."""
+        return {"races": self.venv.get_state() if self.venv.exact_state else None, "obs": obs}
+
+    def update(self, learner: ppo_jax.Learner, races):
+        steps, episodes = [], []
+        obs = races["obs"]
+        for t in range(self.settings.n_steps):
+            learner, action, log_prob, value = self._act(learner, obs)
+            raw, reward, done, infos = self.venv.step(np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0))
+            learner, next_obs, scaled = self._after(learner, jnp.asarray(raw), jnp.asarray(reward, jnp.float64),
+                                                    jnp.asarray(done))
+            steps.append(ppo_jax.Rollout(obs, action, log_prob, value, scaled, jnp.asarray(done)))
+            obs = next_obs
+            for b in np.flatnonzero(done):
+                episode = infos[b].get("episode")
+                if episode is None:
+                    continue
+                episodes.append((t, int(b), int(b) % self.cars, {
+                    "return": float(episode["r"]), "length": int(episode["l"]),
+                    "finished": bool(episode["finished"]), "place": int(episode["position"]),
+                    "out": bool(episode["out"]), "finish_time": episode["finish_time"],
+                    "truncated": bool(infos[b].get("TimeLimit.truncated", False)),
+                    **({"opponents": infos[b]["opponents"]} if "opponents" in infos[b] else {})}))
+        rollout = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *steps)
+        learner, metrics = self._fit(learner, rollout, obs)
+        return learner, self._snapshot(obs), episodes, metrics
+
+    def saved(self, races) -> Any:
+        return None if races["races"] is None else {"races": races["races"], "obs": np.asarray(races["obs"])}
+
+    def restore(self, saved: Any):
+        self.venv.reset()  # started (its seeds are the saved races')
+        self.venv.set_state(saved["races"])
+        return {"races": saved["races"], "obs": jnp.asarray(saved["obs"])}
+
+    def close(self) -> None:
+        self.venv.close()
+
+
+def make_races(config, settings: ppo_jax.PPOSettings):
+    """The run's races in their form (module docstring)."""
+    env = compiled_races(config)
+    return _Compiled(env, settings, config.envs) if env is not None else _Host(config, settings)
+
+
+# --- files -------------------------------------------------------------------------------------
+def _policy_file(out: Path, timesteps: int) -> Path:
+    from experiments.rl.train import CHECKPOINTS
+
+    return out / CHECKPOINTS / f"step_{timesteps:09d}.npz"
+
+
+def save_policy_file(learner: ppo_jax.Learner, settings: ppo_jax.PPOSettings, path: Path) -> Path:
+    """The policy of ``learner`` as a model file (:func:`planners.agents.jax_policy.save_model`)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if settings.normalize:
+        mean, var = np.asarray(learner.obs_stats[0]), np.asarray(learner.obs_stats[1])
+    else:  # the identity: (obs - 0) / sqrt(1 - eps + eps), and a clip far outside any observation
+        mean = np.zeros_like(np.asarray(learner.obs_stats[0]))
+        var = np.full_like(mean, 1.0 - ppo_jax.EPSILON)
+    clip = settings.clip_obs if settings.normalize else np.finfo(np.float32).max
+    return save_model(path, settings.hidden, jax.device_get(learner.params), mean, var, clip, ppo_jax.EPSILON)
+
+
+class _Point(NamedTuple):
+    """The training right after an update (one object, so that Ctrl-C never splits it)."""
+
+    learner: ppo_jax.Learner
+    races: Any
+    timesteps: int
+    updates: int
+
+
+def _checkpoint(out: Path, point: _Point, races, settings) -> None:
+    """The policy at ``point`` and, in ``resume.pkl``, everything a resumption needs."""
+    from experiments.rl.train import CHECKPOINTS
+
+    save_policy_file(point.learner, settings, _policy_file(out, point.timesteps))
+    state = {"version": _STATE_VERSION, "timesteps": point.timesteps, "updates": point.updates, "kind": races.kind,
+             "learner": jax.device_get(point.learner), "races": races.saved(point.races)}
+    replace_atomically(lambda tmp: tmp.write_bytes(pickle.dumps(state)), out / CHECKPOINTS / RESUME)
+
+
+def latest_state(out: Path) -> dict[str, Any] | None:
+    """The saved training state (``checkpoints/resume.pkl``), or None."""
+    from experiments.rl.train import CHECKPOINTS
+
+    path = out / CHECKPOINTS / RESUME
+    return pickle.loads(path.read_bytes()) if path.exists() else None
+
+
+def _drop_episodes_after(out: Path, timesteps: int) -> None:
+    from experiments.rl.train import EPISODES
+
+    if (out / EPISODES).exists():
+        kept = [e for e in read_jsonl(out / EPISODES) if e["timesteps"] <= timesteps]
+        replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EPISODES)
+
+
+# --- the run -----------------------------------------------------------------------------------
+def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = True) -> dict[str, Any]:
+    """Train (or resume) into ``out`` with the JAX learner; returns the report also written to
+    ``train.json`` (``"status"``: ``completed`` or ``interrupted``, after Ctrl-C, not raised)."""
+    from rich.console import Console
+
+    from experiments.rl.train import CHECKPOINTS, CONFIG, EPISODES, EVALUATIONS, check_resumable, config_json
+
+    console = Console(stderr=True)
+    settings = ppo_settings(config)
+    if fresh and out.exists():
+        for name in (CONFIG, EPISODES, EVALUATIONS, JAX_MODEL, "learning_curve.png"):
+            (out / name).unlink(missing_ok=True)
+        shutil.rmtree(out / CHECKPOINTS, ignore_errors=True)
+    saved = latest_state(out)
+    check_resumable(config, out, saved is not None)
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict[str, Any] = {"config": config_json(config), "status": "running", "timesteps": 0,
+                              "learner": "jax", "model_settings": _settings_json(settings)}
+    began = time.perf_counter()
+    races = make_races(config, settings)
+    report["races"] = races.kind
+    learner = ppo_jax.init_learner(jax.random.PRNGKey(config.seed), races.observation_size, config.envs, settings)
+    if saved is not None:
+        learner = jax.tree_util.tree_map(jnp.asarray, saved["learner"])
+        if saved["races"] is not None and saved["kind"] == races.kind:
+            in_flight = races.restore(saved["races"])
+        else:  # opponents whose memory is not saved: fresh races, from starts of their own
+            learner, in_flight = races.start(learner, config.seed + saved["timesteps"])
+        point = _Point(learner, in_flight, saved["timesteps"], saved["updates"])
+        _drop_episodes_after(out, point.timesteps)
+        console.print(f"resuming from {out / CHECKPOINTS / RESUME} ({point.timesteps:,} of {config.timesteps:,} "
+                      "steps)")
+    else:
+        point = _Point(*races.start(learner, config.seed), 0, 0)
+    write_json_atomically(report, out / CONFIG)
+    drop_cut_line(out / EVALUATIONS)
+    per_update = settings.n_steps * config.envs
+    next_checkpoint = _next_multiple(point.timesteps, config.checkpoint_every)
+    next_eval = _next_multiple(point.timesteps, config.eval_every)
+    first_update_s = fit_s = evaluations_s = 0.0
+    first = point.updates
+    started = time.perf_counter()
+    bar = _progress(progress, config, point.timesteps)
+    try:
+        while point.timesteps < config.timesteps:
+            t0 = time.perf_counter()
+            learner, in_flight, episodes, _ = races.update(point.learner, point.races)
+            jax.block_until_ready(learner.params)
+            elapsed = time.perf_counter() - t0
+            for t, b, car, fields in episodes:
+                append_jsonl(out / EPISODES, {"timesteps": point.timesteps + (t + 1) * config.envs, "env": b,
+                                              "car": car, **fields})
+            point = _Point(learner, in_flight, point.timesteps + per_update, point.updates + 1)
+            if point.updates == first + 1:
+                first_update_s = elapsed  # with compiling
+            else:
+                fit_s += elapsed
+            if bar is not None:
+                bar[0].update(bar[1], completed=min(point.timesteps, config.timesteps),
+                              description=_bar_text(episodes, per_update / elapsed))
+            t0 = time.perf_counter()
+            if next_checkpoint is not None and point.timesteps >= next_checkpoint:
+                _checkpoint(out, point, races, settings)
+                next_checkpoint = _next_multiple(point.timesteps, config.checkpoint_every)
+            if next_eval is not None and point.timesteps >= next_eval:
+                _evaluate(config, out, point, settings, console)
+                next_eval = _next_multiple(point.timesteps, config.eval_every)
+            evaluations_s += time.perf_counter() - t0
+        _checkpoint(out, point, races, settings)
+        save_policy_file(point.learner, settings, out / JAX_MODEL)
+        evaluations = read_jsonl(out / EVALUATIONS)
+        if not evaluations or evaluations[-1]["timesteps"] != point.timesteps:
+            record = evaluate(config, out / JAX_MODEL, point.timesteps)
+            append_jsonl(out / EVALUATIONS, record)
+            console.print(evaluation_line(record))
+        report["status"] = "completed"
+    except KeyboardInterrupt:
+        _checkpoint(out, point, races, settings)
+        _drop_episodes_after(out, point.timesteps)
+        report["status"] = "interrupted"
+        console.print(f"interrupted at {point.timesteps:,} steps: checkpoint saved; run the same command to resume")
+    finally:
+        if bar is not None:
+            bar[0].stop()
+        races.close()
+    trained = (point.updates - first) * per_update
+    wall = time.perf_counter() - started
+    report["timesteps"] = int(point.timesteps)
+    report["wall_s"] = wall
+    report["learn"] = {"steps": trained, "updates": point.updates - first, "wall_s": wall, "setup_s": started - began,
+                       "first_update_s": first_update_s, "fit_s": fit_s,
+                       "checkpoints_evaluations_s": evaluations_s,
+                       "steps_per_s": (trained - per_update) / fit_s if fit_s > 0 else None}
+    evaluations = read_jsonl(out / EVALUATIONS)
+    report["final_evaluation"] = evaluations[-1] if evaluations else None
+    write_json_atomically(report, out / CONFIG)
+    plot_learning_curve(read_jsonl(out / EPISODES), evaluations, out / "learning_curve.png",
+                        title=f"PPO (JAX) {config.description()} on {Path(config.track).stem}",
+                        time_trial=config.time_trial)
+    if report["status"] == "completed":
+        race_it = ("--cars 1 --agents rl:{} ilqr lane-keeping" if config.time_trial
+                   else "--agents rl:{} " + " ".join(dict.fromkeys(config.opponents))).format(out / JAX_MODEL)
+        console.print(f"wrote {out / JAX_MODEL} (race it: racing tournament {race_it}), "
+                      f"{out / 'learning_curve.png'}, {out / EVALUATIONS}")
+    return report
+
+
+def _evaluate(config, out: Path, point: _Point, settings, console) -> None:
+    from experiments.rl.train import EVALUATIONS
+
+    path = _policy_file(out, point.timesteps)
+    if not path.exists():
+        save_policy_file(point.learner, settings, path)
+    record = evaluate(config, path, point.timesteps)
+    append_jsonl(out / EVALUATIONS, record)
+    console.print(evaluation_line(record))
+
+
+def _next_multiple(steps: int, every: int) -> int | None:
+    return None if every == 0 else (steps // every + 1) * every
+
+
+def _settings_json(settings: ppo_jax.PPOSettings) -> dict[str, Any]:
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(settings).items()}
+
+
+def _progress(enabled: bool, config, timesteps: int):
+    """A rich progress bar over the run's steps (None when disabled)."""
+    if not enabled:
+        return None
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    task = bar.add_task("compiling", total=config.timesteps, completed=timesteps)
+    bar.start()
+    return bar, task
+
+
+def _bar_text(episodes: list, steps_per_s: float) -> str:
+    """The progress line: the last update's rate and its episodes' mean return."""
+    text = f"{steps_per_s:9,.0f} steps/s"
+    if episodes:
+        text += f"  return {np.mean([fields['return'] for _, _, _, fields in episodes]):8.2f}"
+    return text
