@@ -259,6 +259,7 @@ def test_rl_rows_measure_the_vectorised_env_and_its_opponents():
     assert planner["iterations_median"] >= 1
 
 
+@pytest.mark.slow
 def test_certificates_section_times_solve_and_certificates_of_each_mode():
     rows = list(bench.bench_certificates(rounds=1, cars=(2,)))
     assert [row["name"] for row in rows] == ["certificate_open_loop_N2_T50", "certificate_feedback_N2_T50"]

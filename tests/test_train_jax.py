@@ -224,3 +224,24 @@ def test_the_jax_learner_reaches_the_sb3_learners_time_trial_at_the_same_budget(
     assert abs(laps[0] - laps[1]) < 0.5, laps
     returns = [late for _, late in results.values()]
     assert max(returns) < 3 * min(returns), returns
+
+
+def test_seeds_train_as_one_vmapped_program_each_as_it_would_alone():
+    """`compiled_update` is pure: vmapped over two stacked learners and their races, each
+    seed's update is its own. The networks are float32 and a batched matmul may add in
+    another order than a single one, so policies agree to float32 rounding (1e-5 relative)
+    after an update, and the races (float64, driven by those actions) to the same."""
+    config = TrainConfig(timesteps=128, **TINY)
+    settings, env = ppo_settings(config), compiled_races(config)
+    update = ppo_jax.compiled_update(env, settings)
+    size = env.observation_space().shape[0]
+    singles = []
+    for seed in (0, 1):
+        learner = ppo_jax.init_learner(jax.random.PRNGKey(seed), size, config.envs, settings)
+        singles.append(ppo_jax.start_races(env, settings, learner, jax.random.PRNGKey(100 + seed), config.envs))
+    stacked = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), *singles)
+    batched = jax.jit(jax.vmap(update))(*stacked)
+    for seed, (learner, races) in enumerate(singles):
+        alone = update(learner, races)
+        for mine, together in zip(jax.tree_util.tree_leaves(alone[:2]), jax.tree_util.tree_leaves(batched[:2])):
+            np.testing.assert_allclose(np.asarray(together[seed]), np.asarray(mine), rtol=1e-5, atol=1e-6)

@@ -212,7 +212,8 @@ class TrainConfig(RaceSpec):
             refused = [name for name, bad in (("algo other than ppo", self.algo != "ppo"),
                                               ("init_model", self.init_model is not None),
                                               ("imitate", self.imitate is not None),
-                                              ("subprocesses", self.subprocesses)) if bad]
+                                              ("subprocesses", self.subprocesses),
+                                              ("vector=False (--no-vector)", not self.vector)) if bad]
             if refused:
                 raise ValueError(f"the JAX learner trains PPO from a fresh policy in one process: drop "
                                  f"{', '.join(refused)} (or use --learner sb3)")
@@ -504,8 +505,10 @@ def _with_float32_rewards(venv):
     return Float32Rewards(venv)
 
 
-def _drop_episodes_after(out: Path, timesteps: int) -> None:
+def drop_episodes_after(out: Path, timesteps: int) -> None:
     """Forget the episodes logged after ``timesteps``: their steps will be collected again."""
+    if not (out / EPISODES).exists():
+        return
     kept = [e for e in read_jsonl(out / EPISODES) if e["timesteps"] <= timesteps]
     replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EPISODES)
 
@@ -525,8 +528,8 @@ def _training_callback(config: TrainConfig, out: Path, console):
         def _on_training_start(self) -> None:
             self.updated_at = self.num_timesteps
             self.resume_point = _resume_point(self.model) if _on_policy(self.model) else None
-            self.next_checkpoint = _next_multiple(self.num_timesteps, config.checkpoint_every)
-            self.next_eval = _next_multiple(self.num_timesteps, config.eval_every)
+            self.next_checkpoint = next_multiple(self.num_timesteps, config.checkpoint_every)
+            self.next_eval = next_multiple(self.num_timesteps, config.eval_every)
 
         def _resume_state(self) -> dict[str, Any] | None | str:
             return self.resume_point.state if self.resume_point is not None else _NOW
@@ -547,13 +550,13 @@ def _training_callback(config: TrainConfig, out: Path, console):
             saved = None
             if self.next_checkpoint is not None and self.num_timesteps >= self.next_checkpoint:
                 saved = checkpoint(self.model, out, self._resume_state())
-                self.next_checkpoint = _next_multiple(self.num_timesteps, config.checkpoint_every)
+                self.next_checkpoint = next_multiple(self.num_timesteps, config.checkpoint_every)
             if self.next_eval is not None and self.num_timesteps >= self.next_eval:
                 record = evaluate(config, saved or checkpoint(self.model, out, self._resume_state()),
                                   self.num_timesteps)
                 append_jsonl(out / EVALUATIONS, record)
                 console.print(evaluation_line(record))
-                self.next_eval = _next_multiple(self.num_timesteps, config.eval_every)
+                self.next_eval = next_multiple(self.num_timesteps, config.eval_every)
 
         def _on_step(self) -> bool:
             infos = self.locals["infos"]
@@ -573,7 +576,8 @@ def _training_callback(config: TrainConfig, out: Path, console):
     return Recorder()
 
 
-def _next_multiple(steps: int, every: int) -> int | None:
+def next_multiple(steps: int, every: int) -> int | None:
+    """The first multiple of ``every`` after ``steps`` (None for ``every == 0``: never)."""
     return None if every == 0 else (steps // every + 1) * every
 
 
@@ -925,7 +929,7 @@ def _run_training(config: TrainConfig, out: Path, fresh: bool, progress: bool) -
                                 if isinstance(getattr(model, name, None), (int, float, str, bool))}
     if resume_from is not None:
         console.print(f"resuming from {resume_from[1]} ({resume_from[0]:,} of {config.timesteps:,} steps)")
-        _drop_episodes_after(out, resume_from[0])
+        drop_episodes_after(out, resume_from[0])
     write_json_atomically(report, config_path)
     drop_cut_line(out / EVALUATIONS)
     if resume_from is None and config.imitate is not None:
@@ -966,7 +970,7 @@ def _run_training(config: TrainConfig, out: Path, fresh: bool, progress: bool) -
         else:
             model.num_timesteps = getattr(recorder, "updated_at", model.num_timesteps)
             checkpoint(model, out)
-        _drop_episodes_after(out, model.num_timesteps)
+        drop_episodes_after(out, model.num_timesteps)
         report["status"] = "interrupted"
         console.print(f"interrupted at {model.num_timesteps:,} steps: checkpoint saved; run the same command "
                       "to resume")

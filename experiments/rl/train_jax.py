@@ -32,7 +32,7 @@ policies, bit for bit, in the compiled form).
 from __future__ import annotations
 
 import dataclasses
-import json
+import functools
 import pickle
 import shutil
 import time
@@ -53,6 +53,7 @@ __all__ = ["JAX_MODEL", "compiled_races", "ppo_settings", "run_jax_training"]
 
 JAX_MODEL = "model.npz"
 RESUME = "resume.pkl"
+RACE_KEY_OFFSET = 1_000_003  # the compiled races' first starts are drawn with PRNGKey(seed + this)
 _STATE_VERSION = 1
 
 
@@ -71,18 +72,23 @@ def ppo_settings(config) -> ppo_jax.PPOSettings:
 
 def compiled_races(config):
     """The run's races as a :class:`racing_env.vector.GymnaxRace` when they can be compiled
-    with the policy (module docstring), else None (the host form)."""
+    with the policy (module docstring), else None (the host form). Runs of the same race and
+    opponents (seeds of a study) share one, and with it the compiled update."""
+    if config.pool or config.start != "grid":
+        return None
+    return _gymnax_race(tuple(config.opponents), config.race_config(training=True))
+
+
+@functools.lru_cache(maxsize=16)
+def _gymnax_race(opponents: tuple[str, ...], race):
     from planners.agents.batched import make_batched_opponent
     from racing_env.env import RacingParallelEnv
     from racing_env.vector import GymnaxRace
 
-    if config.pool or config.start != "grid":
-        return None
-    race = config.race_config(training=True)
     policies = []
-    if config.opponents:
+    if opponents:
         game = RacingParallelEnv(race).game
-        for car, spec in enumerate(config.opponents, start=1):
+        for car, spec in enumerate(opponents, start=1):
             policy = getattr(make_batched_opponent(spec, game, car, 1), "jax_policy", None)
             if policy is None:
                 return None
@@ -107,8 +113,9 @@ class _Compiled:
         return int(self.env.observation_space().shape[0])
 
     def start(self, learner: ppo_jax.Learner, seed: int):
-        """``(learner, races)``: the races started from ``seed``."""
-        return ppo_jax.start_races(self.env, self.settings, learner, jax.random.PRNGKey(seed + 1_000_003),
+        """``(learner, races)``: the races started from ``seed``, with a key of their own
+        (:data:`RACE_KEY_OFFSET` + seed), apart from the policy's."""
+        return ppo_jax.start_races(self.env, self.settings, learner, jax.random.PRNGKey(seed + RACE_KEY_OFFSET),
                                    self.num_envs)
 
     def update(self, learner: ppo_jax.Learner, races):
@@ -257,21 +264,14 @@ def latest_state(out: Path) -> dict[str, Any] | None:
     return pickle.loads(path.read_bytes()) if path.exists() else None
 
 
-def _drop_episodes_after(out: Path, timesteps: int) -> None:
-    from experiments.rl.train import EPISODES
-
-    if (out / EPISODES).exists():
-        kept = [e for e in read_jsonl(out / EPISODES) if e["timesteps"] <= timesteps]
-        replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EPISODES)
-
-
 # --- the run -----------------------------------------------------------------------------------
 def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = True) -> dict[str, Any]:
     """Train (or resume) into ``out`` with the JAX learner; returns the report also written to
     ``train.json`` (``"status"``: ``completed`` or ``interrupted``, after Ctrl-C, not raised)."""
     from rich.console import Console
 
-    from experiments.rl.train import CHECKPOINTS, CONFIG, EPISODES, EVALUATIONS, check_resumable, config_json
+    from experiments.rl.train import (CHECKPOINTS, CONFIG, EPISODES, EVALUATIONS, check_resumable, config_json,
+                                      drop_episodes_after, next_multiple)
 
     console = Console(stderr=True)
     settings = ppo_settings(config)
@@ -295,7 +295,7 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
         else:  # opponents whose memory is not saved: fresh races, from starts of their own
             learner, in_flight = races.start(learner, config.seed + saved["timesteps"])
         point = _Point(learner, in_flight, saved["timesteps"], saved["updates"])
-        _drop_episodes_after(out, point.timesteps)
+        drop_episodes_after(out, point.timesteps)
         console.print(f"resuming from {out / CHECKPOINTS / RESUME} ({point.timesteps:,} of {config.timesteps:,} "
                       "steps)")
     else:
@@ -303,8 +303,8 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
     write_json_atomically(report, out / CONFIG)
     drop_cut_line(out / EVALUATIONS)
     per_update = settings.n_steps * config.envs
-    next_checkpoint = _next_multiple(point.timesteps, config.checkpoint_every)
-    next_eval = _next_multiple(point.timesteps, config.eval_every)
+    next_checkpoint = next_multiple(point.timesteps, config.checkpoint_every)
+    next_eval = next_multiple(point.timesteps, config.eval_every)
     first_update_s = fit_s = evaluations_s = 0.0
     first = point.updates
     started = time.perf_counter()
@@ -329,10 +329,10 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
             t0 = time.perf_counter()
             if next_checkpoint is not None and point.timesteps >= next_checkpoint:
                 _checkpoint(out, point, races, settings)
-                next_checkpoint = _next_multiple(point.timesteps, config.checkpoint_every)
+                next_checkpoint = next_multiple(point.timesteps, config.checkpoint_every)
             if next_eval is not None and point.timesteps >= next_eval:
                 _evaluate(config, out, point, settings, console)
-                next_eval = _next_multiple(point.timesteps, config.eval_every)
+                next_eval = next_multiple(point.timesteps, config.eval_every)
             evaluations_s += time.perf_counter() - t0
         _checkpoint(out, point, races, settings)
         save_policy_file(point.learner, settings, out / JAX_MODEL)
@@ -344,7 +344,7 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
         report["status"] = "completed"
     except KeyboardInterrupt:
         _checkpoint(out, point, races, settings)
-        _drop_episodes_after(out, point.timesteps)
+        drop_episodes_after(out, point.timesteps)
         report["status"] = "interrupted"
         console.print(f"interrupted at {point.timesteps:,} steps: checkpoint saved; run the same command to resume")
     finally:
@@ -382,10 +382,6 @@ def _evaluate(config, out: Path, point: _Point, settings, console) -> None:
     record = evaluate(config, path, point.timesteps)
     append_jsonl(out / EVALUATIONS, record)
     console.print(evaluation_line(record))
-
-
-def _next_multiple(steps: int, every: int) -> int | None:
-    return None if every == 0 else (steps // every + 1) * every
 
 
 def _settings_json(settings: ppo_jax.PPOSettings) -> dict[str, Any]:
