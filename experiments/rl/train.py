@@ -552,10 +552,8 @@ def _training_callback(config: TrainConfig, out: Path, console):
                 saved = checkpoint(self.model, out, self._resume_state())
                 self.next_checkpoint = next_multiple(self.num_timesteps, config.checkpoint_every)
             if self.next_eval is not None and self.num_timesteps >= self.next_eval:
-                record = evaluate(config, saved or checkpoint(self.model, out, self._resume_state()),
-                                  self.num_timesteps)
-                append_jsonl(out / EVALUATIONS, record)
-                console.print(evaluation_line(record))
+                record_evaluation(config, saved or checkpoint(self.model, out, self._resume_state()),
+                                  self.num_timesteps, out, console)
                 self.next_eval = next_multiple(self.num_timesteps, config.eval_every)
 
         def _on_step(self) -> bool:
@@ -563,17 +561,56 @@ def _training_callback(config: TrainConfig, out: Path, console):
             for copy in np.flatnonzero(self.locals["dones"]).tolist():
                 info = infos[copy]
                 if "episode" in info:
-                    episode = info["episode"]
-                    append_jsonl(out / EPISODES, {
-                        "timesteps": int(self.num_timesteps), "env": copy, "car": copy % config.cars,
-                        "return": float(episode["r"]), "length": int(episode["l"]),
-                        "finished": bool(episode["finished"]), "place": int(episode["position"]),
-                        "out": bool(episode["out"]), "finish_time": episode["finish_time"],
-                        "truncated": bool(info.get("TimeLimit.truncated", False)),
-                        **({"opponents": info["opponents"]} if "opponents" in info else {})})
+                    append_jsonl(out / EPISODES, {"timesteps": int(self.num_timesteps), "env": copy,
+                                                  "car": copy % config.cars, **episode_fields(info)})
             return True
 
     return Recorder()
+
+
+def episode_fields(info: dict[str, Any]) -> dict[str, Any]:
+    """An ``episodes.jsonl`` line's fields from the info of the step that ended the episode
+    (with the ``episode`` record of :class:`experiments.rl.vec_env.RaceVecEnv` or SB3's
+    ``Monitor``): return, length [steps], finished, place, out, finish time [s],
+    truncated, and a pool's drawn ``opponents``."""
+    episode = info["episode"]
+    return {"return": float(episode["r"]), "length": int(episode["l"]), "finished": bool(episode["finished"]),
+            "place": int(episode["position"]), "out": bool(episode["out"]), "finish_time": episode["finish_time"],
+            "truncated": bool(info.get("TimeLimit.truncated", False)),
+            **({"opponents": info["opponents"]} if "opponents" in info else {})}
+
+
+def record_evaluation(config: TrainConfig, model_path: Path, timesteps: int, out: Path, console) -> None:
+    """Race the saved policy under tournament rules (:func:`evaluate`), append the record to
+    ``evaluations.jsonl`` and print its line."""
+    record = evaluate(config, model_path, timesteps)
+    append_jsonl(out / EVALUATIONS, record)
+    console.print(evaluation_line(record))
+
+
+def evaluate_final(config: TrainConfig, model_path: Path, timesteps: int, out: Path, console) -> None:
+    """The final policy's evaluation, unless the last one logged is already of ``timesteps``."""
+    evaluations = read_jsonl(out / EVALUATIONS)
+    if not evaluations or evaluations[-1]["timesteps"] != timesteps:
+        record_evaluation(config, model_path, timesteps, out, console)
+
+
+def finish_report(config: TrainConfig, out: Path, report: dict[str, Any], model_path: Path, title: str,
+                  console) -> None:
+    """Close a run: its final evaluation into ``report``, ``train.json``, the learning curve
+    (titled ``title``) and, for a completed run, how to race the model."""
+    evaluations = read_jsonl(out / EVALUATIONS)
+    report["final_evaluation"] = evaluations[-1] if evaluations else None
+    write_json_atomically(report, out / CONFIG)
+    plot_learning_curve(read_jsonl(out / EPISODES), evaluations, out / "learning_curve.png",
+                        title=f"{title} {config.description()} on {Path(config.track).stem}",
+                        time_trial=config.time_trial)
+    if report["status"] == "completed":
+        # a time-trial policy observes one car: it races alone, against others' laps
+        race_it = ("--cars 1 --agents rl:{} ilqr lane-keeping" if config.time_trial
+                   else "--agents rl:{} " + " ".join(dict.fromkeys(config.opponents))).format(model_path)
+        console.print(f"wrote {model_path} (race it: racing tournament {race_it}), "
+                      f"{out / 'learning_curve.png'}, {out / EVALUATIONS}")
 
 
 def next_multiple(steps: int, every: int) -> int | None:
@@ -955,11 +992,7 @@ def _run_training(config: TrainConfig, out: Path, fresh: bool, progress: bool) -
             recorder.updated_at = model.num_timesteps  # learn ends with an update
             checkpoint(model, out)  # so that running the command again finds the run complete
         save_policy(model, model.get_env(), out / MODEL)
-        evaluations = read_jsonl(out / EVALUATIONS)
-        if not evaluations or evaluations[-1]["timesteps"] != model.num_timesteps:
-            record = evaluate(config, out / MODEL, model.num_timesteps)
-            append_jsonl(out / EVALUATIONS, record)
-            console.print(evaluation_line(record))
+        evaluate_final(config, out / MODEL, model.num_timesteps, out, console)
         report["status"] = "completed"
     except KeyboardInterrupt:
         # the steps collected since the last update are not trained on: they are collected again
@@ -976,19 +1009,8 @@ def _run_training(config: TrainConfig, out: Path, fresh: bool, progress: bool) -
                       "to resume")
     report["timesteps"] = int(model.num_timesteps)
     report["wall_s"] = time.perf_counter() - started
-    evaluations = read_jsonl(out / EVALUATIONS)
-    report["final_evaluation"] = evaluations[-1] if evaluations else None
-    write_json_atomically(report, config_path)
-    plot_learning_curve(read_jsonl(out / EPISODES), evaluations, out / "learning_curve.png",
-                        title=f"{config.algo.upper()} {config.description()} on {Path(config.track).stem}",
-                        time_trial=config.time_trial)
     _close(model.get_env(), interrupted=report["status"] == "interrupted")
-    if report["status"] == "completed":
-        # a time-trial policy observes one car: it races alone, against others' laps
-        race_it = ("--cars 1 --agents rl:{} ilqr lane-keeping" if config.time_trial
-                   else "--agents rl:{} " + " ".join(dict.fromkeys(config.opponents))).format(out / MODEL)
-        console.print(f"wrote {out / MODEL} (race it: racing tournament {race_it}), "
-                      f"{out / 'learning_curve.png'}, {out / EVALUATIONS}")
+    finish_report(config, out, report, out / MODEL, config.algo.upper(), console)
     return report
 
 

@@ -44,9 +44,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.files import replace_atomically, write_json_atomically
-from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
+from experiments.jsonl import append_jsonl, drop_cut_line
 from experiments.rl import ppo_jax
-from experiments.rl.evaluation import evaluate, evaluation_line, plot_learning_curve
+from experiments.rl.train import (CHECKPOINTS, CONFIG, EPISODES, EVALUATIONS, check_resumable, config_json,
+                                  default_hyperparameters, drop_episodes_after, episode_fields, evaluate_final,
+                                  finish_report, make_vector_env, next_multiple, record_evaluation)
 from planners.agents.jax_policy import save_model
 
 __all__ = ["JAX_MODEL", "compiled_races", "ppo_settings", "run_jax_training"]
@@ -60,8 +62,6 @@ _STATE_VERSION = 1
 def ppo_settings(config) -> ppo_jax.PPOSettings:
     """The PPO settings of a run: the SB3 learner's defaults for its ``envs``
     (:func:`experiments.rl.train.default_hyperparameters`), then its ``hyperparameters``."""
-    from experiments.rl.train import default_hyperparameters
-
     values = {**default_hyperparameters("ppo", config.envs), **dict(config.hyperparameters)}
     if "hidden" in values:
         values["hidden"] = tuple(int(h) for h in np.atleast_1d(values["hidden"]))
@@ -149,8 +149,6 @@ class _Host:
     kind = "host"
 
     def __init__(self, config, settings: ppo_jax.PPOSettings) -> None:
-        from experiments.rl.train import make_vector_env
-
         self.config, self.settings = config, settings
         self.venv = make_vector_env(config)
         self.cars = config.cars
@@ -187,15 +185,8 @@ class _Host:
             steps.append(ppo_jax.Rollout(obs, action, log_prob, value, scaled, jnp.asarray(done)))
             obs = next_obs
             for b in np.flatnonzero(done):
-                episode = infos[b].get("episode")
-                if episode is None:
-                    continue
-                episodes.append((t, int(b), int(b) % self.cars, {
-                    "return": float(episode["r"]), "length": int(episode["l"]),
-                    "finished": bool(episode["finished"]), "place": int(episode["position"]),
-                    "out": bool(episode["out"]), "finish_time": episode["finish_time"],
-                    "truncated": bool(infos[b].get("TimeLimit.truncated", False)),
-                    **({"opponents": infos[b]["opponents"]} if "opponents" in infos[b] else {})}))
+                if "episode" in infos[b]:
+                    episodes.append((t, int(b), int(b) % self.cars, episode_fields(infos[b])))
         rollout = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *steps)
         learner, metrics = self._fit(learner, rollout, obs)
         return learner, self._snapshot(obs), episodes, metrics
@@ -220,8 +211,6 @@ def make_races(config, settings: ppo_jax.PPOSettings):
 
 # --- files -------------------------------------------------------------------------------------
 def _policy_file(out: Path, timesteps: int) -> Path:
-    from experiments.rl.train import CHECKPOINTS
-
     return out / CHECKPOINTS / f"step_{timesteps:09d}.npz"
 
 
@@ -248,8 +237,6 @@ class _Point(NamedTuple):
 
 def _checkpoint(out: Path, point: _Point, races, settings) -> None:
     """The policy at ``point`` and, in ``resume.pkl``, everything a resumption needs."""
-    from experiments.rl.train import CHECKPOINTS
-
     save_policy_file(point.learner, settings, _policy_file(out, point.timesteps))
     state = {"version": _STATE_VERSION, "timesteps": point.timesteps, "updates": point.updates, "kind": races.kind,
              "learner": jax.device_get(point.learner), "races": races.saved(point.races)}
@@ -258,8 +245,6 @@ def _checkpoint(out: Path, point: _Point, races, settings) -> None:
 
 def latest_state(out: Path) -> dict[str, Any] | None:
     """The saved training state (``checkpoints/resume.pkl``), or None."""
-    from experiments.rl.train import CHECKPOINTS
-
     path = out / CHECKPOINTS / RESUME
     return pickle.loads(path.read_bytes()) if path.exists() else None
 
@@ -269,9 +254,6 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
     """Train (or resume) into ``out`` with the JAX learner; returns the report also written to
     ``train.json`` (``"status"``: ``completed`` or ``interrupted``, after Ctrl-C, not raised)."""
     from rich.console import Console
-
-    from experiments.rl.train import (CHECKPOINTS, CONFIG, EPISODES, EVALUATIONS, check_resumable, config_json,
-                                      drop_episodes_after, next_multiple)
 
     console = Console(stderr=True)
     settings = ppo_settings(config)
@@ -336,11 +318,7 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
             evaluations_s += time.perf_counter() - t0
         _checkpoint(out, point, races, settings)
         save_policy_file(point.learner, settings, out / JAX_MODEL)
-        evaluations = read_jsonl(out / EVALUATIONS)
-        if not evaluations or evaluations[-1]["timesteps"] != point.timesteps:
-            record = evaluate(config, out / JAX_MODEL, point.timesteps)
-            append_jsonl(out / EVALUATIONS, record)
-            console.print(evaluation_line(record))
+        evaluate_final(config, out / JAX_MODEL, point.timesteps, out, console)
         report["status"] = "completed"
     except KeyboardInterrupt:
         _checkpoint(out, point, races, settings)
@@ -359,29 +337,15 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
                        "first_update_s": first_update_s, "fit_s": fit_s,
                        "checkpoints_evaluations_s": evaluations_s,
                        "steps_per_s": (trained - per_update) / fit_s if fit_s > 0 else None}
-    evaluations = read_jsonl(out / EVALUATIONS)
-    report["final_evaluation"] = evaluations[-1] if evaluations else None
-    write_json_atomically(report, out / CONFIG)
-    plot_learning_curve(read_jsonl(out / EPISODES), evaluations, out / "learning_curve.png",
-                        title=f"PPO (JAX) {config.description()} on {Path(config.track).stem}",
-                        time_trial=config.time_trial)
-    if report["status"] == "completed":
-        race_it = ("--cars 1 --agents rl:{} ilqr lane-keeping" if config.time_trial
-                   else "--agents rl:{} " + " ".join(dict.fromkeys(config.opponents))).format(out / JAX_MODEL)
-        console.print(f"wrote {out / JAX_MODEL} (race it: racing tournament {race_it}), "
-                      f"{out / 'learning_curve.png'}, {out / EVALUATIONS}")
+    finish_report(config, out, report, out / JAX_MODEL, "PPO (JAX)", console)
     return report
 
 
 def _evaluate(config, out: Path, point: _Point, settings, console) -> None:
-    from experiments.rl.train import EVALUATIONS
-
     path = _policy_file(out, point.timesteps)
     if not path.exists():
         save_policy_file(point.learner, settings, path)
-    record = evaluate(config, path, point.timesteps)
-    append_jsonl(out / EVALUATIONS, record)
-    console.print(evaluation_line(record))
+    record_evaluation(config, path, point.timesteps, out, console)
 
 
 def _settings_json(settings: ppo_jax.PPOSettings) -> dict[str, Any]:
