@@ -44,6 +44,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from experiments.backends import check_backend
+from experiments.files import one_writer
 from experiments.formatting import mean_or_none, or_dash
 from experiments.jsonl import read_jsonl, settings_json
 from experiments.race_spec import RACE_FIELDS, RaceSpec
@@ -342,18 +343,19 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
     for point in config.points():
         RacingParallelEnv(config.race_config(point, rotation=0))
     console = Console(stderr=True, width=160)
-    log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG, settings=settings_json(config, ADDED_LATER),
-                 what="sweep", fresh=fresh)
-    log.announce(console)
-    interrupted = log.run(functools.partial(run_job, config, plans=plans), backend, workers, address, progress=progress,
-                          desc="sweep")
-    records = log.records()
-    rows = summarize(config, records)
-    _write_summary(config, rows, out, console)
-    if report:
-        from experiments.report import write_sweep_report
+    with one_writer(out, "sweep"):
+        log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG, settings=settings_json(config, ADDED_LATER),
+                     what="sweep", fresh=fresh)
+        log.announce(console)
+        interrupted = log.run(functools.partial(run_job, config, plans=plans), backend, workers, address, progress=progress,
+                              desc="sweep")
+        records = log.records()
+        rows = summarize(config, records)
+        _write_summary(config, rows, out, console)
+        if report:
+            from experiments.report import write_sweep_report
 
-        console.print(f"wrote {write_sweep_report(out, config, rows, records)}")
+            console.print(f"wrote {write_sweep_report(out, config, rows, records)}")
     if interrupted:
         console.print(f"interrupted: {len(log.done)} of {len(log.jobs)} races in {out / RESULTS}; run the same "
                       "command to resume")

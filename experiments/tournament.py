@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from experiments.backends import check_backend
+from experiments.files import one_writer
 from experiments.formatting import or_dash
 from experiments.jsonl import read_jsonl, settings_json
 from experiments.race_spec import RaceSpec
@@ -430,32 +431,33 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     # the race itself, so that one the env refuses (a finish line no start is behind, a
     # track file it cannot read) fails before anything is written
     RacingParallelEnv(race_config(config))
-    log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG, settings=settings_json(config, ADDED_LATER),
-                 what="tournament configuration", fresh=fresh, outputs=(GIF,))
-    log.announce(console)
-    # with no race recorded a GIF here is not this run's (e.g. results.jsonl deleted by hand): draw it
-    # again; a resumed run keeps the GIF of its first race
-    draw = gif and (not log.done or not (out / GIF).exists())
-    if log.run(functools.partial(_race_record, config, plans), backend, workers, address, progress=progress,
-               desc="tournament", here_first=functools.partial(_drawn_race, config, out) if draw else None):
-        raise KeyboardInterrupt  # the races run so far are kept in results.jsonl; no leaderboard
-    records = log.records()
-    board = leaderboard(config, records)
-    with open(out / "summary.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=[k for k in board["rows"][0] if k != "win_rate_ci95"] + ["ci95_low", "ci95_high"])
-        writer.writeheader()
-        for row in board["rows"]:
-            flat = {k: v for k, v in row.items() if k != "win_rate_ci95"}
-            writer.writerow({**flat, "ci95_low": row["win_rate_ci95"][0], "ci95_high": row["win_rate_ci95"][1]})
-    if config.cars > 1:
-        plot_head_to_head(board["head_to_head"], out / "head_to_head.png")
-    (out / "leaderboard.json").write_text(json.dumps(board, indent=2))
-    written = [out / RESULTS, out / "summary.csv"] + ([out / "head_to_head.png"] if config.cars > 1 else [])
-    written += [out / GIF] if (out / GIF).exists() else []
-    if report:
-        from experiments.report import write_tournament_report
+    with one_writer(out, "tournament"):
+        log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG, settings=settings_json(config, ADDED_LATER),
+                     what="tournament configuration", fresh=fresh, outputs=(GIF,))
+        log.announce(console)
+        # with no race recorded a GIF here is not this run's (e.g. results.jsonl deleted by hand): draw it
+        # again; a resumed run keeps the GIF of its first race
+        draw = gif and (not log.done or not (out / GIF).exists())
+        if log.run(functools.partial(_race_record, config, plans), backend, workers, address, progress=progress,
+                   desc="tournament", here_first=functools.partial(_drawn_race, config, out) if draw else None):
+            raise KeyboardInterrupt  # the races run so far are kept in results.jsonl; no leaderboard
+        records = log.records()
+        board = leaderboard(config, records)
+        with open(out / "summary.csv", "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=[k for k in board["rows"][0] if k != "win_rate_ci95"] + ["ci95_low", "ci95_high"])
+            writer.writeheader()
+            for row in board["rows"]:
+                flat = {k: v for k, v in row.items() if k != "win_rate_ci95"}
+                writer.writerow({**flat, "ci95_low": row["win_rate_ci95"][0], "ci95_high": row["win_rate_ci95"][1]})
+        if config.cars > 1:
+            plot_head_to_head(board["head_to_head"], out / "head_to_head.png")
+        (out / "leaderboard.json").write_text(json.dumps(board, indent=2))
+        written = [out / RESULTS, out / "summary.csv"] + ([out / "head_to_head.png"] if config.cars > 1 else [])
+        written += [out / GIF] if (out / GIF).exists() else []
+        if report:
+            from experiments.report import write_tournament_report
 
-        written.append(write_tournament_report(out, config, board, records))
+            written.append(write_tournament_report(out, config, board, records))
     retire = config.on_collision in RETIRING_MODES or config.on_off_track in RETIRING_MODES
     if config.cars == 1:
         console.print(_time_trial_table(board, records, config, retire))

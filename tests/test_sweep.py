@@ -39,9 +39,13 @@ def tiny(tmp_path):
     return load_sweep(path)
 
 
-def test_every_backend_gives_the_same_records_and_summary(tiny, tmp_path):
-    runs = {"in-process": dict(backend="local", workers=1), "two processes": dict(backend="local", workers=2),
-            "ray": dict(backend="ray", workers=2)}
+OTHER_BACKENDS = {"two processes": dict(backend="local", workers=2), "ray": dict(backend="ray", workers=2)}
+
+
+# a real local Ray instance is started by the default tournament tests; here it is the slow leg
+@pytest.mark.parametrize("backend", [pytest.param("two processes"), pytest.param("ray", marks=pytest.mark.slow)])
+def test_every_backend_gives_the_same_records_and_summary(tiny, tmp_path, backend):
+    runs = {"in-process": dict(backend="local", workers=1), backend: OTHER_BACKENDS[backend]}
     results = {}
     for name, options in runs.items():
         report = run_sweep(tiny, tmp_path / name, progress=False, **options)
@@ -59,7 +63,7 @@ def test_every_backend_gives_the_same_records_and_summary(tiny, tmp_path):
     assert all(row["wins"] == (4 if row["agent"] == 0 else 0) for row in finished)
     assert all(row["mean_margin_s"] > 0 if row["agent"] == 0 else row["mean_margin_s"] < 0 for row in finished)
     for name in ("summary.csv", "summary.json", "sweep.png"):
-        assert (tmp_path / "ray" / name).stat().st_size > 0
+        assert (tmp_path / backend / name).stat().st_size > 0
 
 
 def test_a_sweep_resumes_without_rerunning_finished_races(tiny, tmp_path):

@@ -226,6 +226,7 @@ def test_the_jax_learner_reaches_the_sb3_learners_time_trial_at_the_same_budget(
     assert max(returns) < 3 * min(returns), returns
 
 
+@pytest.mark.slow  # vmapped seeds do not pay on a CPU (docs/rl.md); the runner trains one seed at a time
 def test_seeds_train_as_one_vmapped_program_each_as_it_would_alone():
     """`compiled_update` is pure: vmapped over two stacked learners and their races, each
     seed's update is its own. The networks are float32 and a batched matmul may add in

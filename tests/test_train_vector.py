@@ -285,6 +285,7 @@ def _racing_train(args: list[str]) -> None:
     assert process.returncode == 0, err
 
 
+@pytest.mark.slow  # three real trainings; test_train.py interrupts real processes by default
 def test_a_run_interrupted_by_ctrl_c_resumes_exactly_as_if_it_had_not_stopped(tmp_path):
     """Ctrl-C (SIGINT to the process group) on a real `racing train` after its first
     checkpoint, wherever it lands (a rollout, an update, a save): the run rewinds to its last

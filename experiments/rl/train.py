@@ -52,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from experiments.files import replace_atomically, write_json_atomically
+from experiments.files import one_writer, replace_atomically, write_json_atomically
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
 from experiments.race_spec import RaceSpec
 from experiments.rl.evaluation import evaluate, evaluation_line, plot_learning_curve
@@ -923,19 +923,20 @@ def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: 
     (``"status"``: ``completed`` or ``interrupted``, the latter after Ctrl-C, not raised).
     With ``config.learner == "jax"`` the JAX learner trains (:mod:`experiments.rl.train_jax`);
     else stable-baselines3, with torch on :data:`TORCH_THREADS` threads meanwhile (restored after)."""
-    if config.learner == "jax":
-        from experiments.rl.train_jax import run_jax_training
+    check_specs(config.opponents + ((config.imitate,) if config.imitate else ()))
+    with one_writer(out, "training run"):
+        if config.learner == "jax":
+            from experiments.rl.train_jax import run_jax_training
 
-        check_specs(config.opponents)
-        return run_jax_training(config, out, fresh=fresh, progress=progress)
-    import torch
+            return run_jax_training(config, out, fresh=fresh, progress=progress)
+        import torch
 
-    threads = torch.get_num_threads()
-    torch.set_num_threads(TORCH_THREADS)
-    try:
-        return _run_training(config, out, fresh, progress)
-    finally:
-        torch.set_num_threads(threads)
+        threads = torch.get_num_threads()
+        torch.set_num_threads(TORCH_THREADS)
+        try:
+            return _run_training(config, out, fresh, progress)
+        finally:
+            torch.set_num_threads(threads)
 
 
 def _run_training(config: TrainConfig, out: Path, fresh: bool, progress: bool) -> dict[str, Any]:
@@ -944,7 +945,6 @@ def _run_training(config: TrainConfig, out: Path, fresh: bool, progress: bool) -
     from rich.console import Console
 
     console = Console(stderr=True)
-    check_specs(config.opponents + ((config.imitate,) if config.imitate else ()))
     if config.subprocesses and config.vector:
         console.print("subprocesses: each copy of the race is a Gymnasium env in a worker process of its own; the "
                       "vectorised races are not used")
