@@ -641,6 +641,11 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
              "ilqgame-ol": "ilqgame-ol", "ilqgame-ol_residual": "ilqgame-ol:step_control=residual",
              "ilqgame-ol_adaptive_regularization": f"ilqgame-ol:{_ADAPTIVE_REGULARIZATION}",
              "ilqgame-fb": "ilqgame-fb",
+             # the warm start before its accelerations were restored, beside the default
+             "ilqr_unrestored_warm_start": "ilqr:restore_accelerations=false",
+             "ilqgame-ol_unrestored_warm_start": "ilqgame-ol:restore_accelerations=false",
+             "ilqgame-fb_unrestored_warm_start": "ilqgame-fb:restore_accelerations=false",
+             "ilqgame-fb_iterations2": "ilqgame-fb:iterations=2",
              "ilqgame-fb_feedforward_regularization":
                  f"ilqgame-fb:{_ADAPTIVE_REGULARIZATION},feedforward_regularization=true"}
     for name, spec in specs.items():
@@ -664,6 +669,7 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
         yield {"name": f"{name}_replan", "ms_median": 1e3 * float(np.median(runs)),
                "ms_p95": 1e3 * float(np.percentile(runs, 95)), "compile_s": compile_s,
                "iterations_median": float(np.median(iterations[1:])),
+               "iterations_p95": float(np.percentile(iterations[1:], 95)),
                "converged_share": float(np.mean(converged[1:])), "fallbacks": fallbacks,
                "target_ms_p95": 50.0 if spec == "ilqgame-fb" else None}
 

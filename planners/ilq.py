@@ -97,8 +97,13 @@ trust region. At a fixed point ``k = 0``: for ``mode="open_loop"`` exactly the f
 open-loop Nash condition of the nonlinear game (:func:`planners.nash.nash_residual`), for
 ``mode="feedback"`` the feedback condition of the sequence of local LQ games.
 
+Anytime solves: ``budget_ms`` (:func:`solve_within`) stops the iterations when a wall-clock
+budget has run out (``BUDGET_EXHAUSTED``); with ``best_iterate`` a solve that stops before
+converging returns its iterate of smallest merit ``max |k_0|`` (:func:`finish`), the warm
+start included.
+
 Building blocks: a solve is :func:`initial_carry`, :func:`iterate` in a ``while_loop``
-(:func:`iterate_while_running`) and :func:`result`; :func:`solve_arrays` is that whole
+(:func:`iterate_while_running`), :func:`finish` and :func:`result`; :func:`solve_arrays` is that whole
 computation jitted, without validation. The design discussion (why Gauss-Newton, the
 progress curvature, the step-size rules) is in docs/solvers.md.
 """
@@ -108,6 +113,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib
+import time
 from typing import Any, NamedTuple
 
 import jax
@@ -120,6 +126,8 @@ from planners.game_problem import GameProblem, as_problem, game_type_of, is_conc
 Array = jax.Array
 
 __all__ = [
+    "BUDGET_EXHAUSTED",
+    "BestIterate",
     "CONVERGED",
     "GameProblem",
     "LINE_SEARCH_FAILED",
@@ -131,6 +139,8 @@ __all__ = [
     "SolverResult",
     "as_array",
     "check_adaptive_regularization",
+    "check_budget_ms",
+    "finish",
     "forward",
     "initial_carry",
     "iterate",
@@ -141,6 +151,7 @@ __all__ = [
     "rollout",
     "solve",
     "solve_arrays",
+    "solve_within",
     "status_message",
     "total_costs",
     "validate_problem",
@@ -167,12 +178,14 @@ CONVERGED = 0
 MAX_ITERATIONS = 1
 NON_FINITE = 2
 LINE_SEARCH_FAILED = 3
+BUDGET_EXHAUSTED = 4
 
 _STATUS_MESSAGES = {
     CONVERGED: "converged",
     MAX_ITERATIONS: "iteration cap reached before convergence",
     NON_FINITE: "non-finite LQ solution or trajectory; stopped at the last finite iterate",
     LINE_SEARCH_FAILED: "step-size control found no step inside the trust region",
+    BUDGET_EXHAUSTED: "wall-clock budget ran out before convergence",
 }
 
 
@@ -236,6 +249,13 @@ class SolverOptions:
             where the undamped ones are), so ``adaptive_regularization`` is allowed for it.
             Needs ``control_regularization > 0``; refused in open loop, where the whole LQ
             step is feed-forward (``control_regularization`` alone damps it).
+        best_iterate: anytime solves: when the solve stops before convergence (the iteration
+            cap or a wall-clock budget), return the iterate with the smallest merit instead of
+            the last one. The merit of an iterate is the solver's convergence measure at it:
+            the max-norm state change of the full LQ step from it (0 at a fixed point). The
+            initial iterate (the warm start) is a candidate, so the result is never worse by
+            this merit than the warm start; the last iterate is scored by one more LQ solve,
+            whose gains ``K`` are then returned with it. See :func:`finish`.
         dynamics_curvature: add the problem's ``stage_curvature`` (see :class:`GameProblem`;
             RaceGame and iLQR: each car's progress in its heading) to the diagonal of every
             stage's ``Q^i``, in every ``convexify`` mode (before the PSD projection). The
@@ -260,6 +280,7 @@ class SolverOptions:
     regularization_factor: float = 1.5
     feedforward_regularization: bool = False
     dynamics_curvature: bool = True
+    best_iterate: bool = False
 
     @property
     def guaranteed_control_regularization(self) -> float:
@@ -272,7 +293,7 @@ class SolverOptions:
 
     def __post_init__(self) -> None:
         for name in ("oscillation_damping", "adaptive_regularization", "feedforward_regularization",
-                     "dynamics_curvature"):
+                     "dynamics_curvature", "best_iterate"):
             # a string such as "false" would be truthy
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"SolverOptions.{name} must be True or False, got {getattr(self, name)!r}")
@@ -552,12 +573,26 @@ def _step(problem, xs_hat, us_hat, K, k, eta0, merit0, options: SolverOptions):
     return xs, us, eta, dev, dev <= radius, merit0
 
 
+class BestIterate(NamedTuple):
+    """The best-scored iterate of an anytime solve (``SolverOptions.best_iterate``): its
+    ``xs (T+1, n)``, ``us (T, N, m)``, the LQ game around it (``K (T, N, m, n)``,
+    ``k (T, N, m)``) and its ``merit`` (the full LQ step's max-norm state change; ``inf``
+    before any iterate was scored)."""
+
+    xs: Array
+    us: Array
+    K: Array
+    k: Array
+    merit: Array
+
+
 class SolverCarry(NamedTuple):
     """The solver's state between iterations (a pytree; the ``while_loop`` carry).
 
     ``it`` accepted steps so far; ``xs (T+1, n)``, ``us (T, N, m)`` the current iterate;
     ``K``, ``k``, ``eta`` of the last accepted step; ``status`` (``RUNNING`` while the
-    iteration goes on) and the per-iteration histories of :class:`SolverResult`.
+    iteration goes on) and the per-iteration histories of :class:`SolverResult`; ``best``
+    the best-scored iterate so far (:class:`BestIterate`) with ``best_iterate``, else None.
     """
 
     it: Array
@@ -574,6 +609,7 @@ class SolverCarry(NamedTuple):
     history: Array
     step_history: Array
     k_history: Array
+    best: BestIterate | None = None
 
 
 def initial_carry(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions) -> SolverCarry:
@@ -599,6 +635,8 @@ def initial_carry(problem: GameProblem, x0: Array, us0: Array, options: SolverOp
         history=nan_hist,
         step_history=nan_hist,
         k_history=nan_hist,
+        best=BestIterate(xs0, us0, jnp.zeros((T, N, m, x0.shape[0]), dtype), jnp.zeros((T, N, m), dtype),
+                         jnp.asarray(jnp.inf, dtype)) if options.best_iterate else None,
     )
 
 
@@ -664,6 +702,12 @@ def iterate(problem: GameProblem, c: SolverCarry, options: SolverOptions) -> Sol
             ),
         ),
     )
+    best = c.best
+    if best is not None:
+        # ``measure`` scores the iterate this step started from, c.(xs, us), and (K, k) is
+        # the LQ game around it.
+        merit = _action_merit(k)
+        best = _select(lq_ok & (merit < best.merit), BestIterate(c.xs, c.us, K, k, merit), best)
     keep = functools.partial(_select, ok)
     return SolverCarry(
         it=it,
@@ -680,6 +724,7 @@ def iterate(problem: GameProblem, c: SolverCarry, options: SolverOptions) -> Sol
         history=c.history.at[c.it].set(jnp.where(ok, measure, jnp.nan)),
         step_history=c.step_history.at[c.it].set(jnp.where(ok, eta, jnp.nan)),
         k_history=c.k_history.at[c.it].set(jnp.max(jnp.abs(k))),
+        best=best,
     )
 
 
@@ -699,6 +744,35 @@ def result(problem: GameProblem, c: SolverCarry, x_shape: tuple[int, ...]) -> So
         step_history=c.step_history,
         k_history=c.k_history,
     )
+
+
+def _action_merit(k: Array) -> Array:
+    """The merit of an iterate in an anytime solve: ``max |k_0|``, the largest change of the
+    first stage's inputs that the LQ game around the iterate asks for (input units; 0 at a
+    fixed point). The first inputs are the ones a receding-horizon planner executes."""
+    merit = jnp.max(jnp.abs(k[0]))
+    return jnp.where(jnp.isfinite(merit), merit, jnp.inf)
+
+
+def finish(problem: GameProblem, c: SolverCarry, options: SolverOptions) -> SolverCarry:
+    """The solver state to report: ``c`` itself, or with ``options.best_iterate`` and a
+    solve stopped before convergence (``MAX_ITERATIONS`` or ``BUDGET_EXHAUSTED``), its best
+    iterate (:class:`BestIterate`). The last iterate has no score yet: one more LQ solve
+    around it and a full-step forward pass give it one, and it is kept (with the gains of
+    that LQ game) when it scores at least as well as the best earlier iterate."""
+    best = c.best
+    if best is None:
+        return c
+
+    def choose(c: SolverCarry) -> SolverCarry:
+        K, k = _lq_step(problem, c.xs, c.us, options, c.control_regularization)
+        finite = jnp.all(jnp.isfinite(K)) & jnp.all(jnp.isfinite(k))
+        last = BestIterate(c.xs, c.us, K, k, jnp.where(finite, _action_merit(k), jnp.inf))
+        chosen = _select(last.merit <= best.merit, last, best)
+        return c._replace(xs=chosen.xs, us=chosen.us, K=chosen.K, k=chosen.k, best=chosen)
+
+    stopped_early = (c.status == MAX_ITERATIONS) | (c.status == BUDGET_EXHAUSTED)
+    return jax.lax.cond(stopped_early, choose, lambda c: c, c)
 
 
 def iterate_while_running(problem: GameProblem, c: SolverCarry, options: SolverOptions,
@@ -722,7 +796,35 @@ def solve_arrays(problem: GameProblem, x0: Array, us0: Array, options: SolverOpt
     Reshapes and casts happen here, so a call from :func:`solve` dispatches a single
     computation."""
     c = initial_carry(problem, x0, us0, options)
-    return result(problem, iterate_while_running(problem, c, options), x0.shape)
+    return result(problem, finish(problem, iterate_while_running(problem, c, options), options), x0.shape)
+
+
+_start = jax.jit(initial_carry, static_argnames=("options",))
+_iterate_once = jax.jit(iterate, static_argnames=("options",))
+
+
+@functools.partial(jax.jit, static_argnames=("options", "x_shape"))
+def _finished_result(problem: GameProblem, c: SolverCarry, options: SolverOptions, x_shape) -> SolverResult:
+    return result(problem, finish(problem, c, options), x_shape)
+
+
+def solve_within(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions,
+                 budget_s: float) -> SolverResult:
+    """:func:`solve_arrays` under a wall-clock budget of ``budget_s`` seconds: one jitted
+    :func:`iterate` per call, until the solve stops by itself or the budget has run out
+    (status ``BUDGET_EXHAUSTED``); at least one iteration runs. With
+    ``options.best_iterate`` the best iterate is returned (:func:`finish`). Needs concrete
+    inputs (it reads the status between iterations)."""
+    deadline = time.perf_counter() + budget_s
+    c = _start(problem, x0, us0, options)
+    while True:
+        c = _iterate_once(problem, c, options)
+        if int(c.status) != RUNNING:
+            break
+        if time.perf_counter() >= deadline:
+            c = c._replace(status=jnp.asarray(BUDGET_EXHAUSTED, c.status.dtype))
+            break
+    return _finished_result(problem, c, options, tuple(x0.shape))
 
 
 # --------------------------------------------------------------------------------------
@@ -803,6 +905,16 @@ def check_adaptive_regularization(options: SolverOptions, num_players: int) -> N
         )
 
 
+def check_budget_ms(budget_ms) -> None:
+    """Refuse a wall-clock budget that is not a finite number of milliseconds > 0."""
+    try:
+        ok = np.isfinite(float(budget_ms)) and float(budget_ms) > 0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or isinstance(budget_ms, bool):
+        raise ValueError(f"budget_ms must be a finite number of milliseconds > 0, got {budget_ms!r}")
+
+
 def resolve_options(options: SolverOptions | None, overrides: dict) -> SolverOptions:
     """``options`` (the defaults for None) with ``overrides`` (field name -> value) applied,
     as :func:`solve` resolves its keyword overrides. Raises TypeError for unknown names."""
@@ -845,6 +957,7 @@ def solve(
     *,
     options: SolverOptions | None = None,
     validate: bool = True,
+    budget_ms: float | None = None,
     **overrides,
 ) -> SolverResult:
     """Solve a game by iterative LQ games (feedback or open-loop Nash), or iLQR for ``N = 1``.
@@ -857,6 +970,9 @@ def solve(
         options: a :class:`SolverOptions`; keyword ``overrides`` replace its fields
             (e.g. ``mode="open_loop"``, ``max_iterations=50``).
         validate: refuse non-PD ``R^{ii}`` with a ValueError (skipped when traced).
+        budget_ms: a wall-clock budget [ms] (:func:`solve_within`): iterations stop once it
+            has run out (status ``BUDGET_EXHAUSTED``), at least one runs. Combine it with
+            ``best_iterate=True`` for an anytime solve. Not under ``jit``/``vmap``.
 
     Returns:
         :class:`SolverResult`. For a RaceGame, ``xs`` has shape ``(T+1, N, 6)``.
@@ -884,4 +1000,9 @@ def solve(
             validate_problem(problem_or_game, control_regularization=options.guaranteed_control_regularization)
         else:
             validate_problem(problem, x0, us0, options.guaranteed_control_regularization)
+    if budget_ms is not None:
+        check_budget_ms(budget_ms)
+        if not is_concrete(problem, x0, us0):
+            raise ValueError("budget_ms needs concrete inputs: a wall-clock budget cannot run under jit or vmap")
+        return solve_within(problem, x0, us0, options, float(budget_ms) / 1e3)
     return solve_arrays(problem, x0, us0, options)

@@ -180,7 +180,7 @@ def _member(kind: str, problem: GameProblem, args, options: ilq.SolverOptions, s
         return ilq.initial_carry(problem, *args, options)
     if kind == "continue":
         return ilq.iterate_while_running(problem, args, options, steps)
-    return ilq.result(problem, args, (args.xs.shape[-1],))
+    return ilq.result(problem, ilq.finish(problem, args, options), (args.xs.shape[-1],))
 
 
 @functools.partial(jax.jit, static_argnames=("kind", "leaf_axes", "options", "mesh", "batching", "steps"))

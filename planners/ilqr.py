@@ -174,7 +174,8 @@ def ego_problem(game, x0, ego: int = 0, predicted=None) -> GameProblem:
     )
 
 
-def solve_ilqr(game, x0, ego: int = 0, U0=None, *, predicted=None, options=None, **overrides) -> ILQRResult:
+def solve_ilqr(game, x0, ego: int = 0, U0=None, *, predicted=None, options=None, budget_ms=None,
+               **overrides) -> ILQRResult:
     """Plan the ego's inputs by iLQR against predictions of the opponents.
 
     Args:
@@ -189,6 +190,7 @@ def solve_ilqr(game, x0, ego: int = 0, U0=None, *, predicted=None, options=None,
         options, overrides: :class:`planners.ilq.SolverOptions` and field overrides. The
             ``mode`` is irrelevant for one player (feedback and open loop coincide); the
             feedback recursion is used.
+        budget_ms: a wall-clock budget [ms] of the solve (see :func:`planners.ilq.solve`).
 
     Returns:
         :class:`ILQRResult`.
@@ -206,7 +208,7 @@ def solve_ilqr(game, x0, ego: int = 0, U0=None, *, predicted=None, options=None,
     overrides.setdefault("mode", methods.FEEDBACK)
     options = ilq.resolve_options(options, overrides)
     ilq.validate_problem(game, control_regularization=options.guaranteed_control_regularization)
-    plan = ilq.solve(problem, x0[ego], U0, options=options, validate=False)
+    plan = ilq.solve(problem, x0[ego], U0, options=options, validate=False, budget_ms=budget_ms)
     pred = problem.params.predicted
     xs = pred.at[:, ego].set(plan.xs)
     us = jnp.zeros((T, game.num_players, game.input_dim), plan.us.dtype).at[:, ego].set(

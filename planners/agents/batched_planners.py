@@ -41,6 +41,7 @@ import numpy as np
 from planners import ilq, ilqr
 from planners.agents.batched import BatchedOpponent, DIAGNOSTIC_FIELDS, empty_diagnostics
 from planners.agents.protocol import BaseAgent
+from planners.agents.warm_start import restore_accelerations
 from planners.agents.receding_horizon import (
     RECOVERED_SPEED,
     STOPPED_SPEED,
@@ -66,6 +67,8 @@ def unbatchable(agent: BaseAgent) -> str | None:
     """Why ``agent`` cannot be a :class:`BatchedPlanner` (None: it can)."""
     if type(agent) not in BATCHABLE_AGENTS:
         return f"{type(agent).__name__} is not one of the batched planners"
+    if agent.budget_ms is not None:
+        return "a wall-clock budget (budget_ms) is not batched: a batch's members cannot stop at their own times; use iterations=K"
     if isinstance(agent, ILQRAgent) and agent.prediction != CONSTANT_VELOCITY:
         return (f"the iLQR prediction {agent.prediction!r} is not batched (only prediction={CONSTANT_VELOCITY} "
                 "is)")
@@ -253,7 +256,7 @@ class BatchedPlanner(BatchedOpponent):
         variant = self._variants(rows, x, racing, diagnostics, at)
         diagnostics["replanned"][at] = True
         try:
-            us, xs, K, iterations, converged = self._solve(x, racing, variant, self._warm_starts(rows))
+            us, xs, K, iterations, converged = self._solve(x, racing, variant, self._warm_starts(rows, x))
             diagnostics["iterations"][at] = iterations
             diagnostics["converged"][at] = converged
             ok = _all_finite(us) & _all_finite(xs) & (_all_finite(K) if K is not None else True)
@@ -271,13 +274,20 @@ class BatchedPlanner(BatchedOpponent):
             u[bad] = self._previous_plan(rows[bad], x[bad])
         return u
 
-    def _warm_starts(self, rows: np.ndarray) -> np.ndarray:
-        """The initial inputs ``(R, T, N, 2)`` of the races' re-plans: their plans shifted by
-        the steps elapsed (with ``warm_start``), zeros without a plan."""
+    def _warm_starts(self, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The initial inputs ``(R, T, N, 2)`` of the races' re-plans from the joint states
+        ``x (R, N, 6)``: their plans shifted by the steps elapsed (with ``warm_start``; with
+        ``restore_accelerations`` corrected as the single agent's,
+        :func:`~planners.agents.warm_start.restore_accelerations`), zeros without a plan."""
         init = np.zeros((rows.size,) + self._us.shape[1:])
         if self.agent.warm_start:
             warm = np.flatnonzero(self._has_plan[rows])
-            init[warm] = _shifted(self._us[rows[warm]], self._age[rows[warm]] + 1, self.agent.pad)
+            by = self._age[rows[warm]] + 1
+            init[warm] = _shifted(self._us[rows[warm]], by, self.agent.pad)
+            if self.agent.restore_accelerations:
+                inside = np.flatnonzero(by < self._xs.shape[1])
+                warm, by = warm[inside], by[inside]
+                init[warm] = restore_accelerations(init[warm], self._xs[rows[warm], by], x[warm], self.game.dt)
         return init
 
     def _variants(self, rows: np.ndarray, x: np.ndarray, racing: np.ndarray, diagnostics: dict,

@@ -28,6 +28,7 @@ import numpy as np
 from planners import ilq, ilqr, prediction as prediction_models
 from planners.certificates import LOCAL_NASH, certify as certify_solution
 from planners.agents.protocol import BaseAgent, empty_record
+from planners.agents.warm_start import restore_accelerations
 from planners.agents.weights import (
     PLACE_PREFIXES,
     WEIGHT_PREFIXES,
@@ -36,7 +37,7 @@ from planners.agents.weights import (
     weights_for,
     with_player_weights,
 )
-from planners.methods import CONSTANT_VELOCITY, FEEDBACK, FEEDBACK_GAME, GAME_MODES, ILQR, OPEN_LOOP_GAME
+from planners.methods import CONSTANT_VELOCITY, FEEDBACK, FEEDBACK_GAME, GAME_MODES, ILQR, LANE_KEEPING, OPEN_LOOP_GAME
 from racing_env.dynamics import V
 from racing_env.observation import cars_racing
 
@@ -77,6 +78,20 @@ class RecedingHorizonAgent(BaseAgent):
         pad: how the shifted warm start is padded at the end: ``"repeat"`` the last input
             or ``"zeros"``.
         warm_start: warm start from the previous solution (else zeros every re-plan).
+        restore_accelerations: correct the shifted warm start's first jerks so that the
+            accelerations are back on the previous plan after one step
+            (:func:`planners.agents.warm_start.restore_accelerations`): the environment
+            projects a plan that leans on an acceleration limit back onto it, and the
+            uncorrected warm start then starts its re-plan with a long LQ step that the
+            trust region cuts short.
+        iterations: a real-time re-plan: at most this many solver iterations, after which
+            the last iterate is adopted, converged or not (as ``max_iterations``, which it
+            replaces: give one of the two). The solver option ``best_iterate=true`` adopts
+            the iterate with the smallest merit instead; it races worse (docs/agents.md).
+        budget_ms: a wall-clock budget per re-plan [ms]: the solver stops iterating once it
+            has run out (after at least one iteration) and the last iterate is adopted. With
+            ``iterations`` too, whichever ends first. Game agents, and iLQR with the
+            constant-velocity or lane-keeping prediction (whose re-plan is one solve).
         require_converged: treat a non-converged solve as a failure (fallback); by default
             the last iterate is used (it is a dynamically feasible, finite plan).
         recovery_track_scale: factor on the car's own track weight ``c_track`` in the
@@ -116,6 +131,9 @@ class RecedingHorizonAgent(BaseAgent):
         belief_weights=None,
         pad: str = "repeat",
         warm_start: bool = True,
+        restore_accelerations: bool = True,
+        iterations: int | None = None,
+        budget_ms: float | None = None,
         require_converged: bool = False,
         recovery_track_scale: float = 0.0,
         own_weights: dict[str, float] | None = None,
@@ -129,6 +147,17 @@ class RecedingHorizonAgent(BaseAgent):
             raise ValueError(f"replan_every must be >= 1, got {replan_every!r}")
         if pad not in ("repeat", "zeros"):
             raise ValueError(f"pad must be 'repeat' or 'zeros', got {pad!r}")
+        if iterations is not None:
+            if int(max_iterations) != 30:
+                raise ValueError("give iterations (an anytime re-plan) or max_iterations (a cap), not both")
+            if isinstance(iterations, bool) or int(iterations) < 1:
+                raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
+            max_iterations = int(iterations)
+        if budget_ms is not None:
+            ilq.check_budget_ms(budget_ms)
+        self.iterations = None if iterations is None else int(iterations)
+        self.budget_ms = None if budget_ms is None else float(budget_ms)
+        self.restore_accelerations = bool(restore_accelerations)
         self.max_iterations = int(max_iterations)
         self.replan_every = int(replan_every)
         self.belief_weights = belief_weights
@@ -159,6 +188,7 @@ class RecedingHorizonAgent(BaseAgent):
     @classmethod
     def spec_options(cls) -> dict[str, type]:
         options = {"max_iterations": int, "replan_every": int, "pad": str, "warm_start": bool,
+                   "restore_accelerations": bool, "iterations": int, "budget_ms": float,
                    "require_converged": bool, "recovery_track_scale": float,
                    **cls._solver_option_types()}
         for name in weight_names():
@@ -171,8 +201,8 @@ class RecedingHorizonAgent(BaseAgent):
         defaults = {f.name: f.default for f in dataclasses.fields(ilq.SolverOptions)}
         loop = inspect.signature(RecedingHorizonAgent.__init__).parameters  # the loop's own defaults
         defaults.update({name: loop[name].default for name in
-                         ("max_iterations", "replan_every", "pad", "warm_start", "require_converged",
-                          "recovery_track_scale")})
+                         ("max_iterations", "replan_every", "pad", "warm_start", "restore_accelerations",
+                          "iterations", "budget_ms", "require_converged", "recovery_track_scale")})
         defaults["tolerance"] = REPLAN_TOLERANCE
         for name in weight_names():
             defaults[name] = "the race's"
@@ -288,6 +318,8 @@ class RecedingHorizonAgent(BaseAgent):
             init = None
             if self.warm_start and self._plan is not None:
                 init = self._shifted(self._plan["us"], self._age + 1)
+                if self.restore_accelerations and self._age + 1 < self._plan["xs"].shape[0]:
+                    init = restore_accelerations(init, self._plan["xs"][self._age + 1], x, self.game.dt)
             error = None
             t0 = time.perf_counter()
             try:
@@ -392,6 +424,7 @@ class _GameAgent(RecedingHorizonAgent):
             init=init,
             mode=self.mode,
             max_iterations=self.max_iterations,
+            budget_ms=self.budget_ms,
             **self.solver_options,
         )
         us, xs, K = (np.asarray(a) for a in (res.us, res.xs, res.K))
@@ -412,6 +445,9 @@ class OpenLoopGameAgent(_GameAgent):
     spec = name = OPEN_LOOP_GAME
     mode = GAME_MODES[OPEN_LOOP_GAME]
     feedback = False
+
+
+_ONE_SOLVE_PREDICTIONS = frozenset({CONSTANT_VELOCITY, LANE_KEEPING})
 
 
 class ILQRAgent(RecedingHorizonAgent):
@@ -442,6 +478,9 @@ class ILQRAgent(RecedingHorizonAgent):
                  **kwargs: Any) -> None:
         prediction_models.check_prediction(prediction)  # when the agent is made, not at its reset
         prediction_models.check_levels(prediction, levels)
+        if kwargs.get("budget_ms") is not None and prediction not in _ONE_SOLVE_PREDICTIONS:
+            raise ValueError(f"budget_ms bounds one solve: iLQR takes it with prediction in "
+                             f"{sorted(_ONE_SOLVE_PREDICTIONS)}, not with the planned prediction {prediction!r}")
         super().__init__(**kwargs)
         prediction_models.check_solver_options(prediction, max_iterations=self.max_iterations, **self.solver_options)
         self.prediction = prediction
@@ -477,6 +516,7 @@ class ILQRAgent(RecedingHorizonAgent):
             U0=init,
             predicted=predicted,
             max_iterations=self.max_iterations,
+            budget_ms=self.budget_ms,
             **self.solver_options,
         )
         us = np.asarray(res.us)

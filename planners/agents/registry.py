@@ -149,6 +149,12 @@ _LOOP_HELP = {
     "replan_every": "re-plan every this many steps and follow the stored plan in between",
     "pad": "end of the shifted warm start: repeat (the last input) or zeros",
     "warm_start": "start each re-plan from the previous plan (false: from zero inputs)",
+    "restore_accelerations": ("correct the warm start's first jerks so the accelerations are back on the "
+                              "previous plan after one step (the env projects them onto their limits)"),
+    "iterations": ("real-time re-plan: at most this many iterations, the last iterate adopted "
+                   "(replaces max_iterations)"),
+    "budget_ms": ("wall-clock budget per re-plan [ms]: iterations stop when it runs out, the last "
+                  "iterate adopted (not batched; iLQR only with a one-solve prediction)"),
     "require_converged": "treat a re-plan that did not converge as a failure (previous plan, else brake)",
     "recovery_track_scale": f"factor on own c_track from a standstill (< {STOPPED_SPEED} m/s) until "
                             f"{RECOVERED_SPEED} m/s, to rejoin across the edge (0: no track term then; 1: off)",
@@ -181,6 +187,8 @@ _SOLVER_HELP = {
                                    "equilibria"),
     "regularization_factor": "factor of each change of the adaptive regularization, > 1",
     "convexify": "auto, gauss_newton, eig, diag or none: how the cost Hessians are made convex",
+    "best_iterate": ("adopt the iterate whose first-stage LQ step is smallest instead of the last "
+                     "one when a re-plan stops unconverged (races worse: docs/agents.md)"),
     "dynamics_curvature": ("give each car's local game the curvature of its progress in its "
                            "heading, which linearising the dynamics drops (false: the plain iLQ model)"),
 }

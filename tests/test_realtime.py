@@ -1,0 +1,151 @@
+"""Real-time re-plans: the restored warm start, anytime solves (best iterate, wall-clock budget)
+and the agents' options for them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import racing_env  # noqa: F401  (enables float64)
+from planners import ilq
+from planners.agents import make_agent, reset_agents
+from planners.agents.batched_planners import unbatchable
+from planners.agents.warm_start import restore_accelerations
+from planners.game_problem import as_problem
+from racing_env import CostWeights, RaceGame, VehicleParams, parallel_env
+from racing_env.costs import racing_weights
+from racing_env.dynamics import AX, AY
+from racing_env.track import straight
+
+X0 = np.array([[10.0, 20.0, 0.0, 0.0, 0.0, 0.0], [0.0, 23.0, 2.0, 0.0, 0.0, 0.0]])
+
+
+@pytest.fixture(scope="module")
+def game() -> RaceGame:
+    track = straight(length=300.0, width_left=6.0, width_right=6.0, ds=1.0)
+    vehicles = [VehicleParams(v_max=20.0), VehicleParams(v_max=25.0)]
+    return RaceGame.create(track, vehicles, CostWeights(r_jx=1.0, r_jy=1.0), dt=0.1, horizon=50)
+
+
+@pytest.fixture(scope="module")
+def shifted_problem(game):
+    """A converged feedback plan, shifted by one step, and a start whose accelerations the
+    limits moved: the warm start of the next re-plan."""
+    plan = ilq.solve(game, X0, mode="feedback")
+    us = np.concatenate([np.asarray(plan.us)[1:], np.asarray(plan.us)[-1:]])
+    x1 = np.asarray(plan.xs)[1].copy()
+    x1[:, AX] -= 0.3
+    x1[:, AY] += 0.2
+    return x1, us
+
+
+def test_restored_warm_start_is_back_on_the_planned_accelerations_after_one_step(game):
+    rng = np.random.default_rng(0)
+    planned = X0 + rng.normal(0.0, 0.5, X0.shape)
+    measured = planned.copy()
+    measured[:, [AX, AY]] += rng.normal(0.0, 0.3, (2, 2))
+    us = rng.normal(0.0, 2.0, (game.horizon, 2, 2))
+    restored = restore_accelerations(us, planned, measured, game.dt)
+    from_planned = np.asarray(game.step(planned, us[0]))
+    from_measured = np.asarray(game.step(measured, restored[0]))
+    # the jerk integrates exactly into the acceleration: equal to rounding
+    np.testing.assert_allclose(from_measured[:, [AX, AY]], from_planned[:, [AX, AY]], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(restored[1:], us[1:])  # only the first stage changes
+    # batched: the same per race
+    both = restore_accelerations(np.stack([us, us]), np.stack([planned, planned]), np.stack([measured, planned]), game.dt)
+    np.testing.assert_array_equal(both[0], restored)
+    np.testing.assert_array_equal(both[1], us)
+
+
+def _first_stage_merit(game, xs, us, options):
+    problem, _ = as_problem(game)
+    K, k = ilq._lq_step(problem, np.asarray(xs).reshape(xs.shape[0], -1), np.asarray(us), options,
+                        options.control_regularization)
+    return float(np.max(np.abs(np.asarray(k)[0]))), np.asarray(K), np.asarray(k)
+
+
+@pytest.mark.parametrize("mode, cap", [("feedback", 2), ("open_loop", 1)])
+def test_an_anytime_solve_is_never_worse_than_its_warm_start_by_its_merit(game, shifted_problem, mode, cap):
+    x1, us = shifted_problem
+    options = ilq.SolverOptions(mode=mode, max_iterations=cap, best_iterate=True, tolerance=1e-9)
+    res = ilq.solve(game, x1, init=us, options=options)
+    assert int(res.status) == ilq.MAX_ITERATIONS
+    start_xs = np.asarray(ilq.rollout(as_problem(game)[0], x1.reshape(-1), us)).reshape(-1, 2, 6)
+    warm_merit, _, _ = _first_stage_merit(game, start_xs, us, options)
+    merit, K, k = _first_stage_merit(game, np.asarray(res.xs), np.asarray(res.us), options)
+    assert merit <= warm_merit
+    # the returned LQ game is the one around the returned iterate
+    np.testing.assert_allclose(np.asarray(res.k), k, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(res.K), K, rtol=0, atol=1e-9)
+
+
+def test_best_iterate_changes_nothing_in_a_converged_solve(game, shifted_problem):
+    x1, us = shifted_problem
+    plain = ilq.solve(game, x1, init=us, mode="feedback")
+    best = ilq.solve(game, x1, init=us, mode="feedback", best_iterate=True)
+    assert bool(plain.converged) and bool(best.converged)
+    np.testing.assert_array_equal(np.asarray(best.xs), np.asarray(plain.xs))
+    np.testing.assert_array_equal(np.asarray(best.K), np.asarray(plain.K))
+
+
+def test_a_spent_budget_stops_after_one_iteration(game, shifted_problem):
+    x1, us = shifted_problem
+    res = ilq.solve(game, x1, init=us, mode="feedback", budget_ms=1e-9)
+    assert int(res.status) == ilq.BUDGET_EXHAUSTED and int(res.iterations) == 1
+    assert ilq.status_message(res.status) == "wall-clock budget ran out before convergence"
+    capped = ilq.solve(game, x1, init=us, mode="feedback", max_iterations=1)
+    np.testing.assert_array_equal(np.asarray(res.xs), np.asarray(capped.xs))
+    # a generous budget runs the solve to its end, as without one
+    free = ilq.solve(game, x1, init=us, mode="feedback", budget_ms=1e6)
+    plain = ilq.solve(game, x1, init=us, mode="feedback")
+    assert int(free.status) == ilq.CONVERGED and int(free.iterations) == int(plain.iterations)
+    np.testing.assert_allclose(np.asarray(free.xs), np.asarray(plain.xs), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("budget", [0, -1.0, float("nan"), float("inf"), "fast", True])
+def test_bad_budgets_are_refused(game, budget):
+    with pytest.raises(ValueError, match="budget_ms must be a finite number of milliseconds > 0"):
+        ilq.solve(game, X0, budget_ms=budget)
+    with pytest.raises(ValueError, match="budget_ms must be"):
+        make_agent("ilqgame-fb", budget_ms=budget)
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("ilqgame-fb:iterations=0", "iterations must be an integer >= 1"),
+    ("ilqgame-ol:iterations=2,max_iterations=10", "give iterations"),
+    ("ilqr:prediction=ilqr,budget_ms=2", "budget_ms bounds one solve"),
+])
+def test_bad_real_time_options_are_refused(spec, message):
+    with pytest.raises(ValueError, match=message):
+        make_agent(spec)
+
+
+def test_iterations_caps_the_re_plans_and_a_budget_is_not_batched():
+    agent = make_agent("ilqgame-fb:iterations=2")
+    assert agent.max_iterations == 2 and "best_iterate" not in agent.solver_options
+    assert "budget_ms" in unbatchable(make_agent("ilqgame-fb:budget_ms=2"))
+    assert unbatchable(agent) is None
+
+
+def _race_iterations(spec: str, steps: int) -> list[int]:
+    env = parallel_env(track="trefoil", num_agents=2, max_steps=steps, weights=racing_weights())
+    drivers = [make_agent(spec), make_agent(spec)]
+    reset_agents(drivers, env, seed=0)
+    observations, _ = env.reset(seed=0)
+    iterations = []
+    while env.agents:
+        state = env.state()
+        actions = {a: drivers[i].act(observations[a], state) for i, a in enumerate(env.possible_agents)
+                   if a in env.agents}
+        iterations.append(drivers[0].diagnostics()["iterations"])
+        observations, *_ = env.step(actions)
+    return iterations[1:]  # warm re-plans only
+
+
+def test_the_restored_warm_start_saves_iterations_in_a_race():
+    """The agents bench's race (open-loop iLQGame against itself on the trefoil, racing
+    weights): the same re-plans, warm-started with and without the restored accelerations."""
+    restored = _race_iterations("ilqgame-ol", 30)
+    plain = _race_iterations("ilqgame-ol:restore_accelerations=false", 30)
+    assert sum(restored) < sum(plain)
+    assert np.median(restored) < np.median(plain)
