@@ -2,7 +2,8 @@
 
 Rows: the PettingZoo env and the vectorised env (:mod:`racing_env.vector`) at B = 1, 64 and
 1,024 races with random actions, in the same run; the vectorised env against each kind of
-opponent at B = 64, re-planning every step and every 5 steps; and stable-baselines3 PPO
+opponent at B = 64, re-planning every step and every 5 steps (the learner's car driven by the
+lane keeper, and, for the planners, by random actions); and stable-baselines3 PPO
 training against the lane keeper and against feedback iLQGame, today's path (copies of the
 single env in a ``DummyVecEnv``) beside the vectorised one; and the JAX learner
 (:mod:`experiments.rl.train_jax`) on the same tasks: the lane keeper inside its compiled
@@ -23,7 +24,10 @@ RACE = dict(track="trefoil", max_steps=10**9, laps=1000)
 #: Batch sizes of the random-action rows.
 BATCHES = (1, 64, 1024)
 #: Opponents of the opponent rows, and the re-plan intervals they are raced with.
-OPPONENTS = ("lane-keeping", "ilqr", "ilqgame-ol", "ilqgame-fb", "ilqgame-fb:max_iterations=5")
+OPPONENTS = ("lane-keeping", "ilqr", "ilqgame-ol", "ilqgame-fb", "ilqgame-fb:max_iterations=5",
+             "ilqgame-fb:iterations=2")
+#: Opponents of the rows whose learner acts at random (as a learner does at the start of a training).
+RANDOM_LEARNER_OPPONENTS = ("ilqr", "ilqgame-fb", "ilqgame-fb:iterations=2")
 REPLAN_EVERY = (1, 5)
 
 
@@ -91,29 +95,34 @@ def vector_rows(baseline: float, calls: int = 300, repeats: int = 3, batches: tu
 def _opponent_target(spec: str, replan_every: int) -> float | None:
     if not spec.startswith("ilqgame-fb"):
         return None
-    return 2_000 if replan_every == 1 else 10_000
+    return 4_000 if replan_every == 1 else 12_000
 
 
-def opponent_rows(num_envs: int = 64, calls: int = 30, opponents: tuple[str, ...] = OPPONENTS
+def opponent_rows(num_envs: int = 64, calls: int = 30, opponents: tuple[str, ...] = OPPONENTS,
+                  learner_acts: str = "lane-keeping", replan_every: tuple[int, ...] = REPLAN_EVERY
                   ) -> Iterator[dict[str, Any]]:
     """The vectorised env at ``num_envs`` races against each of :data:`OPPONENTS`, re-planning
     every step and every 5 steps (:data:`REPLAN_EVERY`; the scripted driver does not plan, so
     it has one row). The learner's car is driven by the lane keeper (its JAX law, outside the
     timed env step's opponent but inside the timing), so the opponent races a realistic rival
-    as in the tournaments' gauntlets. Each row also reports the opponents' converged share
-    and median iterations per re-plan."""
+    as in the tournaments' gauntlets; with ``learner_acts="random"`` it acts uniformly at
+    random (seeded), as a learner does at the start of a training. Each row also reports the
+    opponents' converged share and the median and 95th percentile of iterations per re-plan."""
     from planners.agents.batched import make_batched_opponent
 
     for spec in opponents:
-        for every in REPLAN_EVERY if spec != "lane-keeping" else (1,):
+        for every in replan_every if spec != "lane-keeping" else (1,):
             full = spec if every == 1 else f"{spec}{',' if ':' in spec else ':'}replan_every={every}"
             envs = _vector_env(num_envs, [full])
             learner = make_batched_opponent("lane-keeping", envs.unwrapped.game, 0, num_envs)
             everyone = np.ones(num_envs, dtype=bool)
             learner.reset(everyone, np.arange(num_envs))
             racing = np.ones((num_envs, 2), dtype=bool)
+            rng = np.random.default_rng(0)
 
             def learner_step():
+                if learner_acts == "random":
+                    return envs.step(rng.uniform(-1.0, 1.0, (num_envs, 2)).astype(np.float32))
                 actions, _ = learner.act(np.zeros((num_envs, 1), np.float32), envs.unwrapped.state(), racing)
                 return envs.step(actions)
 
@@ -134,12 +143,15 @@ def opponent_rows(num_envs: int = 64, calls: int = 30, opponents: tuple[str, ...
                 return num_envs
 
             rate, rates = _rate(step, calls * every, 1)
-            row = {"name": f"opponent_{full}_B{num_envs}", "opponent": full, "replan_every": every,
-                   "steps_per_s": rate, "compile_s": compile_s,
-                   "target_steps_per_s": _opponent_target(spec, every)}
+            random = learner_acts == "random"
+            target = (3_000 if spec.startswith("ilqgame-fb") else None) if random else _opponent_target(spec, every)
+            row = {"name": f"opponent_{full}_B{num_envs}" + ("_random_learner" if random else ""), "opponent": full,
+                   "replan_every": every, "learner": learner_acts, "steps_per_s": rate, "compile_s": compile_s,
+                   "target_steps_per_s": target}
             if converged:
                 row["converged_share"] = float(np.mean(converged))
                 row["iterations_median"] = float(np.median(iterations))
+                row["iterations_p95"] = float(np.percentile(iterations, 95))
             yield row
 
 
@@ -191,7 +203,8 @@ def training_rows() -> Iterator[dict[str, Any]]:
 #: (opponent spec, envs, target steps/s) of the JAX learner's rows: the lane keeper inside the compiled
 #: update, and feedback iLQGame re-planning every 5 steps on the host races (its batched solves).
 JAX_TRAINING = (("lane-keeping", 256, 50_000), ("lane-keeping", 1024, 50_000),
-                ("ilqgame-fb:replan_every=5", 64, 5_000))
+                ("ilqgame-fb:replan_every=5", 64, 8_000), ("ilqgame-fb:iterations=2", 64, 3_000),
+                ("ilqgame-fb:iterations=2,replan_every=5", 64, 8_000))
 
 
 def jax_training_row(opponent: str, envs: int, updates: int = 4, target: float | None = None,
@@ -239,5 +252,6 @@ def bench_rl() -> Iterator[dict[str, Any]]:
     yield baseline
     yield from vector_rows(baseline["steps_per_s"])
     yield from opponent_rows()
+    yield from opponent_rows(opponents=RANDOM_LEARNER_OPPONENTS, learner_acts="random", replan_every=(1,))
     yield from training_rows()
     yield from jax_training_rows()

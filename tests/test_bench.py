@@ -255,8 +255,13 @@ def test_rl_rows_measure_the_vectorised_env_and_its_opponents():
     rows = list(bench_rl.opponent_rows(num_envs=2, calls=2, opponents=("lane-keeping", "ilqgame-fb")))
     assert [row["replan_every"] for row in rows] == [1, 1, 5]
     planner = rows[1]
-    assert planner["target_steps_per_s"] == 2_000 and 0.0 <= planner["converged_share"] <= 1.0
-    assert planner["iterations_median"] >= 1
+    assert planner["target_steps_per_s"] == 4_000 and 0.0 <= planner["converged_share"] <= 1.0
+    assert 1 <= planner["iterations_median"] <= planner["iterations_p95"]
+    rows = list(bench_rl.opponent_rows(num_envs=2, calls=2, opponents=("ilqgame-fb:iterations=2",),
+                                       learner_acts="random", replan_every=(1,)))
+    [row] = rows
+    assert row["name"].endswith("_random_learner") and row["target_steps_per_s"] == 3_000
+    assert 1 <= row["iterations_median"] <= row["iterations_p95"] <= 2  # capped at its 2 iterations
 
 
 @pytest.mark.slow
