@@ -1,6 +1,7 @@
 """The import graph of the three packages, read from the source: no module imports itself
-through others inside a package, and the packages import only downward
-(experiments -> planners -> racing_env).
+through others inside a package, the packages import only downward
+(experiments -> planners -> racing_env), and the generic solver reaches nothing of the
+racing game (the rule of tests/test_ilq.py, followed through every import).
 
 Every import statement counts: at module level, inside functions (deferred imports) and
 under ``if TYPE_CHECKING:``. A deferred import hides a circle from Python's loader, not from
@@ -20,6 +21,10 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("racing_env", "planners", "experiments")
 # what each package may import of the others (docs/design.md, "The three packages")
 ALLOWED = {"racing_env": set(), "planners": {"racing_env"}, "experiments": {"racing_env", "planners"}}
+# The generic solver knows only the game protocol (GameProblem): neither these modules nor
+# anything they import reaches racing_env; a RaceGame gets to them through planners.race_problem.
+GENERIC_SOLVER = ("planners.lq_game", "planners.local_game", "planners.ilq", "planners.ilq_batch", "planners.nash",
+                  "planners.game_problem")
 
 
 def modules_of(root: Path, packages: tuple[str, ...]) -> dict[str, tuple[Path, bool]]:
@@ -153,6 +158,25 @@ def test_packages_import_only_downward():
                    if target.split(".")[0] != module.split(".")[0]
                    and target.split(".")[0] not in ALLOWED[module.split(".")[0]])
     assert wrong == []
+
+
+def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    """Every module ``start`` imports, directly or through others."""
+    seen, todo = set(), [start]
+    while todo:
+        for target in graph.get(todo.pop(), ()):
+            if target not in seen:
+                seen.add(target)
+                todo.append(target)
+    return seen
+
+
+def test_the_generic_solver_reaches_nothing_of_the_racing_game():
+    graph = import_graph()
+    for module in GENERIC_SOLVER:
+        assert module in graph, module
+        assert not {m for m in reachable(graph, module) if m.split(".")[0] == "racing_env"}, module
+    assert "racing_env.game" in reachable(graph, "planners.race_problem")  # the adapter is where it enters
 
 
 def test_the_pieces_that_moved_down_keep_their_old_import_paths():
