@@ -33,14 +33,12 @@ import math
 import tempfile
 import urllib.parse
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 from experiments.files import replace_atomically
 from experiments.formatting import mean_or_none, or_dash
-
-if TYPE_CHECKING:  # the run modules import this one to write their reports
-    from experiments.sweep import SweepConfig
-    from experiments.tournament import TournamentConfig
+from experiments.race_spec import RaceSpec
+from experiments.standings import wilson_interval
 
 REPORT = "report.html"
 SECTIONS = ("run", "leaderboard", "head-to-head", "solver-health", "races", "replays")
@@ -147,9 +145,7 @@ def _ci_cells(rate: float | None, lo: float, hi: float) -> tuple[str, _Html]:
 
 def _wilson_cells(wins: int, races: int) -> tuple[str, _Html]:
     """:func:`_ci_cells` of ``wins`` of ``races`` with the 95% Wilson interval
-    (:func:`experiments.tournament.wilson_interval`)."""
-    from experiments.tournament import wilson_interval
-
+    (:func:`experiments.standings.wilson_interval`)."""
     return _ci_cells(wins / races if races else None, *wilson_interval(wins, races))
 
 
@@ -403,7 +399,7 @@ _ERRORS = _Column("errors", lambda row: str(row["errors"]), kind="num")
 _MARGIN_NOTE = "margin: mean finish-time lead over the other cars in the races all finished."
 
 
-def _run_facts(out: Path, config: Any, who: Sequence[tuple[str, str]], recorded: int, scheduled: int,
+def _run_facts(out: Path, config: RaceSpec, who: Sequence[tuple[str, str]], recorded: int, scheduled: int,
                files: Sequence[str]) -> str:
     """The ``run`` section's list: the race (:class:`experiments.race_spec.RaceSpec`'s
     fields), ``who`` raced it how, the races recorded of those scheduled, and the files."""
@@ -433,23 +429,22 @@ def _write_page(out: Path, title: str, *, run: str, leaderboard: str, head_to_he
     return path
 
 
-def write_tournament_report(out: Path, config: "TournamentConfig", board: dict[str, Any], records: list[dict[str, Any]],
+def write_tournament_report(out: Path, config: RaceSpec, board: dict[str, Any], records: list[dict[str, Any]],
                             *, replays: int = 2) -> Path:
     """Write ``out/report.html`` for a tournament and return its path.
 
     Args:
         out: the tournament's folder (its files are linked, its ``head_to_head.png`` and
             recorded replays embedded).
-        config: the tournament.
+        config: the tournament (a :class:`experiments.tournament.TournamentConfig`; the
+            report reads its fields and its races in schedule order, ``config.schedule()``).
         board: :func:`experiments.tournament.leaderboard` of ``records``.
         records: the race records (``results.jsonl``), in schedule order.
         replays: at most this many races embedded as GIFs (:func:`pick_replays`).
     """
-    from experiments.tournament import schedule
-
     out = Path(out)
     time_trial = config.cars == 1
-    planned = schedule(config)
+    planned = config.schedule()
     races = _race_rows(out, records, {race["id"]: k for k, race in enumerate(planned)}, lambda record: record["cars"])
     run = _run_facts(out, config, [
         ("agents", "; ".join(config.agents)),
@@ -491,25 +486,24 @@ def write_tournament_report(out: Path, config: "TournamentConfig", board: dict[s
         races=races, scheduled=len(planned), replays=replays, sweep=False)
 
 
-def write_sweep_report(out: Path, config: "SweepConfig", rows: list[dict[str, Any]], records: list[dict[str, Any]],
+def write_sweep_report(out: Path, config: RaceSpec, rows: list[dict[str, Any]], records: list[dict[str, Any]],
                        *, replays: int = 2) -> Path:
     """Write ``out/report.html`` for a sweep and return its path.
 
     Args:
         out: the sweep's folder (its files are linked, its ``sweep.png`` and recorded
             replays embedded).
-        config: the sweep.
+        config: the sweep (a :class:`experiments.sweep.SweepConfig`; the report reads its
+            fields, points and races in schedule order, ``config.schedule()``).
         rows: :func:`experiments.sweep.summarize` of ``records`` (per point and agent).
         records: the race records (``results.jsonl``, :func:`experiments.sweep.run_job`).
         replays: at most this many races embedded as GIFs (:func:`pick_replays`).
     """
-    from experiments.sweep import schedule
-
     out = Path(out)
     time_trial = len(config.lineup) == 1
     points = config.points()
     names = [name for name, _ in config.parameters]
-    planned = schedule(config)
+    planned = config.schedule()
     races = _race_rows(out, records, {job["id"]: k for k, job in enumerate(planned)},
                        lambda record: sorted(record["agents"], key=lambda car: car.get("slot", 0)),
                        lambda record: ", ".join(f"{name}={points[record['point_index']][name]}" for name in names))

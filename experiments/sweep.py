@@ -49,6 +49,7 @@ from experiments.formatting import mean_or_none, or_dash
 from experiments.jsonl import read_jsonl, settings_json
 from experiments.race_spec import RACE_FIELDS, RaceSpec
 from experiments.runner import JobLog
+from experiments.standings import won_race
 from planners.agents import with_options
 from racing_env.config import RaceConfig, is_number
 from racing_env.costs import CostWeights
@@ -138,6 +139,10 @@ class SweepConfig(RaceSpec):
         """Every combination of the parameters' values, in order (the last varies fastest)."""
         names = [name for name, _ in self.parameters]
         return [dict(zip(names, combo)) for combo in itertools.product(*(v for _, v in self.parameters))]
+
+    def schedule(self) -> list[dict[str, Any]]:
+        """Every race of the sweep in a fixed order (:func:`schedule`)."""
+        return schedule(self)
 
     def race_config(self, point: dict[str, Any], rotation: int) -> RaceConfig:
         """The race of a point with the lineup rotated by ``rotation`` (slot k holds agent
@@ -279,8 +284,6 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
     time off track, errors, and for planners the mean share of re-plans that converged
     (results where it is low are the solver's, not the weights': see
     docs/experiments/sweep-aggression.md)."""
-    from experiments.tournament import won_race
-
     cars = len(config.lineup)
     position = {job["id"]: k for k, job in enumerate(schedule(config))}
     by_point: dict[int, list[dict[str, Any]]] = {}

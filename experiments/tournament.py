@@ -21,7 +21,6 @@ import dataclasses
 import functools
 import itertools
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +32,8 @@ from experiments.formatting import or_dash
 from experiments.jsonl import read_jsonl, settings_json
 from experiments.race_spec import RaceSpec
 from experiments.runner import JobLog
+# wilson_interval and won_race live in experiments.standings; imported from here they still work
+from experiments.standings import standings, wilson_interval, won_race  # noqa: F401
 from racing_env.config import RETIRING_MODES, RaceConfig
 from racing_env.env import RacingParallelEnv
 from racing_env.scenarios import FIXED_STARTS, SCENARIOS
@@ -105,6 +106,10 @@ class TournamentConfig(RaceSpec):
             object.__setattr__(self, "versus", same[0])
         if not self.step_budget_s > 0:
             raise ValueError(f"step_budget_s must be > 0 seconds, got {self.step_budget_s}")
+
+    def schedule(self) -> list[dict[str, Any]]:
+        """All races in a fixed order (:func:`schedule`)."""
+        return schedule(self)
 
 
 def normal_spec(spec: str) -> tuple[str, frozenset[tuple[str, str]]]:
@@ -242,12 +247,6 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     return record, result.frames
 
 
-def won_race(car: dict[str, Any], num_cars: int) -> bool:
-    """Whether a car's record of a race of ``num_cars`` cars is a win: first place, and in a
-    time trial (one car, always first) a finished lap."""
-    return car["place"] == 1 and (num_cars > 1 or car["finish_time"] is not None)
-
-
 def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0, plans: bool = False):
     """Race one scheduled lineup; returns ``(record, frames)`` (the record with its replay,
     with the planners' plans when ``plans``). Faults are recorded, never raised."""
@@ -256,84 +255,16 @@ def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: i
     return {"id": race["id"], "grid": race["grid"], "seed": race["seed"], **record}, frames
 
 
-def wilson_interval(wins: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95% Wilson score interval of a win rate."""
-    if n == 0:
-        return (0.0, 1.0)
-    p = wins / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return (max(0.0, centre - half), min(1.0, centre + half))
-
-
 def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict[str, Any]:
     """Win rates with intervals, head-to-head matrix and Plackett-Luce ratings (openskill),
     finish times, and for planners the mean shares of converged and of certified re-plans
-    (None without any). A time trial (``cars = 1``) is ranked by races finished, then mean
-    finish time; its ratings stay at the prior and its head-to-head matrix is empty."""
-    from openskill.models import PlackettLuce
-
-    names = list(config.agents)
+    (None without any): :func:`experiments.standings.standings` of the agents over the
+    records taken in schedule order. A time trial (``cars = 1``) is ranked by races
+    finished, then mean finish time; its ratings stay at the prior and its head-to-head
+    matrix is empty."""
     position = {r["id"]: k for k, r in enumerate(schedule(config))}
     records = sorted(records, key=lambda r: position[r["id"]])
-    model = PlackettLuce()
-    ratings = {n: model.rating(name=n) for n in names}
-    h2h = np.zeros((len(names), len(names)), dtype=int)
-    stats = {n: {"races": 0, "wins": 0, "finished": 0, "retired": 0, "errors": 0, "collision_steps": 0, "act_times": [],
-                 "margins": [], "finish_times": [], "off_track_s": 0.0, "converged": [], "certified": []} for n in names}
-    for record in records:
-        order = record["order"]
-        if len(order) > 1:  # a time trial has no one to be rated against
-            teams = [[ratings[n]] for n in order]
-            for n, [new] in zip(order, model.rate(teams, ranks=list(range(1, len(order) + 1)))):
-                ratings[n] = new
-        for a, b in itertools.combinations(order, 2):  # a finished ahead of b
-            h2h[names.index(a), names.index(b)] += 1
-        for car in record["cars"]:
-            st = stats[car["agent"]]
-            st["races"] += 1
-            st["wins"] += won_race(car, len(order))
-            st["finished"] += car["finish_time"] is not None
-            if car["finish_time"] is not None:
-                st["finish_times"].append(car["finish_time"])
-            st["off_track_s"] += car["time_off_track"]
-            st["retired"] += bool(car.get("retired", False))  # records from before incident rules: none
-            st["errors"] += car["error"] is not None
-            st["collision_steps"] += car["collision_steps"]
-            if np.isfinite(car["act_time_mean_s"]):  # NaN: the car faulted before a timed action
-                st["act_times"].append(car["act_time_mean_s"])
-            if car.get("solver_converged_fraction") is not None:  # planners only
-                st["converged"].append(car["solver_converged_fraction"])
-            if car.get("certified_share") is not None:  # game agents with certify on; none in older records
-                st["certified"].append(car["certified_share"])
-            others = [c["finish_time"] for c in record["cars"] if c is not car]
-            if others and car["finish_time"] is not None and all(t is not None for t in others):
-                st["margins"].append(float(np.mean(others)) - car["finish_time"])
-    rows = []
-    for n in names:
-        st = stats[n]
-        lo, hi = wilson_interval(st["wins"], st["races"])
-        r = ratings[n]
-        rows.append({"agent": n, "races": st["races"], "wins": st["wins"],
-                     "win_rate": st["wins"] / st["races"] if st["races"] else float("nan"),
-                     "win_rate_ci95": [lo, hi], "rating_mu": r.mu, "rating_sigma": r.sigma,
-                     "rating": r.mu - 3 * r.sigma, "finished": st["finished"], "retired": st["retired"], "errors": st["errors"], "collision_steps": st["collision_steps"],
-                     # finish-time lead over the mean of the other cars, in races where all finished
-                     "mean_margin_s": float(np.mean(st["margins"])) if st["margins"] else None,
-                     # over the races it finished
-                     "mean_finish_time_s": float(np.mean(st["finish_times"])) if st["finish_times"] else None,
-                     "best_finish_time_s": min(st["finish_times"]) if st["finish_times"] else None,
-                     "time_off_track_s": st["off_track_s"],
-                     "mean_act_time_s": float(np.mean(st["act_times"])) if st["act_times"] else float("nan"),
-                     # a planner's share of re-plans that converged, averaged over its races
-                     "converged_fraction": float(np.mean(st["converged"])) if st["converged"] else None,
-                     # its share of certified re-plans at a local Nash equilibrium, averaged over its races
-                     "certified_share": float(np.mean(st["certified"])) if st["certified"] else None})
-    if config.cars == 1:  # a time trial: the most races finished, then the fastest
-        rows.sort(key=lambda row: (-row["finished"], row["mean_finish_time_s"] or math.inf))
-    else:
-        rows.sort(key=lambda row: -row["rating"])
-    return {"rows": rows, "head_to_head": {"agents": names, "wins": h2h.tolist()}}
+    return standings(config.agents, records, time_trial=config.cars == 1)
 
 
 def plot_head_to_head(table: dict[str, Any], path: Path) -> None:

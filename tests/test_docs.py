@@ -267,3 +267,19 @@ def test_documented_commands_parse() -> None:
             except SystemExit:
                 bad.append(f"{_relative(path)}:{number}: {text}")
     assert not bad, "commands in the guide that racing refuses:\n" + "\n".join(bad)
+
+
+# A path out of the checkout (e.g. "../shared/...") works only beside the development tree.
+# The TUMFTM centrelines under ../shared/tracks are the one exception until the package
+# ships its circuits; drop it then.
+OUTSIDE_THE_REPOSITORY = re.compile(r"\.\./shared/(?!tracks/)")
+
+
+def test_nothing_points_outside_the_repository() -> None:
+    files = [*_diary_targets(), ROOT / "CHANGELOG.md", ROOT / "pyproject.toml", ROOT / "Makefile"]
+    found = [f"{_relative(path)}:{number}: {line.strip()}"
+             for path in files
+             for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+             if OUTSIDE_THE_REPOSITORY.search(line)]
+    assert not found, "references to files outside the repository:\n" + "\n".join(found)
+    assert (ROOT / "LICENSE").is_file() and (ROOT / "docs" / "design.md").is_file()

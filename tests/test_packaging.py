@@ -1,24 +1,36 @@
-"""The built distribution holds every package of the source tree (subpackages included)."""
+"""The built distribution holds every package of the source tree (subpackages included), and
+the wheel, installed alone into a fresh virtual environment, imports and races."""
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 import subprocess
 import sys
+import tarfile
 import zipfile
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("racing_env", "planners", "experiments")
+PROJECT_FILES = ("pyproject.toml", "README.md", "LICENSE")  # what the build reads besides the packages
+
+
+def _source_copy(to: Path) -> Path:
+    """The packages and the project files copied to ``to`` (a build in the checkout leaves
+    build/, whose files later builds reuse)."""
+    for package in PACKAGES:
+        shutil.copytree(ROOT / package, to / package, ignore=shutil.ignore_patterns("__pycache__"))
+    for name in PROJECT_FILES:
+        shutil.copy(ROOT / name, to / name)
+    return to
 
 
 def test_the_wheel_holds_every_package(tmp_path):
-    # Built from a copy: a build in the checkout leaves build/, whose files later builds reuse.
-    source = tmp_path / "source"
-    for package in PACKAGES:
-        shutil.copytree(ROOT / package, source / package, ignore=shutil.ignore_patterns("__pycache__"))
-    for name in ("pyproject.toml", "README.md"):
-        shutil.copy(ROOT / name, source / name)
+    source = _source_copy(tmp_path / "source")
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
                     "-w", str(tmp_path / "dist"), str(source)], check=True, capture_output=True, timeout=300)
     wheel, = (tmp_path / "dist").glob("racing_games-*.whl")
@@ -26,3 +38,61 @@ def test_the_wheel_holds_every_package(tmp_path):
     in_tree = {path.relative_to(source).as_posix() for package in PACKAGES for path in (source / package).rglob("*.py")}
     assert in_tree - in_wheel == set(), "modules missing from the wheel"
     assert {"planners/agents/__init__.py", "experiments/rl/__init__.py"} <= in_wheel
+    assert any(name.endswith(".dist-info/licenses/LICENSE") or name.endswith(".dist-info/LICENSE")
+               for name in zipfile.ZipFile(wheel).namelist()), "the wheel carries no LICENSE"
+
+
+def _run(command: list[str], cwd: Path, env: dict[str, str], timeout: float) -> str:
+    result = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    assert result.returncode == 0, f"{' '.join(command)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    return result.stdout
+
+
+@pytest.mark.slow
+def test_the_wheel_installs_and_races_in_a_fresh_environment(tmp_path):
+    """Build the sdist and the wheel (setuptools' PEP 517 hooks, as ``python -m build
+    --no-isolation`` calls them), install the wheel with its dependencies from the package
+    index into a new virtual environment outside the repository, and there import the three
+    packages and race: ``racing demo --scripted`` and a short tournament of a planner."""
+    source = _source_copy(tmp_path / "source")
+    dist = tmp_path / "dist"
+    dist.mkdir()
+    # the folder is read before the first hook: setuptools' hooks rewrite sys.argv
+    build = ("import sys; from setuptools import build_meta as backend; out = sys.argv[1]; "
+             "print(backend.build_sdist(out)); print(backend.build_wheel(out))")
+    _run([sys.executable, "-c", build, str(dist)], source, dict(os.environ), timeout=300)
+    wheel, = dist.glob("racing_games-*.whl")
+    sdist, = dist.glob("racing_games-*.tar.gz")
+    with tarfile.open(sdist) as archive:
+        in_sdist = {name.split("/", 1)[1] for name in archive.getnames() if "/" in name}
+    in_tree = {path.relative_to(source).as_posix() for package in PACKAGES for path in (source / package).rglob("*.py")}
+    assert in_tree | {"LICENSE", "pyproject.toml", "README.md"} <= in_sdist, "files missing from the sdist"
+
+    venv = tmp_path / "venv"  # outside the repository: the test's own temporary folder
+    _run([sys.executable, "-m", "venv", str(venv)], tmp_path, dict(os.environ), timeout=120)
+    python = venv / "bin" / "python"
+    env = {key: value for key, value in os.environ.items() if key not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env.update(PATH=f"{venv / 'bin'}{os.pathsep}{env.get('PATH', '')}", MPLBACKEND="Agg",
+               RACING_COMPILE_CACHE="off")
+    _run([str(python), "-m", "pip", "install", "--quiet", str(wheel)], tmp_path, env, timeout=1200)
+
+    work = tmp_path / "work"
+    work.mkdir()
+    where = json.loads(_run([str(python), "-c", "import json, racing_env, planners, experiments; "
+                             "print(json.dumps([m.__file__ for m in (racing_env, planners, experiments)]))"],
+                            work, env, timeout=300))
+    site = _run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], work, env,
+                timeout=60).strip()
+    assert all(Path(path).is_relative_to(site) for path in where), f"imported from {where}, not from {site}"
+
+    racing = str(venv / "bin" / "racing")
+    _run([racing, "demo", "--scripted", "--race-distance", "100", "--out", "demo"], work, env, timeout=600)
+    result = json.loads((work / "demo" / "result.json").read_text())
+    assert result["steps"] > 0 and len(result["summary"]) == 2
+    assert (work / "demo" / "race.gif").stat().st_size > 0
+    _run([racing, "tournament", "--agents", "ilqgame-fb", "lane-keeping", "--grids", "1", "--race-distance", "60",
+          "--track", "straight", "--out", "tour"], work, env, timeout=900)
+    board = json.loads((work / "tour" / "leaderboard.json").read_text())
+    assert sorted(row["agent"] for row in board["rows"]) == ["ilqgame-fb", "lane-keeping"]
+    assert sum(row["races"] for row in board["rows"]) == 4  # two races (both starting orders), two cars each
+    assert (work / "tour" / "report.html").exists()

@@ -1,7 +1,7 @@
 """How a policy in training is judged: raced against its opponents under tournament rules
 (:func:`evaluate`, one record per evaluation, :func:`summarize_evaluation`), the line
 printed for it, and the learning curve drawn from the episodes and evaluations
-(:func:`plot_learning_curve`). Used by :mod:`experiments.rl.train`."""
+(:func:`plot_learning_curve`). Used by both learners, through :mod:`experiments.rl.common`."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from experiments.formatting import or_dash
-from experiments.tournament import won_race
+from experiments.standings import won_race
 
 if TYPE_CHECKING:
-    from experiments.rl.train import TrainConfig
+    from experiments.rl.config import TrainConfig
 
 
 def evaluate(config: TrainConfig, model_path: Path, timesteps: int) -> dict[str, Any]:

@@ -39,7 +39,6 @@ from __future__ import annotations
 import ast
 import copy as copying
 import dataclasses
-import inspect
 import json
 import pickle
 import random
@@ -54,288 +53,36 @@ import numpy as np
 
 from experiments.files import one_writer, replace_atomically, write_json_atomically
 from experiments.jsonl import append_jsonl, drop_cut_line, read_jsonl
-from experiments.race_spec import RaceSpec
-from experiments.rl.evaluation import evaluate, evaluation_line, plot_learning_curve
+# TrainConfig and the pieces both learners share live below both (experiments.rl.config,
+# experiments.rl.common); they stay importable from here, where they used to be
+from experiments.rl.common import (check_resumable, drop_episodes_after, episode_fields,  # noqa: F401
+                                   evaluate_final, finish_report, make_vector_env, next_multiple,
+                                   record_evaluation)
+from experiments.rl.config import (CHECKPOINTS, CONFIG, EPISODES, EVALUATION_RULE, EVALUATIONS,  # noqa: F401
+                                   IMITATION_ALGOS, LEARNERS, PPO_MIN_STEPS, PPO_MINIBATCHES, PPO_ROLLOUT,
+                                   RESUMABLE_CHANGES, TRAINING_STARTS, TrainConfig, algorithm_parameters,
+                                   config_json, default_hyperparameters, jax_ppo_parameters)
+from experiments.rl.evaluation import evaluate, evaluation_line  # noqa: F401
 from experiments.rl.imitation import Demonstrations, clone, collect_demonstrations
 from experiments.rl.widen import (Widening, measure_new_features, observation_widening, widen_normalizer,
                                   widen_saved_model)
-from planners.agents import SB3_ALGOS, check_specs, make_agent, vecnormalize_path
-from racing_env.config import RaceConfig, RewardConfig, check_incident_rules
+from planners.agents import check_specs, make_agent, vecnormalize_path
 
-CONFIG = "train.json"
-EPISODES = "episodes.jsonl"
-EVALUATIONS = "evaluations.jsonl"
-CHECKPOINTS = "checkpoints"
 MODEL = "model.zip"
 WIDENED_MODEL = "init_model_widened.zip"  # an init_model of fewer cars, as widened for this race
 DEMONSTRATIONS = "demonstrations.npz"
 IMITATION_MODEL = "imitation.zip"
 IMITATION_REPORT = "imitation.json"
-IMITATION_ALGOS = ("ppo", "a2c")  # actor-critics with a Gaussian policy, which behaviour cloning fits
 # demonstration episode k is reset with seed DEMONSTRATION_SEED + 10_000 * seed + k (apart from the grids'
 # of training, seed + copy, and of the evaluations, 1_000_000 + 10_000 * seed + grid)
 DEMONSTRATION_SEED = 2_000_000
 _CHECKPOINT = re.compile(r"step_(\d+)\.zip$")
-# the fields of TrainConfig that may change between a run and its resumption
-_RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesses", "vector")
 # the fields of TrainConfig that do not change how the imitated expert drives: demonstrations
 # saved by a run that differed only in these are reused (``demonstrations_source``)
-_NOT_IN_DEMONSTRATIONS = _RESUMABLE_CHANGES + ("imitate_episodes", "imitate_spread", "algo", "hyperparameters",
-                                               "normalize", "eval_off_track", "eval_grids", "init_model")
-TRAINING_STARTS = ("grid", "anywhere", "mixed")  # where training episodes may start (TrainConfig.start)
-# fields added to TrainConfig after runs were saved, with the value those runs had
-_ADDED_LATER = {"start": "grid", "imitate": None, "imitate_episodes": 20, "imitate_noise": 0.2,
-                "imitate_spread": None, "vector": False, "learner": "sb3"}
-LEARNERS = ("sb3", "jax")  # TrainConfig.learner
+_NOT_IN_DEMONSTRATIONS = RESUMABLE_CHANGES + ("imitate_episodes", "imitate_spread", "algo", "hyperparameters",
+                                              "normalize", "eval_off_track", "eval_grids", "init_model")
 # steps (all copies) over which a widened init_model's new observation features are measured
 WIDENING_MEASURE_STEPS = 2048
-EVALUATION_RULE = "penalty"  # what contact (and, unless eval_off_track is set, leaving the track) does in evaluations
-
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class TrainConfig(RaceSpec):
-    """What to train, against whom, and how long, in which race (:class:`RaceSpec`; off
-    the track the training race's default rule is ``terminate``).
-
-    Attributes:
-        opponents: agent specs of the other cars (:func:`planners.agents.make_agent`); their
-            number fixes the race's N = len(opponents) + 1. ``()``: a time trial, the learner
-            alone on the track (N = 1). With ``pool`` they are a pool
-            instead: every episode each opponent car is driven by one of them, drawn at
-            random (a spec given twice is drawn twice as often).
-        pool: draw the opponents from ``opponents`` every episode
-            (:class:`racing_env.single_agent.OpponentPool`); evaluations then race the
-            learner against each of them in turn, and report them apart.
-        pool_cars: cars per race with ``pool`` (the learner included).
-        algo: ``ppo`` (default), ``sac``, ``td3``, ``a2c`` or ``ddpg``.
-        timesteps: environment steps to train for, over all copies of the race.
-        track: built-in track name or TUMFTM CSV path.
-        laps / race_distance: the race's length (``race_distance`` [m] overrides ``laps``).
-        max_steps: an episode is truncated after this many steps.
-        start: where training episodes start: ``grid`` (a seeded rolling grid behind the
-            line, as the evaluations) or ``anywhere`` (a seeded close-quarters scene anywhere
-            on the lap, :func:`racing_env.scenarios.anywhere`, racing to the same finish
-            line), so that on a long circuit the policy meets every corner from the start;
-            or ``mixed``: the even copies of the race (``envs``) start on the grid, the odd
-            ones anywhere. Evaluations always start on the grid.
-        seed: seeds the policy, the start grids and the evaluation grids.
-        envs: copies of the race stepped side by side; in copy ``k`` the learner drives car
-            ``k % N``. PPO's rollout and minibatch sizes follow it unless given
-            (:func:`default_hyperparameters`).
-        vector: step the copies with the vectorised race (:class:`experiments.rl.vec_env.RaceVecEnv`:
-            the copies of each learner car and start scenario in one compiled call, the
-            opponents batched), the fast way for many copies; False: one Gymnasium env per
-            copy in a ``DummyVecEnv``, for opponents the batched form cannot drive. The
-            copies' episodes are the same either way (to a few ulps; a pool draws its
-            drivers differently), as is the model's interface. Ignored with ``subprocesses``.
-        subprocesses: step each copy in a worker process of its own (``SubprocVecEnv``, one
-            Gymnasium env per copy, whatever ``vector`` says), worth it against planner
-            opponents that the vectorised race cannot batch, whose solves then run on
-            several cores; the results are the same as in one process.
-        normalize: train under ``VecNormalize`` (observations and rewards).
-        on_off_track / on_collision: the training race's incident rules
-            (:data:`racing_env.config.INCIDENT_MODES`). ``terminate`` off track (the default)
-            ends an episode that leaves the track, which teaches staying on it far faster
-            than a penalty per step.
-        eval_off_track: what leaving the track does in the evaluations: None (the
-            default) the tournaments' rule, counted but not ending the race; or an
-            incident mode, e.g. ``terminate`` to retire a learner that leaves the track there
-            too (a policy that wins by running wide past the edge then loses).
-        jerk_weight: the planners' jerk weight r in the race's game (as in tournaments).
-        checkpoint_every / eval_every: steps between checkpoints / evaluations (0: only at
-            the end).
-        eval_grids: start grids per evaluation; each is raced once per starting slot.
-        reward: weights of the training race's reward terms that differ from
-            :class:`racing_env.config.RewardConfig`'s defaults, e.g. ``(("position", 0.05),)``.
-        hyperparameters: keyword arguments of the SB3 algorithm, e.g.
-            ``(("n_steps", 1024), ("learning_rate", 1e-4))``; they win over
-            :func:`default_hyperparameters`.
-        init_model: a saved model of the same algorithm to train further (its VecNormalize
-            statistics too), e.g. one trained against the fast lane keeper, before a planner
-            opponent; ``None`` starts from a fresh policy. A model of a race with fewer cars
-            (a time trial) is widened (:mod:`experiments.rl.widen`): zero weights on the
-            new cars' features, whose statistics are measured over
-            ``WIDENING_MEASURE_STEPS`` steps of this race before training.
-        imitate: an agent spec (e.g. ``ilqr``) whose driving a fresh policy is cloned from
-            before training (:mod:`experiments.rl.imitation`): it drives the learner's car for
-            ``imitate_episodes`` seeded episodes of the training race, and the policy, its
-            value and the normaliser are fitted to them. PPO and A2C only; not with
-            ``init_model``. The cloned policy is evaluated (at 0 steps) before training.
-        imitate_episodes: the expert's episodes, taken from the copies of the race in turn.
-        imitate_noise: standard deviation of the noise added to the expert's actions
-            (normalised units) while it drives for the demonstrations, so that they show it
-            recovering from the errors a clone makes; 0 for the expert's own line only.
-        imitate_spread: the cloned policy's standard deviation per action (normalised
-            units), which the reinforcement learning that follows explores with; None: the
-            ``imitate_noise`` (with no noise, PPO's initial one).
-        learner: ``sb3`` (stable-baselines3, every ``algo``) or ``jax`` (PPO in JAX,
-            :mod:`experiments.rl.train_jax`: with opponents that are JAX functions of the
-            state the races and the updates are one compiled program). The JAX learner takes
-            ``ppo`` only, no ``init_model``, ``imitate`` or ``subprocesses``; its
-            ``hyperparameters`` are :class:`experiments.rl.ppo_jax.PPOSettings` fields.
-    """
-
-    opponents: tuple[str, ...] = ("lane-keeping",)
-    pool: bool = False
-    pool_cars: int = 2
-    algo: str = "ppo"
-    timesteps: int = 200_000
-    start: str = "grid"
-    seed: int = 0
-    envs: int = 2
-    vector: bool = True
-    subprocesses: bool = False
-    normalize: bool = True
-    on_off_track: str = "terminate"
-    eval_off_track: str | None = None
-    checkpoint_every: int = 20_000
-    eval_every: int = 50_000
-    eval_grids: int = 2
-    reward: tuple[tuple[str, float], ...] = ()
-    hyperparameters: tuple[tuple[str, Any], ...] = ()
-    init_model: str | None = None
-    imitate: str | None = None
-    imitate_episodes: int = 20
-    imitate_noise: float = 0.2
-    imitate_spread: float | None = None
-    learner: str = "sb3"
-
-    def __post_init__(self) -> None:
-        super().__post_init__()  # the race's fields
-        if self.pool and not self.opponents:
-            raise ValueError("a pool needs at least one opponent spec to draw from (e.g. lane-keeping)")
-        if self.algo not in SB3_ALGOS:
-            raise ValueError(f"algo must be one of {SB3_ALGOS}, got {self.algo!r}")
-        if self.learner not in LEARNERS:
-            raise ValueError(f"learner must be one of {LEARNERS}, got {self.learner!r}")
-        if self.learner == "jax":
-            refused = [name for name, bad in (("algo other than ppo", self.algo != "ppo"),
-                                              ("init_model", self.init_model is not None),
-                                              ("imitate", self.imitate is not None),
-                                              ("subprocesses", self.subprocesses),
-                                              ("vector=False (--no-vector)", not self.vector)) if bad]
-            if refused:
-                raise ValueError(f"the JAX learner trains PPO from a fresh policy in one process: drop "
-                                 f"{', '.join(refused)} (or use --learner sb3)")
-        if self.start not in TRAINING_STARTS:
-            raise ValueError(f"start must be one of {TRAINING_STARTS}, got {self.start!r}")
-        if not isinstance(self.pool_cars, (int, np.integer)) or self.pool_cars < 2:
-            raise ValueError(f"pool_cars must be an integer >= 2, got {self.pool_cars!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
-            raise ValueError(f"seed (--seed) must be an integer >= 0, got {self.seed!r}")
-        if self.imitate is not None:
-            if self.algo not in IMITATION_ALGOS:
-                raise ValueError(f"imitation fits a Gaussian actor-critic policy: algo must be one of "
-                                 f"{IMITATION_ALGOS}, got {self.algo!r}")
-            if self.init_model is not None:
-                raise ValueError("imitate starts a fresh policy from the expert; init_model trains a saved one "
-                                 "further: give one of them")
-            if not 0.0 <= self.imitate_noise < np.inf:
-                raise ValueError(f"imitate_noise must be a finite standard deviation >= 0, got {self.imitate_noise!r}")
-            if self.imitate_spread is not None and not 0.0 < self.imitate_spread < np.inf:
-                raise ValueError(f"imitate_spread must be a finite standard deviation > 0 (or None: the "
-                                 f"imitate_noise), got {self.imitate_spread!r}")
-        for name in ("vector", "subprocesses", "pool", "normalize"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
-        for name in ("timesteps", "envs", "eval_grids", "imitate_episodes"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        for name in ("checkpoint_every", "eval_every"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, np.integer)) or value < 0:
-                raise ValueError(f"{name} must be an integer >= 0 (0: only at the end), got {value!r}")
-        if self.eval_off_track is not None:
-            check_incident_rules(eval_off_track=self.eval_off_track)
-        terms = {f.name for f in dataclasses.fields(RewardConfig)}
-        for name, value in self.reward:
-            if name not in terms:
-                raise ValueError(f"unknown reward term {name!r}; the terms are {sorted(terms)}")
-            if not np.isfinite(value):
-                raise ValueError(f"reward weight {name} must be a finite number, got {value!r}")
-        if self.init_model is not None and not any(Path(p).is_file() for p in (self.init_model,
-                                                                                 f"{self.init_model}.zip")):
-            raise ValueError(f"init_model {self.init_model} does not exist")
-        known = algorithm_parameters(self.algo) if self.learner == "sb3" else jax_ppo_parameters()
-        for name, _ in self.hyperparameters:
-            if name not in known:
-                raise ValueError(f"{self.learner} {self.algo} has no hyperparameter {name!r}; it takes {sorted(known)}")
-        for copy in range(min(self.envs, 2)):  # the race of every start the copies use (its own limits)
-            self.race_config(copy=copy)
-
-    @property
-    def vectorised(self) -> bool:
-        """Whether the copies are stepped by the vectorised race (``vector`` without ``subprocesses``)."""
-        return self.vector and not self.subprocesses
-
-    @property
-    def cars(self) -> int:
-        return self.pool_cars if self.pool else len(self.opponents) + 1
-
-    @property
-    def time_trial(self) -> bool:
-        """The learner races alone (no opponents)."""
-        return self.cars == 1
-
-    @property
-    def clone_spread(self) -> float | None:
-        """The cloned policy's standard deviation per action with ``imitate`` (normalised
-        units; None: the algorithm's initial one)."""
-        return self.imitate_spread or self.imitate_noise or None
-
-    def description(self) -> str:
-        """What the learner races, for titles: ``vs ilqgame-fb``, ``vs a pool of ...``, ``time trial``."""
-        if self.time_trial:
-            return "time trial"
-        return f"vs {'a pool of ' if self.pool else ''}{', '.join(dict.fromkeys(self.opponents))}"
-
-    def evaluation_lineups(self) -> list[tuple[str, list[str]]]:
-        """``(label, opponent specs)`` the learner is evaluated against: the lineup, or with
-        a pool every distinct spec of it driving every opponent car."""
-        if not self.pool:
-            return [(", ".join(self.opponents) or "time trial", list(self.opponents))]
-        return [(spec, [spec] * (self.cars - 1)) for spec in dict.fromkeys(self.opponents)]
-
-    def scenario(self, copy: int = 0) -> str:
-        """The scenario copy ``copy`` of the training race starts from (:attr:`start`)."""
-        if self.start == "mixed":
-            return "grid" if copy % 2 == 0 else "anywhere"
-        return self.start
-
-    def race_config(self, training: bool = True, copy: int = 0) -> RaceConfig:
-        """The race the learner trains in (``training``; copy ``copy`` of it) or is evaluated
-        in (tournament rules, with ``eval_off_track`` if set)."""
-        if training:
-            return self.to_race_config(self.cars, self.scenario(copy), reward=RewardConfig(**dict(self.reward)))
-        # the tournaments' rules: incidents penalised, not retiring, unless eval_off_track says otherwise
-        return self.to_race_config(self.cars, "grid", on_collision=EVALUATION_RULE,
-                                   on_off_track=self.eval_off_track or EVALUATION_RULE)
-
-
-PPO_ROLLOUT = 4096
-"""Samples per PPO update by default (``n_steps * envs``): SB3's ``n_steps=2048`` for the
-default 2 copies, kept for any number of copies so that a step of the policy is trained on
-as often whatever ``envs`` is."""
-PPO_MINIBATCHES = 8
-"""Minibatches per PPO epoch by default: ``batch_size = n_steps * envs / 8`` (512 samples at
-the default rollout), where SB3's ``batch_size=64`` made 64 and the update cost more than
-the races (measured: docs/rl.md)."""
-PPO_MIN_STEPS = 16
-"""The fewest steps per copy in a PPO rollout by default (the generalised advantage
-estimate looks at most this far ahead before it bootstraps from the value)."""
-
-
-def default_hyperparameters(algo: str, envs: int) -> dict[str, Any]:
-    """The SB3 settings a run of ``algo`` over ``envs`` copies gets unless its
-    ``hyperparameters`` give them: for PPO ``n_steps`` (steps per copy per rollout, a
-    multiple of 8 in ``[PPO_MIN_STEPS, 2048]``, about ``PPO_ROLLOUT / envs``) and
-    ``batch_size`` (a ``PPO_MINIBATCHES``-th of the rollout, which it divides). Other
-    algorithms keep SB3's defaults."""
-    if algo != "ppo":
-        return {}
-    n_steps = min(2048, max(PPO_MIN_STEPS, PPO_ROLLOUT // envs // 8 * 8))
-    return {"n_steps": n_steps, "batch_size": n_steps * envs // PPO_MINIBATCHES}
 
 
 def model_settings(config: TrainConfig) -> dict[str, Any]:
@@ -344,25 +91,9 @@ def model_settings(config: TrainConfig) -> dict[str, Any]:
     return {**default_hyperparameters(config.algo, config.envs), **dict(config.hyperparameters)}
 
 
-def jax_ppo_parameters() -> set[str]:
-    """The hyperparameters of the JAX learner (:class:`experiments.rl.ppo_jax.PPOSettings`;
-    ``normalize`` is the configuration's own field)."""
-    from experiments.rl.ppo_jax import PPOSettings
-
-    return {f.name for f in dataclasses.fields(PPOSettings)} - {"normalize"}
-
-
 def model_file(config: TrainConfig) -> str:
     """The final model's file name in a run's folder: ``model.zip`` (SB3) or ``model.npz`` (JAX)."""
     return "model.npz" if config.learner == "jax" else MODEL
-
-
-def algorithm_parameters(algo: str) -> set[str]:
-    """The keyword arguments an SB3 algorithm's constructor takes (besides policy and env)."""
-    import stable_baselines3 as sb3
-
-    params = inspect.signature(getattr(sb3, algo.upper()).__init__).parameters
-    return {name for name in params if name not in ("self", "policy", "env")}
 
 
 def parse_hyperparameter(text: str) -> tuple[str, Any]:
@@ -385,14 +116,6 @@ def parse_reward_weight(text: str) -> tuple[str, float]:
         return name.strip(), float(value)
     except ValueError:
         raise ValueError(f"expected TERM=NUMBER (e.g. position=0.05), got {text!r}") from None
-
-
-def config_json(config: TrainConfig) -> dict[str, Any]:
-    """The configuration as ``train.json`` keeps it."""
-    data = dataclasses.asdict(config)
-    data["hyperparameters"] = dict(config.hyperparameters)
-    data["reward"] = dict(config.reward)
-    return json.loads(json.dumps(data))  # tuples as lists, as read back from disk
 
 
 def latest_checkpoint(out: Path) -> tuple[int, Path] | None:
@@ -476,19 +199,6 @@ def make_training_env(config: TrainConfig):
                                                  start_method="spawn"))
 
 
-def make_vector_env(config: TrainConfig):
-    """The ``config.envs`` copies of the training race as one
-    :class:`experiments.rl.vec_env.RaceVecEnv`: copy ``k`` races the learner as car
-    ``k % N`` from the scenario :meth:`TrainConfig.scenario` gives it, against the opponent
-    specs (with ``pool``, every opponent car draws from all of them)."""
-    from experiments.rl.vec_env import RaceVecEnv
-
-    specs = list(config.opponents)
-    opponents = [specs for _ in range(config.cars - 1)] if config.pool else specs
-    races = [(k % config.cars, config.race_config(copy=k)) for k in range(config.envs)]
-    return RaceVecEnv(races, opponents)
-
-
 def _with_float32_rewards(venv):
     """The rewards of a ``SubprocVecEnv`` rounded to float32, as ``DummyVecEnv`` stores
     them: the observations of the two are identical, so training is too."""
@@ -503,14 +213,6 @@ def _with_float32_rewards(venv):
             return observations, rewards.astype(np.float32), dones, infos
 
     return Float32Rewards(venv)
-
-
-def drop_episodes_after(out: Path, timesteps: int) -> None:
-    """Forget the episodes logged after ``timesteps``: their steps will be collected again."""
-    if not (out / EPISODES).exists():
-        return
-    kept = [e for e in read_jsonl(out / EPISODES) if e["timesteps"] <= timesteps]
-    replace_atomically(lambda tmp: tmp.write_text("".join(json.dumps(e) + "\n" for e in kept)), out / EPISODES)
 
 
 def _training_callback(config: TrainConfig, out: Path, console):
@@ -566,56 +268,6 @@ def _training_callback(config: TrainConfig, out: Path, console):
             return True
 
     return Recorder()
-
-
-def episode_fields(info: dict[str, Any]) -> dict[str, Any]:
-    """An ``episodes.jsonl`` line's fields from the info of the step that ended the episode
-    (with the ``episode`` record of :class:`experiments.rl.vec_env.RaceVecEnv` or SB3's
-    ``Monitor``): return, length [steps], finished, place, out, finish time [s],
-    truncated, and a pool's drawn ``opponents``."""
-    episode = info["episode"]
-    return {"return": float(episode["r"]), "length": int(episode["l"]), "finished": bool(episode["finished"]),
-            "place": int(episode["position"]), "out": bool(episode["out"]), "finish_time": episode["finish_time"],
-            "truncated": bool(info.get("TimeLimit.truncated", False)),
-            **({"opponents": info["opponents"]} if "opponents" in info else {})}
-
-
-def record_evaluation(config: TrainConfig, model_path: Path, timesteps: int, out: Path, console) -> None:
-    """Race the saved policy under tournament rules (:func:`evaluate`), append the record to
-    ``evaluations.jsonl`` and print its line."""
-    record = evaluate(config, model_path, timesteps)
-    append_jsonl(out / EVALUATIONS, record)
-    console.print(evaluation_line(record))
-
-
-def evaluate_final(config: TrainConfig, model_path: Path, timesteps: int, out: Path, console) -> None:
-    """The final policy's evaluation, unless the last one logged is already of ``timesteps``."""
-    evaluations = read_jsonl(out / EVALUATIONS)
-    if not evaluations or evaluations[-1]["timesteps"] != timesteps:
-        record_evaluation(config, model_path, timesteps, out, console)
-
-
-def finish_report(config: TrainConfig, out: Path, report: dict[str, Any], model_path: Path, title: str,
-                  console) -> None:
-    """Close a run: its final evaluation into ``report``, ``train.json``, the learning curve
-    (titled ``title``) and, for a completed run, how to race the model."""
-    evaluations = read_jsonl(out / EVALUATIONS)
-    report["final_evaluation"] = evaluations[-1] if evaluations else None
-    write_json_atomically(report, out / CONFIG)
-    plot_learning_curve(read_jsonl(out / EPISODES), evaluations, out / "learning_curve.png",
-                        title=f"{title} {config.description()} on {Path(config.track).stem}",
-                        time_trial=config.time_trial)
-    if report["status"] == "completed":
-        # a time-trial policy observes one car: it races alone, against others' laps
-        race_it = ("--cars 1 --agents rl:{} ilqr lane-keeping" if config.time_trial
-                   else "--agents rl:{} " + " ".join(dict.fromkeys(config.opponents))).format(model_path)
-        console.print(f"wrote {model_path} (race it: racing tournament {race_it}), "
-                      f"{out / 'learning_curve.png'}, {out / EVALUATIONS}")
-
-
-def next_multiple(steps: int, every: int) -> int | None:
-    """The first multiple of ``every`` after ``steps`` (None for ``every == 0``: never)."""
-    return None if every == 0 else (steps // every + 1) * every
 
 
 _NOW = "now"  # checkpoint(): the resume state is the current one
@@ -901,21 +553,6 @@ TORCH_THREADS = 1
 """torch's threads while training. The policy's networks are small: on 2 cores one thread
 updates PPO as fast as two, and when another process keeps a core busy two threads
 contending for the one left made PPO's updates about 17 times slower (docs/rl.md)."""
-
-
-def check_resumable(config: TrainConfig, out: Path, has_checkpoint: bool) -> None:
-    """Refuse to train into ``out`` when it holds a run (a checkpoint or episodes) made with
-    settings other than ``config``'s (besides those a resumption may change)."""
-    config_path = out / CONFIG
-    if not config_path.exists():
-        return
-    wanted = config_json(config)
-    previous = json.loads(config_path.read_text())["config"]
-    differs = sorted(k for k in wanted
-                     if k not in _RESUMABLE_CHANGES and previous.get(k, _ADDED_LATER.get(k)) != wanted[k])
-    if differs and (has_checkpoint or (out / EPISODES).exists()):
-        raise ValueError(f"{out} holds a training run with other settings ({', '.join(differs)}); "
-                         "use another --out folder or --fresh to start over")
 
 
 def run_training(config: TrainConfig, out: Path, fresh: bool = False, progress: bool = True) -> dict[str, Any]:

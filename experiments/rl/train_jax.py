@@ -46,9 +46,9 @@ import numpy as np
 from experiments.files import replace_atomically, write_json_atomically
 from experiments.jsonl import append_jsonl, drop_cut_line
 from experiments.rl import ppo_jax
-from experiments.rl.train import (CHECKPOINTS, CONFIG, EPISODES, EVALUATIONS, check_resumable, config_json,
-                                  default_hyperparameters, drop_episodes_after, episode_fields, evaluate_final,
-                                  finish_report, make_vector_env, next_multiple, record_evaluation)
+from experiments.rl.common import (check_resumable, drop_episodes_after, episode_fields, evaluate_final,
+                                   finish_report, make_vector_env, next_multiple, record_evaluation)
+from experiments.rl.config import CHECKPOINTS, CONFIG, EPISODES, EVALUATIONS, config_json, default_hyperparameters
 from planners.agents.jax_policy import save_model
 
 __all__ = ["JAX_MODEL", "compiled_races", "ppo_settings", "run_jax_training"]

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from planners import ilq, ilqr
-from planners.agents.batched import BatchedOpponent, DIAGNOSTIC_FIELDS, empty_diagnostics
+from planners.agents.batched_protocol import BatchedOpponent, DIAGNOSTIC_FIELDS, empty_diagnostics
 from planners.agents.protocol import BaseAgent
 from planners.agents.warm_start import restore_accelerations
 from planners.agents.receding_horizon import (
