@@ -25,9 +25,9 @@ RACE = dict(track="trefoil", max_steps=10**9, laps=1000)
 BATCHES = (1, 64, 1024)
 #: Opponents of the opponent rows, and the re-plan intervals they are raced with.
 OPPONENTS = ("lane-keeping", "ilqr", "ilqgame-ol", "ilqgame-fb", "ilqgame-fb:max_iterations=5",
-             "ilqgame-fb:iterations=2")
+             "ilqgame-fb:iterations=2,trust_radius=10")
 #: Opponents of the rows whose learner acts at random (as a learner does at the start of a training).
-RANDOM_LEARNER_OPPONENTS = ("ilqr", "ilqgame-fb", "ilqgame-fb:iterations=2")
+RANDOM_LEARNER_OPPONENTS = ("ilqr", "ilqgame-fb", "ilqgame-fb:iterations=2,trust_radius=10")
 REPLAN_EVERY = (1, 5)
 
 
@@ -203,8 +203,8 @@ def training_rows() -> Iterator[dict[str, Any]]:
 #: (opponent spec, envs, target steps/s) of the JAX learner's rows: the lane keeper inside the compiled
 #: update, and feedback iLQGame re-planning every 5 steps on the host races (its batched solves).
 JAX_TRAINING = (("lane-keeping", 256, 50_000), ("lane-keeping", 1024, 50_000),
-                ("ilqgame-fb:replan_every=5", 64, 8_000), ("ilqgame-fb:iterations=2", 64, 3_000),
-                ("ilqgame-fb:iterations=2,replan_every=5", 64, 8_000))
+                ("ilqgame-fb:replan_every=5", 64, 8_000), ("ilqgame-fb:iterations=2,trust_radius=10", 64, 3_000),
+                ("ilqgame-fb:iterations=2,trust_radius=10,replan_every=5", 64, 8_000))
 
 
 def jax_training_row(opponent: str, envs: int, updates: int = 4, target: float | None = None,

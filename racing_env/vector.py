@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import functools
 import importlib
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import gymnasium
 import jax
@@ -60,7 +60,7 @@ from racing_env.race import RaceParams, RaceState
 from racing_env.referee import REWARD_TERMS
 from racing_env.scenarios import make_scenario
 
-__all__ = ["GymnaxRace", "RaceVectorEnv", "coasting", "make_opponent"]
+__all__ = ["GymnaxRace", "PlannedRace", "RaceVectorEnv", "coasting", "make_opponent"]
 
 JaxPolicy = Callable[[jax.Array], jax.Array]
 """A JAX driver: ``policy(x (N, 6)) -> action (2,)``, normalised, for one car of one race."""
@@ -502,7 +502,11 @@ class GymnaxRace:
     Args:
         opponents: one :data:`JaxPolicy` per opponent car (or one for all); default coasting.
             A batched opponent made from a spec (``"lane-keeping"``) carries its JAX policy
-            as ``jax_policy``; planners are not JAX functions of the state and are refused.
+            as ``jax_policy``. Planners (``"ilqgame-fb:iterations=2"``, ``ilqgame-ol``,
+            ``ilqr`` with the constant-velocity prediction) race with their compiled step
+            (:mod:`planners.agents.compiled_planner`): their plans are then part of the
+            state (:class:`PlannedRace`), a race that restarts re-plans cold in its first
+            step, and their actions are the host batched planner's to rounding.
         learner: index of the learner's car.
         **config: :class:`racing_env.RaceConfig` fields.
     """
@@ -514,13 +518,19 @@ class GymnaxRace:
         num, drivers = _opponent_cars(opponents, learner, config)
         self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
         self.learner = int(learner)
-        self._policies = []
+        self._policies, self._planners = [], []
         for car, opponent in drivers:
             if isinstance(opponent, str):
                 opponent = make_opponent(opponent, self.race.game, car, 1)
+            planner = getattr(opponent, "jax_planner", None) if getattr(opponent, "jax_policy", None) is None else None
+            if planner is not None:
+                self._planners.append((car, planner))
+                continue
             policy = getattr(opponent, "jax_policy", opponent) if opponent is not None else coasting
             if not _is_jax_policy(policy, self.race.state_space.shape):
-                raise ValueError(f"opponent {opponent!r} of car {car} is not a JAX policy x (N, 6) -> action (2,)")
+                raise ValueError(f"opponent {opponent!r} of car {car} is neither a JAX policy x (N, 6) -> action (2,) "
+                                 "nor a planner with a compiled step (ilqgame-fb, ilqgame-ol, ilqr with the "
+                                 "constant-velocity prediction)")
             self._policies.append((car, policy))
         self.num_cars = num
 
@@ -542,22 +552,37 @@ class GymnaxRace:
     def action_space(self, params: RaceParams | None = None) -> gymnasium.spaces.Box:
         return self.race.action_space(agent_name(self.learner))
 
-    def reset(self, key: jax.Array, params: RaceParams | None = None) -> tuple[jax.Array, RaceState]:
+    def _with_plans(self, state: RaceState) -> RaceState | PlannedRace:
+        """A race just started: with the planner opponents' plan states (no plan yet)."""
+        if not self._planners:
+            return state
+        return PlannedRace(state, tuple(planner.initial(state.x.dtype) for _, planner in self._planners))
+
+    def reset(self, key: jax.Array, params: RaceParams | None = None) -> tuple[jax.Array, RaceState | PlannedRace]:
         params = self.default_params if params is None else params
         state, obs = race.reset(key, params)
-        return obs[self.learner], state
+        return obs[self.learner], self._with_plans(state)
 
-    def step(self, key: jax.Array, state: RaceState, action: jax.Array, params: RaceParams | None = None):
+    def step(self, key: jax.Array, state: RaceState | PlannedRace, action: jax.Array,
+             params: RaceParams | None = None):
         params = self.default_params if params is None else params
-        actions = jnp.zeros((self.num_cars, 2), state.x.dtype).at[self.learner].set(action)
+        race_state, plans = (state.race, state.plans) if self._planners else (state, ())
+        actions = jnp.zeros((self.num_cars, 2), race_state.x.dtype).at[self.learner].set(action)
         for car, policy in self._policies:
-            actions = actions.at[car].set(policy(state.x))
+            actions = actions.at[car].set(policy(race_state.x))
+        planned = []
+        for (car, planner), plan in zip(self._planners, plans):
+            act, plan = planner.act(plan, race_state.x, race_state.status.active)
+            # rounded to float32, as the agents round their actions
+            actions = actions.at[car].set(act.astype(jnp.float32).astype(actions.dtype))
+            planned.append(plan)
         key_step, key_reset = jax.random.split(key)
-        stepped, obs, rewards, terms, truncs, race_info = race.step(key_step, state, actions, params)
+        stepped, obs, rewards, terms, truncs, race_info = race.step(key_step, race_state, actions, params)
         terminated, truncated = terms[self.learner], truncs[self.learner]
         done = terminated | truncated
         restarted, start_obs = race.reset(key_reset, params)
-        new_state = jax.tree_util.tree_map(lambda a, b: jnp.where(done, a, b), restarted, stepped)
+        carried = PlannedRace(stepped, tuple(planned)) if self._planners else stepped
+        new_state = jax.tree_util.tree_map(lambda a, b: jnp.where(done, a, b), self._with_plans(restarted), carried)
         info = {
             "terminated": terminated,
             "truncated": truncated,
@@ -568,4 +593,12 @@ class GymnaxRace:
         }
         return (jnp.where(done, start_obs[self.learner], obs[self.learner]), new_state, rewards[self.learner],
                 done, info)
+
+
+class PlannedRace(NamedTuple):
+    """The state of a :class:`GymnaxRace` with planner opponents: the race and each planner's
+    plan state (:class:`planners.agents.compiled_planner.PlanState`, in car order)."""
+
+    race: RaceState
+    plans: tuple
 

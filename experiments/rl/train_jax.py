@@ -3,11 +3,13 @@
 Two ways to run the races, chosen from the configuration:
 
 * **compiled** (opponents that are JAX functions of the state: ``lane-keeping``,
-  ``constant-speed``, ...; or a time trial; ``start="grid"``; no pool): the races are a
+  ``constant-speed``, ...; planners with a fixed iteration budget, ``ilqgame-fb:iterations=2``,
+  whose re-plans compile into the step (:mod:`planners.agents.compiled_planner`); or a time
+  trial; ``start="grid"``; no pool): the races are a
   :class:`racing_env.vector.GymnaxRace` and a whole update, ``n_steps`` steps of all
   ``envs`` races and PPO's epochs, is one compiled call. The learner drives car 0; the
   grid's order is drawn per episode, so it starts in every slot.
-* **host** (any other opponents: planners, ``rl:`` models, pools, ``start`` anywhere or
+* **host** (any other opponents: converging planners, ``rl:`` models, pools, ``start`` anywhere or
   mixed): the races are the SB3 learner's :class:`experiments.rl.vec_env.RaceVecEnv` (the
   same copies, seeds and episodes; the learner drives car ``copy % N``), stepped from Python
   with the planners' batched solves; the policy's steps and PPO's update are compiled.
@@ -89,12 +91,24 @@ def _gymnax_race(opponents: tuple[str, ...], race):
     if opponents:
         game = RacingParallelEnv(race).game
         for car, spec in enumerate(opponents, start=1):
-            policy = getattr(make_batched_opponent(spec, game, car, 1), "jax_policy", None)
-            if policy is None:
+            opponent = make_batched_opponent(spec, game, car, 1)
+            if opponent.jax_policy is not None:
+                policies.append(opponent.jax_policy)
+            elif _compiles(opponent):
+                policies.append(opponent)
+            else:
                 return None
-            policies.append(policy)
     fields = {f.name: getattr(race, f.name) for f in dataclasses.fields(race) if f.name != "num_agents"}
     return GymnaxRace(opponents=policies, learner=0, num_agents=race.num_agents, **fields)
+
+
+def _compiles(opponent) -> bool:
+    """Whether a planner opponent races inside the compiled update: one with a fixed iteration
+    budget (``iterations=K``), whose re-plans cost the same in every race. Converging re-plans
+    stay on the host, where the batched solves stop each race at its own convergence
+    (:mod:`planners.agents.batched_planners`) instead of running in lock step."""
+    agent = getattr(opponent, "agent", None)
+    return opponent.jax_planner is not None and getattr(agent, "iterations", None) is not None
 
 
 # --- the two forms of an update ----------------------------------------------------------------

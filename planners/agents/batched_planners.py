@@ -32,6 +32,7 @@ nothing across the members and a lock-step batch waits for its slowest member.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, Sequence
 
 import jax
@@ -41,6 +42,7 @@ import numpy as np
 from planners import ilq, ilqr
 from planners.agents.batched_protocol import BatchedOpponent, DIAGNOSTIC_FIELDS, empty_diagnostics
 from planners.agents.protocol import BaseAgent
+from planners.agents.compiled_planner import CompiledPlanner
 from planners.agents.warm_start import restore_accelerations
 from planners.agents.receding_horizon import (
     RECOVERED_SPEED,
@@ -171,6 +173,12 @@ class BatchedPlanner(BatchedOpponent):
             self._ego_template = ilqr.ego_problem(self._solve_game, np.zeros((self.game.num_players, STATE_DIM)),
                                                   self.index)
         self._allocate()
+
+    @functools.cached_property
+    def jax_planner(self) -> CompiledPlanner:
+        """This planner's step for one race as pure JAX functions
+        (:class:`planners.agents.compiled_planner.CompiledPlanner`), for compiled races."""
+        return CompiledPlanner(self)
 
     # --- construction ---------------------------------------------------------------------
     def _checked_sizes(self, sizes: Sequence[int] | None) -> tuple[int, ...]:

@@ -43,10 +43,13 @@ class BatchedOpponent:
         game: the races' :class:`racing_env.RaceGame`.
         jax_policy: a pure JAX ``policy(x (N, 6)) -> action (2,)`` for drivers that are one
             (scripted), else None.
+        jax_planner: for planners, their step as pure JAX functions of a plan state
+            (:class:`planners.agents.compiled_planner.CompiledPlanner`), else None.
         diagnostic_fields: ``{name: dtype}`` of the diagnostics :meth:`act` returns.
     """
 
     jax_policy: Callable | None = None
+    jax_planner: Any = None
     diagnostic_fields: dict[str, type] = DIAGNOSTIC_FIELDS
 
     def __init__(self, spec: str, game: Any, index: int, num_races: int) -> None:
