@@ -1,4 +1,4 @@
-"""The `racing` command line: demo, agents, paper, equilibria, tournament, replay, convergence, train, exploit, sweep,
+"""The `racing` command line: demo, agents, tracks, paper, equilibria, tournament, replay, convergence, train, exploit, sweep,
 bench.
 
 Each command's code is imported only when it runs: the RL layer (:mod:`experiments.rl`, torch
@@ -96,6 +96,17 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     render_race(run, args.race, path, every=args.every, size=args.size, camera=args.camera, plans=args.plans,
                 steps=steps)
     print(f"wrote {path}")
+    return 0
+
+
+def _cmd_tracks(args: argparse.Namespace) -> int:
+    from experiments.tracks import plot_track, print_tracks, track_rows
+
+    if args.plot:
+        path = plot_track(args.plot, Path(args.out) if args.out else Path("runs/tracks") / f"{args.plot}.png")
+        print(f"wrote {path}")
+        return 0
+    print_tracks(track_rows(lap_limits=args.limits), as_json=args.json)
     return 0
 
 
@@ -315,6 +326,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     agents.add_argument("name", nargs="?", help="one agent (default: all)")
     agents.set_defaults(func=_cmd_agents)
+
+    tracks = sub.add_parser(
+        "tracks", help="list the tracks the commands take by name (--plot NAME draws one with its racing line)",
+        description="The built-in tracks (straight, trefoil, random) and the real circuits shipped with the package "
+        "(the TUMFTM racetrack-database, LGPL-3.0): length, mean and minimum width, corners (stretches of radius "
+        "below 100 m), the tightest radius of the centre line, closed or not, whether a racing line is shipped; "
+        "--limits adds the lap-time limit of the default car on the racing line and on the centre line (a few "
+        "seconds). Any command's --track takes these names in any case (Monza, spa), or a CSV path. Guide: "
+        "docs/env.md.",
+    )
+    tracks.add_argument("--plot", metavar="NAME", default=None,
+                        help="draw track NAME with its racing line coloured by the limit's speed (PNG)")
+    tracks.add_argument("--out", default=None, help="the PNG of --plot (default: runs/tracks/NAME.png)")
+    tracks.add_argument("--limits", action="store_true", help="add the lap-time limits of the default car")
+    tracks.add_argument("--json", action="store_true", help="print the table as JSON")
+    tracks.set_defaults(func=_cmd_tracks)
 
     paper = sub.add_parser(
         "paper", parents=[cache],
