@@ -217,7 +217,7 @@ def _project_along(track: Track, xy: np.ndarray, expected: np.ndarray | None = N
 
 def racing_line(
     track: Track, path: str | os.PathLike | None = None, smoothing: float = RACELINE_SMOOTHING,
-    tolerance: float = RACELINE_TOLERANCE,
+    tolerance: float = RACELINE_TOLERANCE, margin: float = 0.0,
 ) -> RacingLine:
     """A racing line (rows ``x_m, y_m``) on a closed track, as a :class:`RacingLine`.
 
@@ -231,6 +231,8 @@ def racing_line(
     line's centre of curvature (``1 - n kappa < FRENET_LIMIT``; only Norisring's hairpin, whose
     inner boundary does too) the track's Frenet frame has no place for it, and the line is
     blended back to the centre line there, smoothly over ``BLEND_DISTANCE`` either side.
+    ``margin`` [m] > 0 first moves points closer than that to a boundary back to ``margin``
+    inside it (a driver that needs room to track the line; the fit smooths the corners).
 
     Raises:
         ValueError: for an open track; a track with no shipped racing line and no ``path``;
@@ -274,6 +276,14 @@ def racing_line(
     # its grid points' places on the track, and everything resampled onto the track's grid.
     from racing_env.track import from_centerline
 
+    if not (np.isfinite(margin) and margin >= 0):
+        raise ValueError(f"racing_line: margin must be a distance >= 0 m, got {margin!r}")
+    if margin > 0:
+        pulled = np.clip(n, -(width_right - margin), width_left - margin)
+        if np.any(pulled != n):
+            n = pulled
+            x_new, y_new, _ = track.to_cartesian(s, n)
+            xy = np.stack([x_new, y_new], axis=-1)
     # Where the line passes beyond the centre line's centre of curvature (Norisring's hairpin,
     # whose inner boundary does too) the Frenet frame of the track has no place for it: there
     # the line is blended back to the centre line, smoothly over BLEND_DISTANCE either side.
@@ -327,17 +337,18 @@ def racing_line(
         raise ValueError(f"{path}: the line at s = {grid[k]:.1f} m lies too near the centre line's centre of "
                          f"curvature for the Frenet frame (n = {n[k]:.2f} m, 1 - n kappa = {a[k]:.3f})")
     return RacingLine(track=track, n=n, chi=chi, sigma=sigma, kappa=kappa, length=float(own.length),
-                      name="raceline")
+                      name="raceline" if margin == 0 else f"raceline, {margin:g} m inside")
 
 
 @functools.lru_cache(maxsize=64)
-def _shipped_raceline(track: Track) -> RacingLine:
-    return racing_line(track)
+def _shipped_raceline(track: Track, margin: float) -> RacingLine:
+    return racing_line(track, margin=margin)
 
 
-def get_line(track: Track, line: str | RacingLine = "raceline") -> RacingLine:
+def get_line(track: Track, line: str | RacingLine = "raceline", margin: float = 0.0) -> RacingLine:
     """``line`` on ``track``: a :class:`RacingLine` as it is, ``"centerline"``, or
-    ``"raceline"`` (the shipped racing line of the circuit, cached per track).
+    ``"raceline"`` (the shipped racing line of the circuit, ``margin`` [m] inside the
+    boundaries: see :func:`racing_line`; cached per track and margin).
 
     Raises:
         ValueError: for another name (listing :data:`LINES`) or a track with no racing line.
@@ -349,7 +360,7 @@ def get_line(track: Track, line: str | RacingLine = "raceline") -> RacingLine:
     if line == "centerline":
         return centerline(track)
     if line == "raceline":
-        return _shipped_raceline(track)
+        return _shipped_raceline(track, float(margin))
     raise ValueError(f"unknown line {line!r}: expected one of {list(LINES)} or a RacingLine")
 
 
@@ -545,3 +556,25 @@ def reference_lap_time(track: Track, vehicle: VehicleParams = VehicleParams()) -
         return None
     line = "raceline" if has_raceline(track) else "centerline"
     return lap_time_limit(track, vehicle, line=line), line
+
+
+@functools.lru_cache(maxsize=256)
+def _cached_reference(track: Track, vehicle_fields: tuple[float, ...]) -> tuple[float, str] | None:
+    return reference_lap_time(track, VehicleParams(*vehicle_fields))
+
+
+def race_limit(track: Track, vehicle: VehicleParams, laps: int, race_distance: float | None = None
+               ) -> tuple[float, str] | None:
+    """The lap-time limit of a race of ``laps`` whole laps on a closed track, ``laps`` times the
+    flying lap of :func:`reference_lap_time` (the racing line where one is shipped, else the
+    centre line), and its line; ``None`` for an open track or a race to a ``race_distance``.
+    Cached per track and car. A race from the grid's rolling start (about 15 m/s) is a few
+    tenths of a second slower than flying laps at the limit (0.7 s at Monza)."""
+    if race_distance is not None or not track.closed:
+        return None
+    fields = tuple(float(getattr(vehicle, f.name)) for f in dataclasses.fields(VehicleParams))
+    reference = _cached_reference(track, fields)
+    if reference is None:
+        return None
+    lap, line = reference
+    return laps * lap, line
