@@ -8,9 +8,10 @@ length ``sigma(s)`` and curvature ``kappa_line(s)``. With ``a = 1 - n kappa``:
     chi = atan2(n', a)        dsigma/ds = sqrt(a^2 + n'^2)        kappa_line = (kappa + chi') / (dsigma/ds)
 
 (``'`` is ``d/ds``; for the centre line ``n = 0`` these are ``0``, ``1`` and ``kappa``).
-:func:`centerline` is the centre line; :func:`racing_line` reads the racing line of a shipped
-circuit (or any file of rows ``x_m, y_m``), maps it onto the track's Frenet frame and fits
-``n(s)`` with a periodic smoothing spline.
+:func:`line_from_offset` builds one from ``n(s)``; :func:`centerline` is the centre line;
+:func:`racing_line` reads the racing line of a shipped circuit (or any file of rows
+``x_m, y_m``), takes its own arc length and curvature from a periodic smoothing spline of its
+points, and places it on the track's Frenet frame (``n(s)``, ``chi(s)``).
 
 :func:`speed_profile` is the quasi-steady-state (QSS) speed profile of a car along a line,
 the fastest the point mass can drive it within its limits (:class:`VehicleParams`):
@@ -50,7 +51,7 @@ from racing_env.dynamics import MIN_FRENET_SCALE
 from racing_env.track import Track, circuit_name, circuit_names, raceline_path
 from racing_env.vehicle import VehicleParams
 
-#: Positional smoothing [m] of the racing line's lateral offset (splrep, factor ``P sigma^2``).
+#: Positional noise [m] assumed by the racing line's smoothing spline (``from_centerline``).
 RACELINE_SMOOTHING = 0.1
 #: How far [m] a racing-line point may lie beyond a boundary of the fitted track before the
 #: file is refused: the track's centre line is a smoothing spline of the measured one
