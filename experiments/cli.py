@@ -1,4 +1,4 @@
-"""The `racing` command line: demo, agents, paper, equilibria, tournament, replay, convergence, train, exploit, sweep,
+"""The `racing` command line: demo, agents, tracks, paper, equilibria, tournament, replay, convergence, train, exploit, sweep,
 bench.
 
 Each command's code is imported only when it runs: the RL layer (:mod:`experiments.rl`, torch
@@ -16,7 +16,7 @@ from pathlib import Path
 # Agent names (planners.methods, the registry planners.AGENTS), solver modes and SB3 algorithms
 # are written out here and in the choices below (importing planners loads JAX);
 # tests/test_library_surface.py checks them against their definitions.
-DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping")
+DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "raceline")
 # racing_env.config.INCIDENT_MODES, racing_env.scenarios.SCENARIOS and
 # experiments.rl.train.TRAINING_STARTS (not imported here: JAX)
 INCIDENT_CHOICES = ("penalty", "terminate", "both", "ignore")
@@ -96,6 +96,17 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     render_race(run, args.race, path, every=args.every, size=args.size, camera=args.camera, plans=args.plans,
                 steps=steps)
     print(f"wrote {path}")
+    return 0
+
+
+def _cmd_tracks(args: argparse.Namespace) -> int:
+    from experiments.tracks import plot_track, print_tracks, track_rows
+
+    if args.plot:
+        path = plot_track(args.plot, Path(args.out) if args.out else Path("runs/tracks") / f"{args.plot}.png")
+        print(f"wrote {path}")
+        return 0
+    print_tracks(track_rows(lap_limits=args.limits), as_json=args.json)
     return 0
 
 
@@ -287,9 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser(
         "demo", parents=[cache],
-        help="a short tournament of iLQR, open-loop and feedback iLQGame and a lane keeper",
+        help="a short tournament of iLQR, open-loop and feedback iLQGame and the racing-line driver",
         description="A round robin (both starting orders, one start grid) of iLQR, open-loop iLQGame, feedback "
-        "iLQGame and the lane-keeping baseline over one lap (--laps, --race-distance) of a built-in circuit "
+        "iLQGame and the racing-line driver (raceline; on the trefoil it drives the centre line at its limit) over one lap (--laps, --race-distance) of a built-in circuit "
         "(a few minutes, most of it compiling the planners). Prints the leaderboard; writes OUT/results.jsonl, "
         "summary.csv, head_to_head.png, race.gif, report.html and the races' replays. --scripted instead races two scripted cars (seconds). "
         "A fresh run each time; for a resumable one use racing tournament.",
@@ -298,7 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps (default: a lap)")
     demo.add_argument("--scripted", action="store_true",
                       help="race two scripted cars (--laps or --race-distance; GIF + trajectory plot)")
-    demo.add_argument("--track", default="trefoil", help="built-in track name or TUMFTM CSV path (default: trefoil)")
+    demo.add_argument("--track", default="trefoil", help="track name (racing tracks lists them) or TUMFTM CSV path (default: trefoil)")
     demo.add_argument("--laps", type=int, default=1, help="race length in laps (default: 1)")
     demo.add_argument("--seed", type=int, default=0, help="start-grid seed (default: 0)")
     demo.set_defaults(func=_cmd_demo)
@@ -315,6 +326,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     agents.add_argument("name", nargs="?", help="one agent (default: all)")
     agents.set_defaults(func=_cmd_agents)
+
+    tracks = sub.add_parser(
+        "tracks", help="list the tracks the commands take by name (--plot NAME draws one with its racing line)",
+        description="The built-in tracks (straight, trefoil, random) and the real circuits shipped with the package "
+        "(the TUMFTM racetrack-database, LGPL-3.0): length, mean and minimum width, corners (stretches of radius "
+        "below 100 m), the tightest radius of the centre line, closed or not, whether a racing line is shipped; "
+        "--limits adds the lap-time limit of the default car on the racing line and on the centre line (a few "
+        "seconds). Any command's --track takes these names in any case (Monza, spa), or a CSV path. Guide: "
+        "docs/env.md.",
+    )
+    tracks.add_argument("--plot", metavar="NAME", default=None,
+                        help="draw track NAME with its racing line coloured by the limit's speed (PNG)")
+    tracks.add_argument("--out", default=None, help="the PNG of --plot (default: runs/tracks/NAME.png)")
+    tracks.add_argument("--limits", action="store_true", help="add the lap-time limits of the default car")
+    tracks.add_argument("--json", action="store_true", help="print the table as JSON")
+    tracks.set_defaults(func=_cmd_tracks)
 
     paper = sub.add_parser(
         "paper", parents=[cache],
@@ -375,9 +402,9 @@ def build_parser() -> argparse.ArgumentParser:
         "leaderboard.json, head_to_head.png, race.gif (the first race, with the planners' plans) and "
         "report.html (open it in a browser). Agent specs: racing agents; guide: docs/sweeps.md.",
     )
-    tour.add_argument("--agents", nargs="+", default=["ilqr", "ilqgame-ol", "ilqgame-fb", "lane-keeping"],
+    tour.add_argument("--agents", nargs="+", default=["ilqr", "ilqgame-ol", "ilqgame-fb", "raceline"],
                       help="agent specs (space- or comma-separated)")
-    tour.add_argument("--track", default="trefoil", help="built-in track name or TUMFTM CSV path (default: trefoil)")
+    tour.add_argument("--track", default="trefoil", help="track name (racing tracks lists them) or TUMFTM CSV path (default: trefoil)")
     tour.add_argument("--laps", type=int, default=1, help="laps on closed tracks (default: 1)")
     tour.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
     tour.add_argument("--grids", type=int, default=2, help="seeded start grids per pairing (default: 2)")
@@ -506,7 +533,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--algo", default="ppo", choices=["ppo", "sac", "td3", "a2c", "ddpg"],
                        help="stable-baselines3 algorithm (default: ppo)")
     train.add_argument("--timesteps", type=int, default=200_000, help="environment steps in all (default: 200000)")
-    train.add_argument("--track", default="trefoil", help="built-in track name or TUMFTM CSV path (default: trefoil)")
+    train.add_argument("--track", default="trefoil", help="track name (racing tracks lists them) or TUMFTM CSV path (default: trefoil)")
     train.add_argument("--laps", type=int, default=1, help="laps per episode on closed tracks (default: 1)")
     train.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
     train.add_argument("--max-steps", type=int, default=3000,
@@ -625,7 +652,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "from both slots (default: 2)")
     exploit.add_argument("--eval-every", type=int, default=0,
                          help="steps between a training's evaluations (default: 0: only the final one)")
-    exploit.add_argument("--track", default="trefoil", help="built-in track name or TUMFTM CSV path (default: trefoil)")
+    exploit.add_argument("--track", default="trefoil", help="track name (racing tracks lists them) or TUMFTM CSV path (default: trefoil)")
     exploit.add_argument("--laps", type=int, default=1, help="laps per race on closed tracks (default: 1)")
     exploit.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
     exploit.add_argument("--max-steps", type=int, default=3000,

@@ -299,6 +299,7 @@ def _races_section(races: Sequence[RaceRow], embedded: set[int], scheduled: int,
         _Column("lineup (by start slot)", lambda race: " vs ".join(car["agent"] for car in race.cars), kind="name"),
         _Column("winner", lambda race: race.winner["agent"], kind="name"),
         _Column("winner's time [s]", lambda race: _num(race.winner["finish_time"], "{:.2f}"), kind="num"),
+        _Column("x limit", lambda race: _num(race.winner.get("limit_ratio"), "{:.3f}"), kind="num"),
         _Column("gap", lambda race: _gap_text(race.gap), kind="num"),
         _Column("overtakes", lambda race: str(race.overtakes), kind="num"),
         _Column("steps", lambda race: str(race.steps), kind="num"),
@@ -396,6 +397,10 @@ def _ci_columns(header: str) -> list[_Column]:
 
 
 _ERRORS = _Column("errors", lambda row: str(row["errors"]), kind="num")
+# finish time over the race's lap-time limit (racing_env.limits.race_limit); leaderboards from before it: a dash
+_LIMIT = _Column("x limit", lambda row: _num(row.get("mean_limit_ratio"), "{:.3f}"), kind="num")
+_LIMIT_NOTE = (" x limit: the mean finish time over the race's lap-time limit (the quasi-steady-state flying laps "
+               "of the car on the circuit's racing line, or the centre line where none is shipped; 1.04 is 4% slower).")
 _MARGIN_NOTE = "margin: mean finish-time lead over the other cars in the races all finished."
 
 
@@ -459,16 +464,16 @@ def write_tournament_report(out: Path, config: RaceSpec, board: dict[str, Any], 
     if time_trial:
         columns = [rank, agent, _ratio("finished", "finished"),
                    _value("mean finish time [s]", "mean_finish_time_s", "{:.2f}"),
-                   _value("best [s]", "best_finish_time_s", "{:.2f}"),
+                   _value("best [s]", "best_finish_time_s", "{:.2f}"), _LIMIT,
                    _value("off track [s]", "time_off_track_s", "{:.1f}"), _ERRORS]
-        note = "Each agent alone on the track, ranked by laps finished, then mean finish time."
+        note = "Each agent alone on the track, ranked by laps finished, then mean finish time." + _LIMIT_NOTE
         head_to_head = _note("A time trial races every agent alone: there is no head to head.")
     else:
         columns = [rank, agent, _value("rating", "rating", "{:.2f}"), _ratio("wins/races", "wins"),
                    *_ci_columns("win rate [95% CI]"), _ratio("finished", "finished"),
-                   _value("margin [s]", "mean_margin_s", "{:+.2f}"), _ERRORS]
+                   _value("margin [s]", "mean_margin_s", "{:+.2f}"), _LIMIT, _ERRORS]
         note = ("Ranked by rating (Plackett-Luce mu - 3 sigma); win rates with 95% Wilson intervals; "
-                + _MARGIN_NOTE)
+                + _MARGIN_NOTE + _LIMIT_NOTE)
         names, wins = board["head_to_head"]["agents"], board["head_to_head"]["wins"]
         matrix = [_Column("row ahead of column", lambda i: names[i], kind="name"),
                   *(_Column(name, lambda i, j=j: "-" if i == j else str(wins[i][j]), kind="num")

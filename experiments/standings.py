@@ -55,7 +55,7 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
     ratings = {n: model.rating(name=n) for n in names}
     h2h = np.zeros((len(names), len(names)), dtype=int)
     stats = {n: {"races": 0, "wins": 0, "finished": 0, "retired": 0, "errors": 0, "collision_steps": 0, "act_times": [],
-                 "margins": [], "finish_times": [], "off_track_s": 0.0, "converged": [], "certified": []} for n in names}
+                 "margins": [], "finish_times": [], "limit_ratios": [], "off_track_s": 0.0, "converged": [], "certified": []} for n in names}
     for record in records:
         order = record["order"]
         if len(order) > 1:  # a time trial has no one to be rated against
@@ -71,6 +71,8 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
             st["finished"] += car["finish_time"] is not None
             if car["finish_time"] is not None:
                 st["finish_times"].append(car["finish_time"])
+                if car.get("limit_ratio") is not None:  # records from before the limit: none
+                    st["limit_ratios"].append(car["limit_ratio"])
             st["off_track_s"] += car["time_off_track"]
             st["retired"] += bool(car.get("retired", False))  # records from before incident rules: none
             st["errors"] += car["error"] is not None
@@ -98,6 +100,9 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
                      # over the races it finished
                      "mean_finish_time_s": float(np.mean(st["finish_times"])) if st["finish_times"] else None,
                      "best_finish_time_s": min(st["finish_times"]) if st["finish_times"] else None,
+                     # finish time over the race's lap-time limit, over the races it finished (1.04: 4% slower)
+                     "mean_limit_ratio": float(np.mean(st["limit_ratios"])) if st["limit_ratios"] else None,
+                     "best_limit_ratio": min(st["limit_ratios"]) if st["limit_ratios"] else None,
                      "time_off_track_s": st["off_track_s"],
                      "mean_act_time_s": float(np.mean(st["act_times"])) if st["act_times"] else float("nan"),
                      # a planner's share of re-plans that converged, averaged over its races

@@ -184,6 +184,7 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     """
     from experiments.race import run_race
     from planners.agents import make_agent
+    from racing_env.limits import race_limit
 
     if len(lineup) != race.num_agents:
         raise ValueError(f"a lineup of {len(lineup)} specs for a race of {race.num_agents} cars")
@@ -221,11 +222,15 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     cars = []
     for i, (spec, car) in enumerate(zip(lineup, result.summary)):
         agent = agents[i]
+        limit = race_limit(env.track, env.game.vehicles.car(i), race.laps, race.race_distance)
         summary = agent.summary() if agent is not None and hasattr(agent, "summary") else {}
         times = result.act_times[i]
         cars.append({
             "agent": spec, "car": car["agent"], "start_place": start_places[i], "place": places[i],
             "finish_time": finish[i],
+            # the finish time over the race's lap-time limit (racing_env.limits.race_limit), and its line
+            "limit_ratio": finish[i] / limit[0] if limit is not None and finish[i] is not None else None,
+            "limit_time": limit[0] if limit is not None else None, "limit_line": limit[1] if limit is not None else None,
             "distance": car["distance"], "mean_speed": car["mean_speed"],
             "collision_steps": car["collision_steps"], "time_off_track": car["time_off_track"],
             "retired": car["retired"],
@@ -305,12 +310,13 @@ def _time_trial_table(board: dict[str, Any], records: list[dict[str, Any]], conf
 
     table = Table(title=f"time trial: {len(records)} laps alone on {config.track}")
     certified_header, certified = _certified_cells(board)
-    for col in ("#", "agent", "finished", "mean finish time [s]", "best [s]", "off track [s]",
+    for col in ("#", "agent", "finished", "mean finish time [s]", "best [s]", "x limit", "off track [s]",
                 *(("retired",) if retire else ()), "errors", "act [ms]", "converged", *certified_header):
         table.add_column(col, overflow="fold")
     for k, row in enumerate(board["rows"], 1):
         table.add_row(str(k), row["agent"], f"{row['finished']}/{row['races']}", or_dash(row["mean_finish_time_s"], "{:.2f}"),
-                      or_dash(row["best_finish_time_s"], "{:.2f}"), f"{row['time_off_track_s']:.1f}",
+                      or_dash(row["best_finish_time_s"], "{:.2f}"), or_dash(row.get("mean_limit_ratio"), "{:.3f}"),
+                      f"{row['time_off_track_s']:.1f}",
                       *((str(row["retired"]),) if retire else ()), str(row["errors"]),
                       f"{1e3 * row['mean_act_time_s']:.1f}",
                       or_dash(row["converged_fraction"], "{:.0%}"), *certified[k - 1])
@@ -397,7 +403,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
     certified_header, certified = _certified_cells(board)
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "finished",
-                *(("retired",) if retire else ()), "margin [s]", "errors", "contact steps", "act [ms]", "converged",
+                *(("retired",) if retire else ()), "margin [s]", "x limit", "errors", "contact steps", "act [ms]", "converged",
                 *certified_header):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
@@ -405,7 +411,8 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
         table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
                       f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", f"{row['finished']}/{row['races']}",
                       *((str(row["retired"]),) if retire else ()),
-                      or_dash(row["mean_margin_s"], "{:+.2f}"), str(row["errors"]),
+                      or_dash(row["mean_margin_s"], "{:+.2f}"), or_dash(row.get("mean_limit_ratio"), "{:.3f}"),
+                      str(row["errors"]),
                       str(row["collision_steps"]),
                       f"{1e3 * row['mean_act_time_s']:.1f}",
                       or_dash(row["converged_fraction"], "{:.0%}"), *certified[k - 1])

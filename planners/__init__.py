@@ -21,6 +21,7 @@ name                   class                           what it does
 ``ilqgame-fb``         :class:`FeedbackGameAgent`      feedback Nash iLQGame, re-planned every step
 ``ilqgame-ol``         :class:`OpenLoopGameAgent`      open-loop Nash iLQGame, re-planned every step
 ``ilqr``               :class:`ILQRAgent`              iLQR against predictions of the opponents
+``raceline``           :class:`RacelineAgent`          scripted: the racing line at the lap-time limit
 ``lane-keeping``       :class:`LaneKeepingAgent`       scripted: an offset at a cruise speed
 ``constant-speed``     :class:`ConstantSpeedAgent`     scripted: the centre line at a constant speed
 ``rl:PATH``            :class:`SB3Agent`               a saved stable-baselines3 policy
@@ -79,6 +80,7 @@ from planners.agents import (
     JaxPolicyAgent,
     LaneKeepingAgent,
     OpenLoopGameAgent,
+    RacelineAgent,
     agent_options,
     make_agent,
     make_batched_opponent,
@@ -107,6 +109,7 @@ __all__ = [
     "JaxPolicyAgent",
     "LaneKeepingAgent",
     "OpenLoopGameAgent",
+    "RacelineAgent",
     "SB3Agent",
     "SolverOptions",
     "SolverResult",

@@ -25,6 +25,7 @@ __all__ = [
     "OPEN_LOOP_GAME",
     "PLANNERS",
     "PREDICTIONS",
+    "RACELINE",
     "RL",
     "SOLVER_MODES",
 ]
@@ -47,9 +48,11 @@ LANE_KEEPING = "lane-keeping"
 """The scripted lane keeper (:class:`planners.LaneKeepingAgent`)."""
 CONSTANT_SPEED = "constant-speed"
 """The scripted constant-speed cruiser (:class:`planners.ConstantSpeedAgent`)."""
+RACELINE = "raceline"
+"""The scripted racing-line driver (:class:`planners.RacelineAgent`)."""
 RL = "rl"
 """A saved stable-baselines3 policy (:class:`planners.SB3Agent`): specs ``rl:PATH`` or ``rl:ALGO:PATH``."""
-AGENT_METHODS = (ILQR, OPEN_LOOP_GAME, FEEDBACK_GAME, LANE_KEEPING, CONSTANT_SPEED)
+AGENT_METHODS = (ILQR, OPEN_LOOP_GAME, FEEDBACK_GAME, RACELINE, LANE_KEEPING, CONSTANT_SPEED)
 """The agent names of the registry, in the order help text lists them (``rl:`` specs apart)."""
 
 GAME_MODES = {FEEDBACK_GAME: FEEDBACK, OPEN_LOOP_GAME: OPEN_LOOP}

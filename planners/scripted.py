@@ -1,4 +1,6 @@
-"""Scripted baseline drivers: a lane-keeping controller and a constant-speed cruiser.
+"""Scripted baseline drivers: a lane-keeping controller, a constant-speed cruiser and a
+racing-line driver (:class:`RacelineDriver`: the circuit's racing line at the speed profile of
+its lap-time limit).
 
 They read the joint state (full information, like the planners) and return normalised
 jerk actions in ``[-1, 1]^2``. These are the control laws alone, callables
@@ -175,6 +177,8 @@ def jax_policy(controller: LaneKeeping) -> Callable[[jnp.ndarray], jnp.ndarray]:
     those ulps are ~1e-14 in the normalised action. A non-finite law (a car whose own state is not finite) gives
     :data:`BRAKE_ACTION`, so the function never returns NaN. Jit it, ``vmap`` it over races.
     """
+    if hasattr(controller, "jax_law"):  # a driver with its own JAX law (RacelineDriver)
+        return controller.jax_law()
     index = controller.index
     kappa = jax_curvature(controller)
     vehicle = controller.vehicle
@@ -214,3 +218,123 @@ def constant_speed_policy(track: Track, index: int, vehicle: VehicleParams = Veh
                           target_speed: float = 15.0) -> Callable[[jnp.ndarray], jnp.ndarray]:
     """:func:`jax_policy` of ``ConstantSpeed(track, index, vehicle, target_speed)``."""
     return jax_policy(ConstantSpeed(track, index, vehicle, target_speed=target_speed))
+
+
+# --------------------------------------------------------------------------------------
+# The racing-line driver.
+# --------------------------------------------------------------------------------------
+
+RACELINE_LATERAL_STIFFNESS = 4.0  # [1/s^2] e'' = -k_p e - k_d e' on the lateral error e = n - n_ref
+RACELINE_LATERAL_DAMPING = 4.0  # [1/s] critical damping for k_p = 4
+RACELINE_SPEED_GAIN = 2.0  # [1/s] ax_desired = ax_ref + gain * (v_ref - V)
+RACELINE_ACCEL_GAIN = 6.0  # [1/s] jerk = gain * (a_desired - a), clipped to the jerk limits
+RACELINE_PREVIEW = 1.0 / RACELINE_ACCEL_GAIN  # [s] the line's curvature is read this far ahead: the acceleration lag
+RACELINE_SPEED_PREVIEW = 0.4  # [s] speeds and accelerations are read this far ahead: the jerk-limited ramp into braking
+RACELINE_MARGIN = 1.25  # [m] the line is kept this far inside the boundaries (half a car's width)
+RACELINE_ERROR_CAP = 2.0  # [m] the lateral error the stiffness acts on is capped here (the start, a pass)
+
+
+def check_raceline_options(pace: float = 1.0, margin: float = RACELINE_MARGIN, line: str = "raceline") -> None:
+    """Refuse a pace outside ``(0, 1]``, a negative or non-finite margin [m] and an unknown line."""
+    if not 0.0 < float(pace) <= 1.0:
+        raise ValueError(f"pace must be in (0, 1] (a fraction of the limit's speed), got {pace!r}")
+    if not (np.isfinite(float(margin)) and float(margin) >= 0.0):
+        raise ValueError(f"margin must be a finite distance >= 0 m, got {margin!r}")
+    if line not in ("raceline", "centerline"):
+        raise ValueError(f"line must be 'raceline' or 'centerline', got {line!r}")
+
+
+class RacelineDriver:
+    """Follows a racing line at the speed profile of its lap-time limit, scaled by ``pace``.
+
+    The line is the circuit's shipped racing line (``line="raceline"``; the centre line on
+    tracks that ship none: the built-in ones), its points kept ``margin`` [m] inside the
+    boundaries before its fit (:func:`racing_env.limits.racing_line`); the speeds and accelerations are the car's own quasi-steady-state profile on
+    it (:func:`racing_env.limits.speed_profile`), times ``pace`` (accelerations times
+    ``pace**2``). The law, in JAX (:meth:`jax_law`):
+
+    * lateral: ``ay = kappa_line(s') V^2 - k_p (n - n_ref(s)) - k_d V (sin chi - sin chi_ref(s))``,
+      the line's curvature read ``RACELINE_PREVIEW`` ahead (``s' = s + V * preview``);
+    * longitudinal: ``ax = ax_ref(s') + k_v (v_ref(s') - V)``, within ``ax_max(V)`` and the gg
+      room the lateral demand leaves (the lateral acceleration comes first);
+    * jerks ``gain * (a_desired - a)``, normalised by the car's jerk limits and clipped to
+      ``[-1, 1]``: the controller never asks for more jerk than the car has.
+
+    It does not avoid other cars: it drives its line whoever is on it (a baseline, not a
+    planner).
+
+    Args:
+        track: the track raced on.
+        index: the car this controller drives (row of the joint state).
+        vehicle: that car's parameters.
+        pace: fraction of the limit's speed, in ``(0, 1]``.
+        margin: how far inside the boundaries the line is kept [m].
+        line: ``"raceline"`` or ``"centerline"``.
+    """
+
+    name = "raceline"
+
+    def __init__(self, track: Track, index: int, vehicle: VehicleParams = VehicleParams(), pace: float = 1.0,
+                 margin: float = RACELINE_MARGIN, line: str = "raceline") -> None:
+        from racing_env import limits
+
+        check_raceline_options(pace, margin, line)
+        self.track, self.index, self.vehicle = track, int(index), vehicle
+        self.pace, self.margin = float(pace), float(margin)
+        use_raceline = line == "raceline" and limits.has_raceline(track)
+        self.line_name = "raceline" if use_raceline else "centerline"
+        racing_line = limits.get_line(track, self.line_name, margin=self.margin) if use_raceline else \
+            limits.centerline(track)
+        # open tracks: no start constraint (the profile is the lateral and braking limits ahead)
+        profile = limits.speed_profile(racing_line, vehicle, v_start=None if track.closed else float(vehicle.v_max))
+        self.profile = profile
+        width_left, width_right = np.asarray(track.width_left), np.asarray(track.width_right)
+        # the fitted line may still touch the margin by the fit's few centimetres
+        self._n_ref = np.clip(racing_line.n, -(width_right - self.margin), width_left - self.margin)
+        self._chi_ref = np.asarray(racing_line.chi)
+        self._kappa = np.asarray(racing_line.kappa)
+        self._v_ref = self.pace * profile.v
+        self._ax_ref = self.pace**2 * profile.ax
+        self._jerk_max = np.array([float(vehicle.jx_max), float(vehicle.jy_max)])
+        self._law = None
+
+    def jax_law(self) -> Callable[[jnp.ndarray], jnp.ndarray]:
+        """The law as a pure JAX function ``policy(x (N, 6)) -> action (2,)``: normalised jerks
+        in ``[-1, 1]``, float64; :data:`BRAKE_ACTION` where the car's own state is not finite.
+        Jit it, ``vmap`` it over races."""
+        track, index, vehicle = self.track, self.index, self.vehicle
+        tables = {k: jnp.asarray(v) for k, v in
+                  (("n", self._n_ref), ("chi", self._chi_ref), ("kappa", self._kappa), ("v", self._v_ref),
+                   ("ax", self._ax_ref))}
+        jx_max, jy_max = (float(j) for j in self._jerk_max)
+        brake = jnp.asarray(BRAKE_ACTION, dtype=jnp.float64)
+
+        def policy(x):
+            s, v, n, chi, ax, ay = (jnp.asarray(x, dtype=jnp.float64)[index, k] for k in range(6))
+            v_pos = jnp.maximum(v, 0.0)
+            ahead = s + v_pos * RACELINE_PREVIEW
+            ahead_v = s + v_pos * RACELINE_SPEED_PREVIEW
+            n_ref = track._interp(tables["n"], s)
+            chi_ref = track._interp(tables["chi"], s)
+            lateral_error = jnp.clip(n - n_ref, -RACELINE_ERROR_CAP, RACELINE_ERROR_CAP)
+            error_rate = v * (jnp.sin(chi) - jnp.sin(chi_ref))
+            ay_des = (track._interp(tables["kappa"], ahead) * v**2 - RACELINE_LATERAL_STIFFNESS * lateral_error
+                      - RACELINE_LATERAL_DAMPING * error_rate)
+            rho = vehicle.rho(v_pos)
+            ay_des = jnp.clip(ay_des, -rho, rho)
+            room = jnp.sqrt(jnp.maximum(rho**2 - ay_des**2, 0.0))
+            ax_des = track._interp(tables["ax"], ahead_v) + RACELINE_SPEED_GAIN * (track._interp(tables["v"], ahead_v) - v)
+            ax_des = jnp.clip(ax_des, -room, jnp.minimum(room, vehicle.ax_max(v_pos)))
+            jx = RACELINE_ACCEL_GAIN * (ax_des - ax) / jx_max
+            jy = RACELINE_ACCEL_GAIN * (ay_des - ay) / jy_max
+            action = jnp.clip(jnp.stack([jx, jy]), -1.0, 1.0)
+            return jnp.where(jnp.all(jnp.isfinite(action)), action, brake)
+
+        return policy
+
+    def __call__(self, observation: np.ndarray | None, joint_state: np.ndarray) -> np.ndarray:
+        if self._law is None:
+            import jax
+
+            self._law = jax.jit(self.jax_law())
+        return np.asarray(self._law(np.asarray(joint_state, dtype=np.float64)), dtype=np.float32)

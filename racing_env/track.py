@@ -16,12 +16,15 @@ Cartesian conversions are NumPy helpers for drawing and analysis.
 
 Builders: :func:`straight`, :func:`from_centerline` (smoothing-spline fit of a measured
 centreline), :func:`from_csv` (TUMFTM racetrack-database files), :func:`trefoil`,
-:func:`random_circuit`, and :func:`get_track` to resolve names and paths.
+:func:`random_circuit`, the shipped real circuits of the TUMFTM racetrack-database
+(:func:`circuit`, :func:`circuit_names`, :func:`raceline_path`), and :func:`get_track` to
+resolve names and paths.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from pathlib import Path
 from typing import Callable
@@ -720,17 +723,151 @@ BUILTIN_TRACKS: dict[str, Callable[[], Track]] = {
 }
 
 
+# --------------------------------------------------------------------------------------
+# The shipped circuits: the TUMFTM racetrack-database (LGPL-3.0, see data/tracks/README.md).
+
+
+def circuits_dir() -> Path:
+    """The folder of the shipped circuits (``NAME.csv``), their racing lines
+    (``racelines/NAME.csv``), their LGPL-3.0 ``LICENSE`` and ``README.md`` notice."""
+    return Path(__file__).resolve().parent / "data" / "tracks"
+
+
+@functools.lru_cache(maxsize=1)
+def _circuit_files() -> dict[str, Path]:
+    return {path.stem: path for path in sorted(circuits_dir().glob("*.csv"))}
+
+
+def circuit_names() -> list[str]:
+    """The names of the shipped real circuits (``"Austin"``, ..., ``"Zandvoort"``), sorted."""
+    return list(_circuit_files())
+
+
+def circuit_name(name: str) -> str | None:
+    """The shipped circuit ``name`` refers to, in its own spelling (``"monza"`` -> ``"Monza"``;
+    case is ignored), or ``None`` if it names none."""
+    if not isinstance(name, str):
+        return None
+    lowered = {key.lower(): key for key in _circuit_files()}
+    return lowered.get(name.lower())
+
+
+@functools.lru_cache(maxsize=None)
+def circuit(name: str) -> Track:
+    """A shipped real circuit by name (any case), fitted by :func:`from_csv` with its defaults.
+
+    The fitted track is cached: the first load of a circuit fits its spline (about 0.1-0.3 s),
+    later ones return the same immutable :class:`Track`.
+
+    Raises:
+        ValueError: for a name that is no shipped circuit, listing the known ones.
+    """
+    canonical = circuit_name(name)
+    if canonical is None:
+        raise ValueError(f"unknown circuit {name!r}: the shipped circuits are {circuit_names()}")
+    if canonical != name:
+        return circuit(canonical)
+    return from_csv(_circuit_files()[canonical])
+
+
+def raceline_path(name: str) -> Path:
+    """The racing-line file (rows ``x_m, y_m``) of shipped circuit ``name`` (any case).
+
+    Raises:
+        ValueError: for a name that is no shipped circuit, listing the known ones.
+    """
+    canonical = circuit_name(name)
+    if canonical is None:
+        raise ValueError(f"no racing line is shipped for {name!r}: the shipped circuits are {circuit_names()}")
+    return circuits_dir() / "racelines" / f"{canonical}.csv"
+
+
+def track_names() -> list[str]:
+    """Every name :func:`get_track` resolves: the built-in tracks, then the shipped circuits."""
+    return list(BUILTIN_TRACKS) + circuit_names()
+
+
 def get_track(name_or_path: str | os.PathLike | Track) -> Track:
     """Resolve a track: a :class:`Track` (returned as is), a builtin name (see
-    ``BUILTIN_TRACKS``), or a path to a TUMFTM ``.csv`` file."""
+    ``BUILTIN_TRACKS``), a shipped circuit's name in any case (``"Monza"``, ``"spa"``, see
+    :func:`circuit_names`; cached), or a path to a TUMFTM ``.csv`` file.
+
+    Raises:
+        ValueError: for a string that is none of these, listing the known names.
+    """
     if isinstance(name_or_path, Track):
         return name_or_path
     key = os.fspath(name_or_path)
     if key in BUILTIN_TRACKS:
         return BUILTIN_TRACKS[key]()
+    if circuit_name(key) is not None:
+        return circuit(key)
     if key.lower().endswith(".csv") or Path(key).is_file():
         return from_csv(key)
     raise ValueError(
-        f"unknown track {key!r}: expected a path to a .csv file or one of the builtin "
-        f"tracks {sorted(BUILTIN_TRACKS)}"
+        f"unknown track {key!r}: expected a path to a .csv file, one of the builtin "
+        f"tracks {sorted(BUILTIN_TRACKS)} or one of the shipped circuits {circuit_names()}"
     )
+
+
+#: A corner for :func:`track_summary`: a stretch whose radius (curvature averaged over
+#: CORNER_WINDOW) is below CORNER_RADIUS; stretches closer than CORNER_GAP are one corner.
+CORNER_RADIUS = 100.0
+CORNER_WINDOW = 10.0
+CORNER_GAP = 30.0
+
+
+def count_corners(track: Track) -> int:
+    """Corners of a track: stretches where the centre line's radius, averaged over
+    ``CORNER_WINDOW`` [m], is below ``CORNER_RADIUS`` [m]; stretches turning the same way less
+    than ``CORNER_GAP`` [m] apart count once (a chicane, left then right, counts twice)."""
+    kappa = np.asarray(track.kappa)
+    m = kappa.shape[0]
+    width = max(1, int(round(CORNER_WINDOW / track.ds)))
+    kernel = np.ones(width) / width
+    if track.closed:
+        padded = np.concatenate([kappa[-width:], kappa, kappa[:width]])
+        smooth = np.convolve(padded, kernel, mode="same")[width:width + m]
+    else:
+        smooth = np.convolve(kappa, kernel, mode="same")
+    turning = np.where(np.abs(smooth) > 1.0 / CORNER_RADIUS, np.sign(smooth), 0.0)
+    if not np.any(turning):
+        return 0
+    # Runs of equal non-zero direction, in grid order (rolled so a closed track starts on a straight).
+    if track.closed:
+        start = int(np.flatnonzero(turning == 0)[0]) if np.any(turning == 0) else 0
+        turning = np.roll(turning, -start)
+    runs: list[tuple[int, int, float]] = []  # (first, last, direction)
+    k = 0
+    while k < m:
+        if turning[k] != 0:
+            j = k
+            while j + 1 < m and turning[j + 1] == turning[k]:
+                j += 1
+            runs.append((k, j, turning[k]))
+            k = j + 1
+        else:
+            k += 1
+    gap = CORNER_GAP / track.ds
+    corners = 1
+    for (_, last, d0), (first, _, d1) in zip(runs, runs[1:]):
+        if d1 != d0 or first - last > gap:
+            corners += 1
+    if track.closed and len(runs) > 1:  # the last and the first run may be one corner
+        (first, _, d0), (_, last, d1) = runs[0], runs[-1]
+        if d0 == d1 and first + m - last <= gap:
+            corners -= 1
+    return corners
+
+
+def track_summary(track: Track) -> dict[str, float | int | bool | str]:
+    """Figures a racer reads: ``name``, ``length`` [m], ``closed``, ``mean_width`` and
+    ``min_width`` [m] (left plus right), ``corners`` (:func:`count_corners`) and
+    ``min_radius`` [m] (of the centre line; ``inf`` on a straight)."""
+    width = np.asarray(track.width_left) + np.asarray(track.width_right)
+    kappa_max = float(np.max(np.abs(track.kappa)))
+    return {
+        "name": track.name, "length": track.length, "closed": track.closed,
+        "mean_width": float(width.mean()), "min_width": float(width.min()),
+        "corners": count_corners(track), "min_radius": 1.0 / kappa_max if kappa_max > 0 else float("inf"),
+    }

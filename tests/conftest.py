@@ -1,11 +1,9 @@
 """Shared test configuration: float64 everywhere, two CPU devices, no on-disk compilation
-cache, and the path to the shared real tracks."""
+cache."""
 
 import os
-from pathlib import Path
 
 import jax
-import pytest
 
 from planners.devices import use_cpu_cores
 
@@ -16,12 +14,3 @@ use_cpu_cores(2)
 # The `racing` commands keep compiled solvers in ~/.cache; tests must not read or write it
 # (test_compile_cache.py runs the cache in its own directories). Inherited by subprocesses.
 os.environ["RACING_COMPILE_CACHE"] = "off"
-
-SHARED_TRACKS = Path(__file__).resolve().parents[1].parent / "shared" / "tracks"
-
-
-@pytest.fixture(scope="session")
-def shared_tracks() -> Path:
-    if not SHARED_TRACKS.is_dir():
-        pytest.skip(f"real track files not found at {SHARED_TRACKS}")
-    return SHARED_TRACKS

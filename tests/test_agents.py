@@ -63,9 +63,9 @@ def test_short_race_trefoil(spec):
 
 
 @pytest.mark.parametrize("spec", ALL_SPECS)
-def test_short_race_monza(spec, shared_tracks):
+def test_short_race_monza(spec):
     env = racing_env.parallel_env(
-        track=str(shared_tracks / "Monza.csv"), num_agents=2, race_distance=100.0, max_steps=60
+        track="Monza", num_agents=2, race_distance=100.0, max_steps=60
     )
     agent = make_agent(spec)
     record, actions = _race(env, agent)
@@ -214,7 +214,7 @@ def test_a_car_stopped_at_the_edge_facing_out_rejoins_in_recovery(spec):
     assert speeds[None] > 5.0
 
 
-def test_a_car_stopped_across_monzas_first_chicane_rejoins_in_recovery(shared_tracks):
+def test_a_car_stopped_across_monzas_first_chicane_rejoins_in_recovery():
     """The standstill of a Monza race (iLQR after a spin in the first chicane):
     at rest 3.5 m right of the centre line, heading 1.43 rad to the right of it, in the
     chicane's 12 m left-hand bend. Turning round needs metres of run-off: with the track
@@ -223,7 +223,7 @@ def test_a_car_stopped_across_monzas_first_chicane_rejoins_in_recovery(shared_tr
     speeds = {}
     for option in ("", ",recovery_track_scale=0.001"):
         agent = make_agent(f"ilqr:r_jx=0.01,r_jy=0.01{option}")
-        speeds[option] = _drive_from_rest(agent, str(shared_tracks / "Monza.csv"), [964.5, 0.0, -3.47, -1.428],
+        speeds[option] = _drive_from_rest(agent, "Monza", [964.5, 0.0, -3.47, -1.428],
                                           20.0, 1100.0, 40)
     assert speeds[",recovery_track_scale=0.001"] < STOPPED_SPEED
     assert speeds[""] > RECOVERED_SPEED
@@ -442,14 +442,14 @@ def test_sb3_agent_real_ppo(tmp_path):
     assert "observation shape" in agent.diagnostics()["error"]
 
 
-@pytest.mark.parametrize("track_name", ["trefoil", "straight", "Monza.csv"])
-def test_lane_keeper_curvature_lookup_equals_numpy_periodic_interp(track_name, shared_tracks):
+@pytest.mark.parametrize("track_name", ["trefoil", "straight", "Monza"])
+def test_lane_keeper_curvature_lookup_equals_numpy_periodic_interp(track_name):
     """The lane keeper prepares np.interp's periodic grid once; its lookups must be the
     very numbers np.interp(..., period=length) gives, wrapped arc lengths included."""
     from planners.scripted import LaneKeeping
     from racing_env import track as tr
 
-    track = tr.from_csv(shared_tracks / track_name) if track_name.endswith(".csv") else tr.get_track(track_name)
+    track = tr.get_track(track_name)
     rng = np.random.default_rng(0)
     L = track.length
     if track.closed:

@@ -183,3 +183,17 @@ def test_the_jerk_weight_help_names_the_racing_default(capsys):
             build_parser().parse_args([command, "--help"])
         text = " ".join(capsys.readouterr().out.split())
         assert f"(default: {RACING_JERK_WEIGHT}, racing_env.costs.RACING_JERK_WEIGHT" in text
+
+
+def test_tracks_lists_every_track_by_name_and_draws_one(tmp_path, capsys):
+    assert main(["tracks", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    names = [row["name"] for row in rows]
+    assert names[:3] == ["straight", "trefoil", "random"] and len(names) == 3 + 25 and "Suzuka" in names
+    monza = rows[names.index("Monza")]
+    assert monza["closed"] and monza["raceline"] and 7.0 < monza["min_width"] < monza["mean_width"]
+    assert monza["corners"] > 5 and 5700 < monza["length"] < 5900
+    assert main(["tracks", "--plot", "suzuka", "--out", str(tmp_path / "suzuka.png")]) == 0
+    assert (tmp_path / "suzuka.png").stat().st_size > 10_000
+    assert main(["tracks", "--plot", "Imola", "--out", str(tmp_path / "imola.png")]) == 2
+    assert "unknown track 'Imola'" in capsys.readouterr().err

@@ -270,9 +270,7 @@ def test_documented_commands_parse() -> None:
 
 
 # A path out of the checkout (e.g. "../shared/...") works only beside the development tree.
-# The TUMFTM centrelines under ../shared/tracks are the one exception until the package
-# ships its circuits; drop it then.
-OUTSIDE_THE_REPOSITORY = re.compile(r"\.\./shared/(?!tracks/)")
+OUTSIDE_THE_REPOSITORY = re.compile(r"\.\./shared/")
 
 
 def test_nothing_points_outside_the_repository() -> None:

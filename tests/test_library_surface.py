@@ -18,7 +18,7 @@ from racing_env.scenarios import PAPER_WEIGHTS, paper_game
 
 DOCUMENTED = {
     # agents
-    "Agent", "BaseAgent", "FeedbackGameAgent", "OpenLoopGameAgent", "ILQRAgent", "LaneKeepingAgent",
+    "Agent", "BaseAgent", "FeedbackGameAgent", "OpenLoopGameAgent", "ILQRAgent", "LaneKeepingAgent", "RacelineAgent",
     "ConstantSpeedAgent", "SB3Agent", "JaxPolicyAgent", "make_agent", "AGENTS", "agent_options", "reset_agents",
     # batched opponents (one object drives one car in B races)
     "BatchedOpponent", "make_batched_opponent",
@@ -33,6 +33,7 @@ SPEC_CLASSES = {
     "ilqgame-fb": "FeedbackGameAgent",
     "ilqgame-ol": "OpenLoopGameAgent",
     "ilqr": "ILQRAgent",
+    "raceline": "RacelineAgent",
     "lane-keeping": "LaneKeepingAgent",
     "constant-speed": "ConstantSpeedAgent",
 }

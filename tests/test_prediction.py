@@ -139,7 +139,7 @@ def test_the_agent_plans_against_the_lane_keeping_rollout():
         make_agent("ilqgame-fb:prediction=lane-keeping")
 
 
-def test_ilqr_with_the_lane_keeping_prediction_gets_through_monzas_chicane(shared_tracks):
+def test_ilqr_with_the_lane_keeping_prediction_gets_through_monzas_chicane():
     """The trace behind the Monza lap of docs/agents.md: iLQR alongside the lane keeper into the
     first chicane (s = 850-980 m), 3.5 m to its left and 1.3 m ahead, both at 25 m/s.
     Predicting the lane keeper at constant speed, iLQR yields and ends 20 s later behind
@@ -147,7 +147,7 @@ def test_ilqr_with_the_lane_keeping_prediction_gets_through_monzas_chicane(share
     chicane and leaves it behind (measured: 118 m ahead). Racing jerk weights as in races."""
     ahead = {}
     for prediction in ("constant-velocity", "lane-keeping"):
-        env = racing_env.parallel_env(track=str(shared_tracks / "Monza.csv"), num_agents=2, max_steps=210)
+        env = racing_env.parallel_env(track="Monza", num_agents=2, max_steps=210)
         agent = make_agent(f"ilqr:r_jx=0.01,r_jy=0.01,prediction={prediction}")
         keeper = make_agent("lane-keeping")
         reset_agents([agent, keeper], env, 0)

@@ -30,8 +30,8 @@ from racing_env.render import (
 COAST = np.zeros(2, dtype=np.float32)
 
 
-def _track(name: str, shared_tracks) -> str:
-    return str(shared_tracks / "Monza.csv") if name == "monza" else name
+def _track(name: str) -> str:
+    return "Monza" if name == "monza" else name
 
 
 def _pixel(frame: np.ndarray, px: np.ndarray) -> tuple[int, ...]:
@@ -62,10 +62,10 @@ def test_follow_view_holds_the_racing_cars_and_zooms_with_their_spread():
 
 
 @pytest.mark.parametrize("track_name", ["trefoil", "monza"])
-def test_follow_camera_draws_the_cars_large_where_they_are(track_name, shared_tracks):
+def test_follow_camera_draws_the_cars_large_where_they_are(track_name):
     """Each car's colour is at its projected centre, and a car is many times larger than in
     the whole-track view (on Monza a car there is under a pixel long)."""
-    env = _mid_race_env(_track(track_name, shared_tracks))
+    env = _mid_race_env(_track(track_name))
     scene = env.scene(labels=["", ""])  # no tags over the cars
     follow = Renderer(env.track, env.game.vehicles, size=512, camera="follow")
     frame = follow.draw(scene)
@@ -167,10 +167,10 @@ def test_planners_expose_their_plan_and_their_predictions_of_the_others(spec):
 
 # --- replays ----------------------------------------------------------------------------------
 @pytest.mark.parametrize("track_name", ["trefoil", "monza"])
-def test_a_replay_draws_the_frames_drawn_while_the_race_ran(track_name, shared_tracks, tmp_path):
+def test_a_replay_draws_the_frames_drawn_while_the_race_ran(track_name, tmp_path):
     """On the trefoil feedback iLQGame races (with plans); on Monza, where its solver would
     compile again for the track, iLQR does."""
-    env = racing_env.parallel_env(track=_track(track_name, shared_tracks), num_agents=2, race_distance=60.0,
+    env = racing_env.parallel_env(track=_track(track_name), num_agents=2, race_distance=60.0,
                                   max_steps=200)
     agents = [make_agent("ilqgame-fb" if track_name == "trefoil" else "ilqr"), make_agent("lane-keeping")]
     for i, agent in enumerate(agents):

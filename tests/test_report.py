@@ -383,9 +383,7 @@ def test_time_trial_report_ranks_by_finish_time(time_trial):
 
 
 @pytest.mark.parametrize("track", ["trefoil", "Monza"])
-def test_tournament_reports_on_the_trefoil_and_a_real_circuit(track, tmp_path, request):
-    if track == "Monza":
-        track = str(request.getfixturevalue("shared_tracks") / "Monza.csv")  # read where it lies
+def test_tournament_reports_on_the_trefoil_and_a_real_circuit(track, tmp_path):
     config = TournamentConfig(agents=("lane-keeping", "constant-speed"), track=track, race_distance=150.0, grids=1,
                               max_steps=400)
     board, records = run(config, tmp_path)

@@ -446,3 +446,25 @@ def test_game_agents_beat_the_lane_keeper(tmp_path):
                      if car["agent"] == spec]
         assert rows[spec]["converged_fraction"] == pytest.approx(np.mean(fractions), abs=1e-12)
     assert rows["lane-keeping"]["converged_fraction"] is None  # no solver
+
+
+def test_records_give_each_finish_time_as_a_ratio_to_the_lap_time_limit(tmp_path):
+    """A lap of the trefoil alone: the ratio is the finish time over the limit of the trefoil's
+    centre line (no racing line is shipped for it); a race to a distance has none."""
+    from racing_env import limits
+    from racing_env.track import get_track
+
+    config = tour.TournamentConfig(agents=("raceline", "lane-keeping"), cars=1, track="trefoil", laps=1, grids=1)
+    board = tour.run_tournament(config, tmp_path, gif=False, progress=False)
+    records = tour.load_results(tmp_path)
+    limit = limits.lap_time_limit(get_track("trefoil"), line="centerline")
+    for record in records:
+        car, = record["cars"]
+        assert car["limit_line"] == "centerline" and car["limit_time"] == pytest.approx(limit, rel=1e-12)
+        assert car["limit_ratio"] == pytest.approx(car["finish_time"] / limit, rel=1e-12)
+    rows = {row["agent"]: row for row in board["rows"]}
+    for row in rows.values():  # both drive the centre line, at most v_max: near its limit, never below it
+        assert 1.0 < row["mean_limit_ratio"] < 1.05
+    record, _ = tour.race_lineup(tour.race_config(dataclasses.replace(config, laps=1, race_distance=100.0)),
+                                 ["lane-keeping"], seed=0, replay=False)
+    assert record["cars"][0]["limit_ratio"] is None and record["cars"][0]["limit_line"] is None

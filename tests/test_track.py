@@ -9,8 +9,7 @@ import pytest
 
 from racing_env import track as tr
 
-SHARED_TRACKS = Path(__file__).resolve().parents[1].parent / "shared" / "tracks"
-CSV_FILES = sorted(SHARED_TRACKS.glob("*.csv")) if SHARED_TRACKS.is_dir() else []
+CSV_FILES = sorted(tr.circuits_dir().glob("*.csv"))  # the shipped circuits
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +115,6 @@ def test_straight_geometry() -> None:
     np.testing.assert_allclose(n, [2.0, -3.0])
 
 
-@pytest.mark.skipif(not CSV_FILES, reason=f"no track files in {SHARED_TRACKS}")
 @pytest.mark.parametrize("path", CSV_FILES, ids=lambda p: p.stem)
 def test_from_csv_real_tracks(path: Path) -> None:
     track = tr.from_csv(path)
@@ -343,3 +341,63 @@ def test_get_track(trefoil: tr.Track) -> None:
     assert tr.get_track("trefoil").length == pytest.approx(trefoil.length)
     with pytest.raises(ValueError, match=r"unknown track 'nurburgring'.*'straight'"):
         tr.get_track("nurburgring")
+
+
+# --- the shipped circuits ---------------------------------------------------------------
+
+
+def test_every_shipped_circuit_has_its_racing_line_and_the_license_beside_it() -> None:
+    names = tr.circuit_names()
+    assert len(names) == 25 and {"Monza", "Spa", "Suzuka", "Silverstone"} <= set(names)
+    for name in names:
+        assert tr.raceline_path(name).is_file()
+    assert "LESSER GENERAL PUBLIC LICENSE" in (tr.circuits_dir() / "LICENSE").read_text()
+    assert "TUMFTM" in (tr.circuits_dir() / "README.md").read_text()
+
+
+@pytest.mark.parametrize("spelling", ["Monza", "monza", "MONZA"])
+def test_a_circuit_by_name_in_any_case_is_the_fitted_file(spelling: str) -> None:
+    track = tr.get_track(spelling)
+    assert track.name == "Monza" and track.closed
+    assert track is tr.get_track("Monza")  # one cached fit
+    fresh = tr.from_csv(tr.circuits_dir() / "Monza.csv")
+    np.testing.assert_array_equal(track.kappa, fresh.kappa)
+    assert track.length == fresh.length
+
+
+def test_a_cached_circuit_loads_in_under_50_ms() -> None:
+    import time
+
+    tr.get_track("Spa")
+    start = time.perf_counter()
+    tr.get_track("spa")
+    tr.get_track("Spa")
+    assert time.perf_counter() - start < 0.05
+
+
+def test_an_unknown_track_name_lists_the_known_ones() -> None:
+    with pytest.raises(ValueError, match=r"unknown track 'Monzza'.*'trefoil'.*'Monza'.*'Zandvoort'"):
+        tr.get_track("Monzza")
+    with pytest.raises(ValueError, match=r"unknown circuit 'Imola'.*'Suzuka'"):
+        tr.circuit("Imola")
+    with pytest.raises(ValueError, match=r"no racing line is shipped for 'trefoil'"):
+        tr.raceline_path("trefoil")
+
+
+def test_a_path_still_loads_a_csv_of_the_format(tmp_path: Path) -> None:
+    copy = tmp_path / "MyMonza.csv"
+    copy.write_text((tr.circuits_dir() / "Monza.csv").read_text())
+    track = tr.get_track(str(copy))
+    assert track.name == "MyMonza"
+    assert track.length == pytest.approx(tr.get_track("Monza").length, rel=1e-12)
+
+
+def test_track_summary_counts_the_trefoils_six_corners_and_none_on_a_straight() -> None:
+    # The trefoil: three left-hand lobes and three right turns between them (lobe 0.25 > 0.1).
+    summary = tr.track_summary(tr.trefoil())
+    assert summary["corners"] == 6 and summary["closed"]
+    assert summary["mean_width"] == pytest.approx(12.0) and summary["min_width"] == pytest.approx(12.0)
+    # its tightest radius is at the right turns: R (1 - a)^2 / (10 a - 1) = 75 m for R = 200, a = 0.25
+    assert summary["min_radius"] == pytest.approx(75.0, rel=1e-3)
+    assert tr.track_summary(tr.straight())["corners"] == 0
+    assert tr.count_corners(tr.random_circuit(0)) == 0  # radius everywhere above 100 m

@@ -330,18 +330,21 @@ def test_summarize_evaluation_counts_the_learner_slot():
     record = evaluation.summarize_evaluation(races, timesteps=4096)
     assert record == {"timesteps": 4096, "races": 2, "wins": 1, "win_rate": 0.5, "races_by_start_place": [1, 1],
                       "wins_by_start_place": [0, 1], "mean_place": 1.5,
-                      "finished": 1, "mean_finish_time_s": 60.0, "mean_margin_s": 1.5, "mean_distance": 460.0,
-                      "contact_steps": 2, "time_off_track_s": 3.0, "errors": []}
+                      "finished": 1, "mean_finish_time_s": 60.0, "mean_limit_ratio": None, "mean_margin_s": 1.5,
+                      "mean_distance": 460.0, "contact_steps": 2, "time_off_track_s": 3.0, "errors": []}
 
 
 def test_summarize_evaluation_of_a_time_trial_reports_finish_times_and_no_margin():
     def lap(finish, distance):
         return {"cars": [{"start_place": 1, "place": 1, "finish_time": finish, "distance": distance,
+                          "limit_ratio": None if finish is None else finish / 50.0,
                           "collision_steps": 0, "time_off_track": 0.0, "error": None}]}
 
     record = evaluation.summarize_evaluation([(0, lap(56.0, 1427.0)), (0, lap(None, 300.0)), (0, lap(57.0, 1427.0))],
                                            timesteps=10)
     assert record["mean_finish_time_s"] == 56.5 and record["mean_margin_s"] is None
+    assert record["mean_limit_ratio"] == pytest.approx(56.5 / 50.0, rel=1e-15)
+    assert "(1.130x the limit)" in evaluation.evaluation_line(record)
     assert record["wins"] == record["finished"] == 2 and record["races_by_start_place"] == [3]
 
 

@@ -70,6 +70,7 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
     margin over the races every car finished (the others' mean finish time minus its own),
     distance and incidents."""
     places, margins, times, distances, contact, off_track, finished, errors = [], [], [], [], 0, 0.0, 0, []
+    ratios = []
     for slot, record in races:
         me = record["cars"][slot]
         others = [c for k, c in enumerate(record["cars"]) if k != slot]
@@ -80,6 +81,8 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
         if me["finish_time"] is not None:
             finished += 1
             times.append(me["finish_time"])
+            if me.get("limit_ratio") is not None:
+                ratios.append(me["limit_ratio"])
         if me["error"]:
             errors.append(me["error"])
         if others and me["finish_time"] is not None and all(c["finish_time"] is not None for c in others):
@@ -94,6 +97,8 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
             "races_by_start_place": races_from, "wins_by_start_place": wins_from,
             "mean_place": float(np.mean(places)), "finished": finished,
             "mean_finish_time_s": float(np.mean(times)) if times else None,
+            # its finish time over the race's lap-time limit (racing_env.limits.race_limit), where one applies
+            "mean_limit_ratio": float(np.mean(ratios)) if ratios else None,
             "mean_margin_s": float(np.mean(margins)) if margins else None,
             "mean_distance": float(np.mean(distances)), "contact_steps": contact,
             "time_off_track_s": off_track, "errors": errors}
@@ -102,8 +107,9 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
 def evaluation_line(record: dict[str, Any]) -> str:
     if len(record["races_by_start_place"]) == 1:  # a time trial: no one to win against
         lap = or_dash(record["mean_finish_time_s"], "{:.2f} s")
+        ratio = "" if record.get("mean_limit_ratio") is None else f" ({record['mean_limit_ratio']:.3f}x the limit)"
         return (f"[bold]evaluation at {record['timesteps']:,} steps[/]: finished {record['finished']}/"
-                f"{record['races']}, mean finish time {lap}, mean distance {record['mean_distance']:.0f} m, "
+                f"{record['races']}, mean finish time {lap}{ratio}, mean distance {record['mean_distance']:.0f} m, "
                 f"off track {record['time_off_track_s']:.1f} s")
     margin = or_dash(record["mean_margin_s"], "{:+.2f} s")
     by_start = ", ".join(f"{w}/{n}" for w, n in zip(record["wins_by_start_place"], record["races_by_start_place"]))

@@ -10,7 +10,7 @@ The modules, one job each:
 * :mod:`~planners.agents.receding_horizon`: :class:`RecedingHorizonAgent` and the planners
   :class:`FeedbackGameAgent`, :class:`OpenLoopGameAgent`, :class:`ILQRAgent`
   (:mod:`~planners.agents.weights`: their beliefs and private cost weights);
-* :mod:`~planners.agents.scripted`: :class:`LaneKeepingAgent`, :class:`ConstantSpeedAgent`;
+* :mod:`~planners.agents.scripted`: :class:`RacelineAgent`, :class:`LaneKeepingAgent`, :class:`ConstantSpeedAgent`;
 * :mod:`~planners.agents.sb3`: :class:`SB3Agent` (loaded on first use: the RL layer);
 * :mod:`~planners.agents.jax_policy`: :class:`JaxPolicyAgent`, a JAX learner's policy
   (flax loaded when one is built);
@@ -59,7 +59,7 @@ from planners.agents.registry import (
     with_options,
 )
 from planners.agents.jax_policy import JaxPolicyAgent
-from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent
+from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent, RacelineAgent
 
 _SB3_NAMES = ("SB3Agent", "SB3_ALGOS", "VECNORMALIZE_SUFFIX", "vecnormalize_path")
 
@@ -79,6 +79,7 @@ __all__ = [
     "ILQRAgent",
     "JaxPolicyAgent",
     "LaneKeepingAgent",
+    "RacelineAgent",
     "LoopedOpponent",
     "OpenLoopGameAgent",
     "RECOVERED_SPEED",

@@ -11,7 +11,7 @@ Specs are the registry's (:func:`planners.agents.make_agent`), so every option m
 means for a single agent, and a list of specs is a pool that draws each race's driver at its
 reset. The kinds:
 
-* :class:`BatchedScripted` (``lane-keeping``, ``constant-speed``): the driver's law as a pure
+* :class:`BatchedScripted` (``raceline``, ``lane-keeping``, ``constant-speed``): the driver's law as a pure
   JAX function ``jax_policy(x (N, 6)) -> action (2,)`` (:func:`planners.scripted.jax_policy`),
   for the env to fuse into its compiled step; ``act`` runs it jitted and vmapped;
 * :class:`planners.agents.batched_planners.BatchedPlanner` (``ilqgame-fb``, ``ilqgame-ol``,
@@ -42,11 +42,11 @@ import numpy as np
 from planners.agents.batched_protocol import DIAGNOSTIC_FIELDS, BatchedOpponent, empty_diagnostics
 from planners.agents.protocol import BaseAgent
 from planners.agents.registry import make_agent
-from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent
+from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent, RacelineAgent
 from planners.methods import RL
 from planners import scripted as scripted_laws
 
-SCRIPTED_AGENTS = (LaneKeepingAgent, ConstantSpeedAgent)
+SCRIPTED_AGENTS = (RacelineAgent, LaneKeepingAgent, ConstantSpeedAgent)
 """The scripted agents, whose laws :class:`BatchedScripted` runs in JAX."""
 
 __all__ = [

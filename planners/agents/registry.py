@@ -31,7 +31,7 @@ from planners.agents.receding_horizon import (
     ILQRAgent,
     OpenLoopGameAgent,
 )
-from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent
+from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent, RacelineAgent
 from planners.agents.weights import PLACE_PREFIXES, weight_names
 from planners.methods import (
     AGENT_METHODS,
@@ -41,6 +41,7 @@ from planners.methods import (
     ILQR,
     LANE_KEEPING,
     OPEN_LOOP_GAME,
+    RACELINE,
     RL,
 )
 
@@ -64,7 +65,7 @@ __all__ = [
 # The registry.
 # --------------------------------------------------------------------------------------
 
-_CLASSES = {cls.spec: cls for cls in (ILQRAgent, OpenLoopGameAgent, FeedbackGameAgent, LaneKeepingAgent,
+_CLASSES = {cls.spec: cls for cls in (ILQRAgent, OpenLoopGameAgent, FeedbackGameAgent, RacelineAgent, LaneKeepingAgent,
                                       ConstantSpeedAgent)}
 AGENTS: dict[str, type[BaseAgent]] = {name: _CLASSES[name] for name in AGENT_METHODS}
 """Agent name -> class (each class's ``spec`` is its name). ``rl:`` specs are not in it: they
@@ -78,6 +79,7 @@ AGENT_SUMMARIES = {
     ILQR: "iLQR against predictions of the opponents (the paper's: constant velocity and offset)",
     OPEN_LOOP_GAME: "open-loop Nash iLQGame, re-planned every step",
     FEEDBACK_GAME: "feedback Nash iLQGame, re-planned every step, its feedback law applied in between",
+    RACELINE: "scripted: the circuit's racing line at its lap-time limit's speeds (pace=0.95: slower); no avoidance",
     LANE_KEEPING: "scripted: holds a lateral offset at a cruise speed, slowing for curves within grip",
     CONSTANT_SPEED: "scripted: the centre line at a constant speed (slowing only for curves)",
 }
@@ -202,7 +204,10 @@ _PREDICTION_HELP = {
                "one level down, level 0 being constant velocity"),
 }
 
-_SCRIPTED_HELP = {"target_speed": "cruise speed [m/s]", "target_n": "lateral offset to hold [m], positive left"}
+_SCRIPTED_HELP = {"target_speed": "cruise speed [m/s]", "target_n": "lateral offset to hold [m], positive left",
+                  "pace": "fraction of the lap-time limit's speed profile driven, in (0, 1]",
+                  "margin": "the racing line is kept this far inside the track boundaries [m]",
+                  "line": "raceline (the circuit's; the centre line where none is shipped) or centerline"}
 
 _WEIGHT_MEANINGS = {
     "r_jx": "longitudinal jerk weight",

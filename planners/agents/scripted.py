@@ -1,4 +1,5 @@
-"""The scripted drivers as agents: the lane keeper and the constant-speed cruiser.
+"""The scripted drivers as agents: the racing-line driver, the lane keeper and the constant-speed
+cruiser.
 
 The drivers themselves (their control laws) live in :mod:`planners.scripted`, which the
 opponent predictions (:mod:`planners.prediction`) use as well; here they get the agent
@@ -13,10 +14,11 @@ from typing import Any
 import numpy as np
 
 from planners.agents.protocol import BaseAgent
-from planners.methods import CONSTANT_SPEED, LANE_KEEPING
-from planners.scripted import ConstantSpeed, LaneKeeping, check_targets
+from planners.methods import CONSTANT_SPEED, LANE_KEEPING, RACELINE
+from planners.scripted import RACELINE_MARGIN, ConstantSpeed, LaneKeeping, RacelineDriver, check_raceline_options, \
+    check_targets
 
-__all__ = ["ConstantSpeedAgent", "LaneKeepingAgent"]
+__all__ = ["ConstantSpeedAgent", "LaneKeepingAgent", "RacelineAgent"]
 
 
 class _ScriptedAgent(BaseAgent):
@@ -30,9 +32,13 @@ class _ScriptedAgent(BaseAgent):
         unknown = sorted(set(kwargs) - set(self.spec_options()))
         if unknown:
             raise ValueError(f"{self.name} has no option {unknown}; its options: {sorted(self.spec_options())}")
-        check_targets(**kwargs)  # before the race, not at the controller's reset
+        self.check_options(**kwargs)  # before the race, not at the controller's reset
         self.kwargs = kwargs
         self.controller = None
+
+    @staticmethod
+    def check_options(**kwargs: Any) -> None:
+        check_targets(**kwargs)
 
     @classmethod
     def spec_options(cls) -> dict[str, type]:
@@ -72,3 +78,24 @@ class ConstantSpeedAgent(_ScriptedAgent):
     @classmethod
     def spec_defaults(cls) -> dict[str, Any]:
         return {"target_speed": 15.0}
+
+
+class RacelineAgent(_ScriptedAgent):
+    """:class:`planners.scripted.RacelineDriver`: the circuit's racing line at the speed profile
+    of its lap-time limit (kwargs: ``pace`` in ``(0, 1]``, ``margin`` [m], ``line``). It does
+    not avoid other cars beyond what its tracking controller does."""
+
+    spec = name = RACELINE
+    controller_class = RacelineDriver
+
+    @staticmethod
+    def check_options(**kwargs: Any) -> None:
+        check_raceline_options(**kwargs)
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        return {"pace": float, "margin": float, "line": str}
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        return {"pace": 1.0, "margin": RACELINE_MARGIN, "line": "raceline"}
