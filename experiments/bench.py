@@ -641,11 +641,11 @@ def bench_agents(steps: int = 150) -> Iterator[dict[str, Any]]:
              "ilqgame-ol": "ilqgame-ol", "ilqgame-ol_residual": "ilqgame-ol:step_control=residual",
              "ilqgame-ol_adaptive_regularization": f"ilqgame-ol:{_ADAPTIVE_REGULARIZATION}",
              "ilqgame-fb": "ilqgame-fb",
-             # the warm start before its accelerations were restored, beside the default
-             "ilqr_unrestored_warm_start": "ilqr:restore_accelerations=false",
-             "ilqgame-ol_unrestored_warm_start": "ilqgame-ol:restore_accelerations=false",
-             "ilqgame-fb_unrestored_warm_start": "ilqgame-fb:restore_accelerations=false",
-             "ilqgame-fb_iterations2": "ilqgame-fb:iterations=2",
+             # the warm start with its accelerations restored, beside the default
+             "ilqr_restored_warm_start": "ilqr:restore_accelerations=true",
+             "ilqgame-ol_restored_warm_start": "ilqgame-ol:restore_accelerations=true",
+             "ilqgame-fb_restored_warm_start": "ilqgame-fb:restore_accelerations=true",
+             "ilqgame-fb_real_time": "ilqgame-fb:iterations=2,trust_radius=10",
              "ilqgame-fb_feedforward_regularization":
                  f"ilqgame-fb:{_ADAPTIVE_REGULARIZATION},feedforward_regularization=true"}
     for name, spec in specs.items():

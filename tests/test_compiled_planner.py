@@ -93,3 +93,4 @@ def test_the_jax_learner_compiles_planners_with_a_fixed_budget_only():
 
     assert isinstance(compiled_races(TrainConfig(learner="jax", opponents=("ilqgame-fb:iterations=2",))), GymnaxRace)
     assert compiled_races(TrainConfig(learner="jax", opponents=("ilqgame-fb",))) is None
+    assert compiled_races(TrainConfig(learner="jax", opponents=("ilqgame-fb:iterations=2,replan_every=5",))) is None

@@ -123,6 +123,10 @@ def test_bad_real_time_options_are_refused(spec, message):
 def test_iterations_caps_the_re_plans_and_a_budget_is_not_batched():
     agent = make_agent("ilqgame-fb:iterations=2")
     assert agent.max_iterations == 2 and "best_iterate" not in agent.solver_options
+    # the restored warm start goes with real-time re-plans unless it is switched off
+    assert agent.restore_accelerations and make_agent("ilqr:budget_ms=3").restore_accelerations
+    assert not make_agent("ilqgame-fb").restore_accelerations
+    assert not make_agent("ilqgame-fb:iterations=2,restore_accelerations=false").restore_accelerations
     assert "budget_ms" in unbatchable(make_agent("ilqgame-fb:budget_ms=2"))
     assert unbatchable(agent) is None
 
@@ -145,7 +149,7 @@ def _race_iterations(spec: str, steps: int) -> list[int]:
 def test_the_restored_warm_start_saves_iterations_in_a_race():
     """The agents bench's race (open-loop iLQGame against itself on the trefoil, racing
     weights): the same re-plans, warm-started with and without the restored accelerations."""
-    restored = _race_iterations("ilqgame-ol", 30)
-    plain = _race_iterations("ilqgame-ol:restore_accelerations=false", 30)
+    restored = _race_iterations("ilqgame-ol:restore_accelerations=true", 30)
+    plain = _race_iterations("ilqgame-ol", 30)
     assert sum(restored) < sum(plain)
     assert np.median(restored) < np.median(plain)

@@ -3,8 +3,8 @@
 Two ways to run the races, chosen from the configuration:
 
 * **compiled** (opponents that are JAX functions of the state: ``lane-keeping``,
-  ``constant-speed``, ...; planners with a fixed iteration budget, ``ilqgame-fb:iterations=2``,
-  whose re-plans compile into the step (:mod:`planners.agents.compiled_planner`); or a time
+  ``constant-speed``, ...; planners with a fixed iteration budget re-planning every step,
+  ``ilqgame-fb:iterations=2``, whose re-plans compile into the step (:mod:`planners.agents.compiled_planner`); or a time
   trial; ``start="grid"``; no pool): the races are a
   :class:`racing_env.vector.GymnaxRace` and a whole update, ``n_steps`` steps of all
   ``envs`` races and PPO's epochs, is one compiled call. The learner drives car 0; the
@@ -104,11 +104,14 @@ def _gymnax_race(opponents: tuple[str, ...], race):
 
 def _compiles(opponent) -> bool:
     """Whether a planner opponent races inside the compiled update: one with a fixed iteration
-    budget (``iterations=K``), whose re-plans cost the same in every race. Converging re-plans
-    stay on the host, where the batched solves stop each race at its own convergence
-    (:mod:`planners.agents.batched_planners`) instead of running in lock step."""
+    budget (``iterations=K``) that re-plans every step, whose re-plans cost the same in every
+    race and every step. The others stay on the host races (:mod:`planners.agents.batched_planners`):
+    converging re-plans, where the batched solves stop each race at its own convergence instead
+    of running in lock step, and re-plans every few steps, where only the races due solve (in
+    a vmapped step every race solves once races restart at different times)."""
     agent = getattr(opponent, "agent", None)
-    return opponent.jax_planner is not None and getattr(agent, "iterations", None) is not None
+    return (opponent.jax_planner is not None and getattr(agent, "iterations", None) is not None
+            and agent.replan_every == 1)
 
 
 # --- the two forms of an update ----------------------------------------------------------------

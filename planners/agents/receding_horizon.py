@@ -83,7 +83,10 @@ class RecedingHorizonAgent(BaseAgent):
             (:func:`planners.agents.warm_start.restore_accelerations`): the environment
             projects a plan that leans on an acceleration limit back onto it, and the
             uncorrected warm start then starts its re-plan with a long LQ step that the
-            trust region cuts short.
+            trust region cuts short. Default (None): on for real-time re-plans (with
+            ``iterations`` or ``budget_ms``), off for re-plans that iterate to convergence,
+            where it saves iterations but changes which equilibrium the open-loop game
+            settles in, to its cost in races (docs/agents.md).
         iterations: a real-time re-plan: at most this many solver iterations, after which
             the last iterate is adopted, converged or not (as ``max_iterations``, which it
             replaces: give one of the two). The solver option ``best_iterate=true`` adopts
@@ -131,7 +134,7 @@ class RecedingHorizonAgent(BaseAgent):
         belief_weights=None,
         pad: str = "repeat",
         warm_start: bool = True,
-        restore_accelerations: bool = True,
+        restore_accelerations: bool | None = None,
         iterations: int | None = None,
         budget_ms: float | None = None,
         require_converged: bool = False,
@@ -157,6 +160,8 @@ class RecedingHorizonAgent(BaseAgent):
             ilq.check_budget_ms(budget_ms)
         self.iterations = None if iterations is None else int(iterations)
         self.budget_ms = None if budget_ms is None else float(budget_ms)
+        if restore_accelerations is None:
+            restore_accelerations = iterations is not None or budget_ms is not None
         self.restore_accelerations = bool(restore_accelerations)
         self.max_iterations = int(max_iterations)
         self.replan_every = int(replan_every)
@@ -204,6 +209,7 @@ class RecedingHorizonAgent(BaseAgent):
                          ("max_iterations", "replan_every", "pad", "warm_start", "restore_accelerations",
                           "iterations", "budget_ms", "require_converged", "recovery_track_scale")})
         defaults["tolerance"] = REPLAN_TOLERANCE
+        defaults["restore_accelerations"] = "true with iterations or budget_ms, else false"
         for name in weight_names():
             defaults[name] = "the race's"
             defaults.update({f"{place}.{name}": name for place in PLACE_PREFIXES})

@@ -152,7 +152,8 @@ _LOOP_HELP = {
     "pad": "end of the shifted warm start: repeat (the last input) or zeros",
     "warm_start": "start each re-plan from the previous plan (false: from zero inputs)",
     "restore_accelerations": ("correct the warm start's first jerks so the accelerations are back on the "
-                              "previous plan after one step (the env projects them onto their limits)"),
+                              "previous plan after one step (the env projects them onto their limits); "
+                              "default: on with iterations or budget_ms"),
     "iterations": ("real-time re-plan: at most this many iterations, the last iterate adopted "
                    "(replaces max_iterations)"),
     "budget_ms": ("wall-clock budget per re-plan [ms]: iterations stop when it runs out, the last "

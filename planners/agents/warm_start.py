@@ -8,7 +8,7 @@ game only penalises leaving the acceleration limits, the environment enforces th
 back onto it at every step. Rolled out open loop, the shifted plan then runs just inside
 the limit for the whole horizon; there the limit terms are inactive and carry no curvature,
 and the first LQ step of the re-plan is a long one that the trust region cuts to a few
-percent of its length (measured in docs/solvers.md, "Warm starts").
+percent of its length (docs/solvers.md, "Warm starts and budgets").
 
 :func:`restore_accelerations` corrects the first jerk of the shifted plan so that the
 accelerations are back on the plan after one step (the jerk integrates exactly into the
