@@ -251,8 +251,8 @@ class SolverOptions:
             step is feed-forward (``control_regularization`` alone damps it).
         best_iterate: anytime solves: when the solve stops before convergence (the iteration
             cap or a wall-clock budget), return the iterate with the smallest merit instead of
-            the last one. The merit of an iterate is the solver's convergence measure at it:
-            the max-norm state change of the full LQ step from it (0 at a fixed point). The
+            the last one. The merit of an iterate is ``max |k_0|``, the largest change of the
+            first stage's inputs that the LQ game around it asks for (0 at a fixed point). The
             initial iterate (the warm start) is a candidate, so the result is never worse by
             this merit than the warm start; the last iterate is scored by one more LQ solve,
             whose gains ``K`` are then returned with it. See :func:`finish`.
@@ -576,8 +576,8 @@ def _step(problem, xs_hat, us_hat, K, k, eta0, merit0, options: SolverOptions):
 class BestIterate(NamedTuple):
     """The best-scored iterate of an anytime solve (``SolverOptions.best_iterate``): its
     ``xs (T+1, n)``, ``us (T, N, m)``, the LQ game around it (``K (T, N, m, n)``,
-    ``k (T, N, m)``) and its ``merit`` (the full LQ step's max-norm state change; ``inf``
-    before any iterate was scored)."""
+    ``k (T, N, m)``) and its ``merit`` (``max |k_0|``; ``inf`` before any iterate was
+    scored)."""
 
     xs: Array
     us: Array
@@ -704,8 +704,7 @@ def iterate(problem: GameProblem, c: SolverCarry, options: SolverOptions) -> Sol
     )
     best = c.best
     if best is not None:
-        # ``measure`` scores the iterate this step started from, c.(xs, us), and (K, k) is
-        # the LQ game around it.
+        # (K, k) is the LQ game around the iterate this step started from, c.(xs, us)
         merit = _action_merit(k)
         best = _select(lq_ok & (merit < best.merit), BestIterate(c.xs, c.us, K, k, merit), best)
     keep = functools.partial(_select, ok)
@@ -758,8 +757,8 @@ def finish(problem: GameProblem, c: SolverCarry, options: SolverOptions) -> Solv
     """The solver state to report: ``c`` itself, or with ``options.best_iterate`` and a
     solve stopped before convergence (``MAX_ITERATIONS`` or ``BUDGET_EXHAUSTED``), its best
     iterate (:class:`BestIterate`). The last iterate has no score yet: one more LQ solve
-    around it and a full-step forward pass give it one, and it is kept (with the gains of
-    that LQ game) when it scores at least as well as the best earlier iterate."""
+    around it gives it one, and it is kept (with the gains of that LQ game) when it scores
+    at least as well as the best earlier iterate."""
     best = c.best
     if best is None:
         return c

@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from racing_env.dynamics import MIN_FRENET_SCALE
-from racing_env.track import Track, circuit_name, circuit_names, raceline_path
+from racing_env.track import Track, circuit_name, circuit_names, raceline_path, read_csv_rows
 from racing_env.vehicle import VehicleParams
 
 #: Positional noise [m] assumed by the racing line's smoothing spline (``from_centerline``).
@@ -145,22 +145,7 @@ def centerline(track: Track) -> RacingLine:
 
 
 def _read_xy(path: Path) -> np.ndarray:
-    rows = []
-    with path.open("r", encoding="utf-8") as f:
-        for lineno, line in enumerate(f, start=1):
-            line = line.strip()
-            if not line or line.startswith("#"):
-                continue
-            fields = [c.strip() for c in line.split(",")]
-            if len(fields) < 2:
-                raise ValueError(f"{path}:{lineno}: expected columns x_m,y_m, got {line!r}")
-            try:
-                row = [float(fields[0]), float(fields[1])]
-            except ValueError:
-                raise ValueError(f"{path}:{lineno}: non-numeric entry in {line!r}") from None
-            if not all(np.isfinite(row)):
-                raise ValueError(f"{path}:{lineno}: non-finite entry in {line!r}")
-            rows.append(row)
+    rows = [row for _, row in read_csv_rows(path, ("x_m", "y_m"), extra_columns=True)]
     if len(rows) < 10:
         raise ValueError(f"{path}: a racing line needs at least 10 points, got {len(rows)}")
     return np.asarray(rows, dtype=np.float64)

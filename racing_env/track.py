@@ -559,6 +559,38 @@ def from_centerline(
     )
 
 
+def read_csv_rows(path: Path, columns: tuple[str, ...], extra_columns: bool = False) -> list[tuple[int, list[float]]]:
+    """The numeric rows of a TUMFTM-style CSV file: ``(line number, [value per column])``
+    for every line that is neither blank nor a ``#`` comment. Each row has exactly
+    ``len(columns)`` comma-separated entries (at least that many with ``extra_columns``, the
+    rest ignored), all finite numbers.
+
+    Raises:
+        ValueError: naming the file and line of a row with the wrong number of entries, a
+            non-numeric or a non-finite one.
+    """
+    rows = []
+    with Path(path).open("r", encoding="utf-8") as f:
+        for lineno, line in enumerate(f, start=1):
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            fields = [c.strip() for c in line.split(",")]
+            if extra_columns and len(fields) < len(columns):
+                raise ValueError(f"{path}:{lineno}: expected columns {','.join(columns)}, got {line!r}")
+            if not extra_columns and len(fields) != len(columns):
+                raise ValueError(f"{path}:{lineno}: expected {len(columns)} columns {','.join(columns)}, "
+                                 f"got {len(fields)}: {line!r}")
+            try:
+                row = [float(c) for c in fields[:len(columns)]]
+            except ValueError:
+                raise ValueError(f"{path}:{lineno}: non-numeric entry in {line!r}") from None
+            if not all(np.isfinite(row)):
+                raise ValueError(f"{path}:{lineno}: non-finite entry in {line!r}")
+            rows.append((lineno, row))
+    return rows
+
+
 def from_csv(
     path: str | os.PathLike,
     ds: float = 1.0,
@@ -587,29 +619,13 @@ def from_csv(
     if not path.is_file():
         raise FileNotFoundError(f"track file not found: {path}")
     rows = []
-    with path.open("r", encoding="utf-8") as f:
-        for lineno, line in enumerate(f, start=1):
-            line = line.strip()
-            if not line or line.startswith("#"):
-                continue
-            fields = [c.strip() for c in line.split(",")]
-            if len(fields) != 4:
-                raise ValueError(
-                    f"{path}:{lineno}: expected 4 columns x_m,y_m,w_tr_right_m,w_tr_left_m, "
-                    f"got {len(fields)}: {line!r}"
-                )
-            try:
-                row = [float(c) for c in fields]
-            except ValueError:
-                raise ValueError(f"{path}:{lineno}: non-numeric entry in {line!r}") from None
-            if not all(np.isfinite(row)):
-                raise ValueError(f"{path}:{lineno}: non-finite entry in {line!r}")
-            if row[2] <= 0 or row[3] <= 0:
-                raise ValueError(
-                    f"{path}:{lineno}: track widths must be > 0 [m], got "
-                    f"w_tr_right_m={row[2]:g}, w_tr_left_m={row[3]:g}"
-                )
-            rows.append(row)
+    for lineno, row in read_csv_rows(path, ("x_m", "y_m", "w_tr_right_m", "w_tr_left_m")):
+        if row[2] <= 0 or row[3] <= 0:
+            raise ValueError(
+                f"{path}:{lineno}: track widths must be > 0 [m], got "
+                f"w_tr_right_m={row[2]:g}, w_tr_left_m={row[3]:g}"
+            )
+        rows.append(row)
     if len(rows) < _MIN_CENTERLINE_POINTS:
         raise ValueError(
             f"{path}: need at least {_MIN_CENTERLINE_POINTS} centreline points, "

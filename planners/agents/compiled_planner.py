@@ -38,6 +38,7 @@ import jax.numpy as jnp
 
 from planners import ilq, ilqr
 from planners.agents.receding_horizon import RECOVERED_SPEED, STOPPED_SPEED
+from planners.agents.warm_start import restore_accelerations
 from planners.game_problem import as_problem
 from racing_env.costs import CostWeights
 from racing_env.dynamics import AX, AY, CHI, N_LAT, S, STATE_DIM, V
@@ -156,10 +157,7 @@ class CompiledPlanner:
         if self.pad == "zeros":
             shifted = jnp.where((steps >= T)[:, None, None], 0.0, shifted)
         if self.restore:
-            planned = plan.xs[jnp.minimum(by, T)]
-            correction = (planned[:, [AX, AY]] - x[:, [AX, AY]]) / self.game.dt
-            correction = jnp.where(jnp.isfinite(correction) & (by < T + 1), correction, 0.0)
-            shifted = shifted.at[0].add(correction)
+            shifted = restore_accelerations(shifted, plan.xs[by], x, self.game.dt)
         return jnp.where(plan.has_plan, shifted, zeros)
 
     def _solve(self, game, x: jax.Array, init: jax.Array):

@@ -18,22 +18,26 @@ rollout follows the plan's accelerations exactly. It works for any number of rac
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+from numpy.typing import ArrayLike
 
 from racing_env.dynamics import AX, AY
 
 __all__ = ["restore_accelerations"]
 
 
-def restore_accelerations(us: np.ndarray, planned: np.ndarray, measured: np.ndarray, dt: float) -> np.ndarray:
+def restore_accelerations(us: ArrayLike, planned: ArrayLike, measured: ArrayLike, dt: float) -> ArrayLike:
     """The shifted inputs ``us (..., T, N, 2)`` [m/s^3] with the first stage's jerks
     corrected so that every car's accelerations ``[ax, ay]`` reach the plan's after one
     step of ``dt`` seconds: ``us[..., 0, :, :] + (planned[..., [ax, ay]] - measured[...,
     [ax, ay]]) / dt``, where ``planned (..., N, 6)`` is the state the shifted plan starts
     from (the old plan's state at the current step) and ``measured (..., N, 6)`` the
     current joint state. Non-finite corrections are left out (the inputs stay as they are).
-    Returns a new array."""
+    Returns a new array: NumPy for NumPy inputs (the host planners), JAX inside a traced
+    function (the compiled planner), with the same operations either way."""
+    xp = jnp if any(isinstance(a, jax.Array) for a in (us, planned, measured)) else np
     correction = (planned[..., [AX, AY]] - measured[..., [AX, AY]]) / dt
-    out = np.array(us, dtype=np.result_type(us, correction))
-    out[..., 0, :, :] += np.where(np.isfinite(correction), correction, 0.0)
-    return out
+    first = us[..., :1, :, :] + xp.where(xp.isfinite(correction), correction, 0.0)[..., None, :, :]
+    return xp.concatenate([first, us[..., 1:, :, :]], axis=-3)
