@@ -23,11 +23,12 @@ from pathlib import Path
 
 import jax
 
-__all__ = ["ENV_VAR", "compile_cache_dir", "default_cache_dir", "enable_compile_cache"]
+__all__ = ["ENV_VAR", "MAX_BYTES", "compile_cache_dir", "default_cache_dir", "enable_compile_cache"]
 
 ENV_VAR = "RACING_COMPILE_CACHE"
 _OFF = {"off", "0", "false", "no", "none", ""}
-_MAX_BYTES = 2 * 1024**3  # least recently used entries are evicted beyond this size
+MAX_BYTES = 2 * 1024**3
+"""The cache's size cap in bytes: least recently used entries are evicted beyond it."""
 
 
 def compile_cache_dir() -> str | None:
@@ -82,5 +83,5 @@ def enable_compile_cache(
         )
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_seconds))
-    jax.config.update("jax_compilation_cache_max_size", _MAX_BYTES)
+    jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
     return path

@@ -30,6 +30,21 @@ GAME_SPECS = ["ilqr", "ilqgame-ol", "ilqgame-fb"]
 ALL_SPECS = GAME_SPECS + ["lane-keeping", "constant-speed"]
 
 
+def _compile_listeners(compiles: list):
+    """JAX event listeners that append to ``compiles`` every program XLA compiles and every
+    program the run's on-disk compilation cache loads instead (a new program either way)."""
+
+    def compiled(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    def loaded(event, **kwargs):
+        if event == "/jax/compilation_cache/cache_hits":
+            compiles.append(0.0)
+
+    return compiled, loaded
+
+
 def _race(env, agent, seed=0):
     rival = make_agent("constant-speed", target_speed=12.0)
     reset_agents([agent, rival], env, seed)
@@ -147,17 +162,16 @@ def test_only_the_first_action_compiles(spec):
     reset_agents([agent, rival], env, 0)
     obs, _ = env.reset(seed=0)
     compiles = []
-
-    def listener(event, duration, **kwargs):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(duration)
+    listener, loaded = _compile_listeners(compiles)
 
     for step in range(4):
         if step == 1:
             jax.monitoring.register_event_duration_secs_listener(listener)
+            jax.monitoring.register_event_listener(loaded)
         state = env.state()
         obs, *_ = env.step({"car_0": agent(obs["car_0"], state), "car_1": rival(obs["car_1"], state)})
     jax.monitoring.unregister_event_duration_listener(listener)
+    jax.monitoring.unregister_event_listener(loaded)
     assert agent.summary()["replans"] == 4
     assert compiles == [], f"{len(compiles)} compilations after the first step ({sum(compiles):.1f} s)"
 
@@ -247,16 +261,14 @@ def test_a_planner_drives_through_cars_out_of_the_race_as_the_env_does(spec):
     x0[:, :3] = [[5.0, 15.0, 0.0], [60.0, 15.0, 0.5], [61.0, 15.0, -0.5]]  # cars 1 and 2 overlap
     obs, _ = env.reset(seed=0, options={"x0": x0})
     compiles = []
-
-    def listener(event, duration, **kwargs):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(duration)
+    listener, loaded = _compile_listeners(compiles)
 
     xs, last_info = [], {}
     try:
         while "car_0" in env.agents:
             if len(xs) == 1:
                 jax.monitoring.register_event_duration_secs_listener(listener)
+                jax.monitoring.register_event_listener(loaded)
             state = env.state()
             actions = {"car_0": agent(obs["car_0"], state)}
             actions.update({name: wreck[int(name[-1]) - 1](obs[name], state) for name in env.agents if name != "car_0"})
@@ -265,6 +277,7 @@ def test_a_planner_drives_through_cars_out_of_the_race_as_the_env_does(spec):
             xs.append(env.state()[0])
     finally:
         jax.monitoring.unregister_event_duration_listener(listener)
+        jax.monitoring.unregister_event_listener(loaded)
     xs = np.array(xs)
     assert last_info["car_1"]["out"] and last_info["car_2"]["out"] and last_info["car_0"]["finished"]
     assert np.all(np.abs(env.state()[1:, 0] - [60.0, 61.0]) < 2.0)  # frozen where they met

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from experiments import bench
+from planners.compile_cache import ENV_VAR, compile_cache_dir
 
 
 def test_machine_info_names_the_cpu_and_the_load():
@@ -15,7 +16,8 @@ def test_machine_info_names_the_cpu_and_the_load():
     assert info["cpu"] and info["cpu"] != "unknown"
     assert info["cpu_count"] == os.cpu_count()
     assert len(info["load_average"]) == 3 and all(v >= 0 for v in info["load_average"])
-    assert info["devices"] and info["compile_cache"] is None  # tests run with the cache off
+    # the tests' own per-run cache (tests/conftest.py), as the process has it
+    assert info["devices"] and info["compile_cache"] == compile_cache_dir() == os.environ[ENV_VAR]
     # The tests import planners before JAX starts, so the solvers' loops are single kernels.
     assert "xla_cpu_small_while_loop_byte_threshold" in info["xla_flags"]
 

@@ -104,7 +104,7 @@ def test_python_blocks_run(path: Path) -> None:
         capture_output=True,
         text=True,
         timeout=BLOCK_TIMEOUT_S,
-        env={**os.environ, "RACING_COMPILE_CACHE": "off", "MPLBACKEND": "Agg"},
+        env={**os.environ, "MPLBACKEND": "Agg"},
     )
     assert result.returncode == 0, (
         f"{_relative(path)}: a python block failed\n{result.stderr[-4000:]}\n{result.stdout[-1000:]}"
