@@ -195,7 +195,7 @@ _SOLVER_HELP = {
     "best_iterate": ("adopt the iterate whose first-stage LQ step is smallest instead of the last "
                      "one when a re-plan stops unconverged (races worse: docs/agents.md)"),
     "player_steps": ("a step size per car, each cut by the trust region on its own states (default: on for "
-                     "a game agent's real-time re-plans, iterations or budget_ms): a rival whose plan needs a "
+                     f"{FEEDBACK_GAME}'s real-time re-plans, iterations or budget_ms): a rival whose plan needs a "
                      "long step no longer shortens the ego's"),
     "dynamics_curvature": ("give each car's local game the curvature of its progress in its "
                            "heading, which linearising the dynamics drops (false: the plain iLQ model)"),
