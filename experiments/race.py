@@ -30,7 +30,8 @@ class RaceRecord:
         xs: joint states ``(T+1, N, 6)``, the start included.
         summary: per car: ``agent``, ``position``, ``finished``, ``retired`` (by an incident
             rule), ``finish_time`` [s] (None if not finished), ``distance`` [m],
-            ``mean_speed`` [m/s], ``collision_steps``, ``time_off_track`` [s].
+            ``mean_speed`` [m/s], ``collision_steps``, ``time_off_track`` [s], ``off_track_steps``
+            (the steps after which the car was off the track).
         frames: rendered RGB frames (empty unless ``render_every``).
         steps: env steps taken.
         status: ``(T+1, N)`` int8 each car's status at each step
@@ -182,6 +183,7 @@ def run_race(
                 "mean_speed": float(np.mean(xs[:, i, 1])),
                 "collision_steps": int(contact_steps[i]),
                 "time_off_track": float(off_steps[i] * dt),
+                "off_track_steps": int(off_steps[i]),
             }
         )
     record.xs, record.status, record.position = xs, np.array(status, np.int8), np.array(position, np.int16)

@@ -43,7 +43,7 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
     its races, wins, win rate with its 95% Wilson interval, Plackett-Luce rating (openskill;
     ``rating`` is mu - 3 sigma), races finished, retired and faulted, contact steps, mean
     finish-time margin over the other cars (races all finished), mean and best finish
-    time, time off track, mean action time, and for planners the mean shares of converged
+    time, time off track (seconds, steps and races with any), mean action time, and for planners the mean shares of converged
     and of certified re-plans (None without any). Rows are ranked by rating, or in a time
     trial (``time_trial``) by races finished, then mean finish time; a time trial's ratings
     stay at the prior and its head-to-head matrix is zero.
@@ -55,7 +55,8 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
     ratings = {n: model.rating(name=n) for n in names}
     h2h = np.zeros((len(names), len(names)), dtype=int)
     stats = {n: {"races": 0, "wins": 0, "finished": 0, "retired": 0, "errors": 0, "collision_steps": 0, "act_times": [],
-                 "margins": [], "finish_times": [], "limit_ratios": [], "off_track_s": 0.0, "converged": [], "certified": []} for n in names}
+                 "margins": [], "finish_times": [], "limit_ratios": [], "off_track_s": 0.0, "off_track_steps": 0,
+                 "off_track_races": 0, "converged": [], "certified": []} for n in names}
     for record in records:
         order = record["order"]
         if len(order) > 1:  # a time trial has no one to be rated against
@@ -74,6 +75,12 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
                 if car.get("limit_ratio") is not None:  # records from before the limit: none
                     st["limit_ratios"].append(car["limit_ratio"])
             st["off_track_s"] += car["time_off_track"]
+            steps_off = car.get("off_track_steps")  # records from before the count: None for the agent
+            if steps_off is None or st["off_track_steps"] is None:
+                st["off_track_steps"] = st["off_track_races"] = None
+            else:
+                st["off_track_steps"] += steps_off
+                st["off_track_races"] += steps_off > 0
             st["retired"] += bool(car.get("retired", False))  # records from before incident rules: none
             st["errors"] += car["error"] is not None
             st["collision_steps"] += car["collision_steps"]
@@ -104,6 +111,9 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
                      "mean_limit_ratio": float(np.mean(st["limit_ratios"])) if st["limit_ratios"] else None,
                      "best_limit_ratio": min(st["limit_ratios"]) if st["limit_ratios"] else None,
                      "time_off_track_s": st["off_track_s"],
+                     # steps after which the car was off the track, summed, and the races with any
+                     # (None where a record predates the count)
+                     "off_track_steps": st["off_track_steps"], "off_track_races": st["off_track_races"],
                      "mean_act_time_s": float(np.mean(st["act_times"])) if st["act_times"] else float("nan"),
                      # a planner's share of re-plans that converged, averaged over its races
                      "converged_fraction": float(np.mean(st["converged"])) if st["converged"] else None,

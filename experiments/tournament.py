@@ -172,8 +172,8 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     The record holds the finishing ``order`` (specs), the ``gap`` to the second car (None
     for a lone car, a time trial), the ``overtakes`` and, per car, its place on the grid
     (``start_place``, 1 = in front), place, finish time, distance, mean speed, contact
-    steps, time off track, whether an incident rule ``retired`` it, action times, solver
-    failures, the shares of its re-plans that converged and (a game agent with ``certify``
+    steps, time off track and its steps (``off_track_steps``), whether an incident rule ``retired`` it, action times, solver
+    failures, its re-plans' iterations (mean, median, 95th percentile), the shares of its re-plans that converged and (a game agent with ``certify``
     on; else None) that were certified local Nash equilibria (``certified_share``), and the
     ``error`` of a car that faulted.
     Faults are recorded, never raised: a car that raises or blows ``step_budget_s`` is last.
@@ -233,12 +233,15 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             "limit_time": limit[0] if limit is not None else None, "limit_line": limit[1] if limit is not None else None,
             "distance": car["distance"], "mean_speed": car["mean_speed"],
             "collision_steps": car["collision_steps"], "time_off_track": car["time_off_track"],
+            "off_track_steps": car["off_track_steps"],
             "retired": car["retired"],
             "act_time_mean_s": float(np.mean(times)) if times else float("nan"),
             "act_time_max_s": float(np.max(times)) if times else float("nan"),
             "solver_failures": int(summary.get("fallbacks", 0)),
             "solver_converged_fraction": summary.get("converged_fraction"),
             "solver_iterations_mean": summary.get("iterations_mean"),
+            "solver_iterations_median": summary.get("iterations_median"),
+            "solver_iterations_p95": summary.get("iterations_p95"),
             "certified_share": summary.get("certified_share"),
             "actions_clipped_fraction": summary.get("clipped_fraction"), "error": faults.get(i),
         })
@@ -403,8 +406,8 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
     certified_header, certified = _certified_cells(board)
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "finished",
-                *(("retired",) if retire else ()), "margin [s]", "x limit", "errors", "contact steps", "act [ms]", "converged",
-                *certified_header):
+                *(("retired",) if retire else ()), "margin [s]", "x limit", "errors", "contact steps", "off-track steps", "act [ms]",
+                "converged", *certified_header):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
         lo, hi = row["win_rate_ci95"]
@@ -413,7 +416,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
                       *((str(row["retired"]),) if retire else ()),
                       or_dash(row["mean_margin_s"], "{:+.2f}"), or_dash(row.get("mean_limit_ratio"), "{:.3f}"),
                       str(row["errors"]),
-                      str(row["collision_steps"]),
+                      str(row["collision_steps"]), or_dash(row.get("off_track_steps"), "{:d}"),
                       f"{1e3 * row['mean_act_time_s']:.1f}",
                       or_dash(row["converged_fraction"], "{:.0%}"), *certified[k - 1])
     console.print(table)

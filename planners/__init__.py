@@ -24,6 +24,7 @@ name                   class                           what it does
 ``raceline``           :class:`RacelineAgent`          scripted: the racing line at the lap-time limit
 ``lane-keeping``       :class:`LaneKeepingAgent`       scripted: an offset at a cruise speed
 ``constant-speed``     :class:`ConstantSpeedAgent`     scripted: the centre line at a constant speed
+``random``             :class:`RandomAgent`            uniform random actions, seeded by its reset
 ``rl:PATH``            :class:`SB3Agent`               a saved stable-baselines3 policy
 ``rl:PATH.npz``        :class:`JaxPolicyAgent`         a policy saved by the JAX learner
 =====================  ==============================  ==========================================
@@ -81,6 +82,7 @@ from planners.agents import (
     LaneKeepingAgent,
     OpenLoopGameAgent,
     RacelineAgent,
+    RandomAgent,
     agent_options,
     make_agent,
     make_batched_opponent,
@@ -110,6 +112,7 @@ __all__ = [
     "LaneKeepingAgent",
     "OpenLoopGameAgent",
     "RacelineAgent",
+    "RandomAgent",
     "SB3Agent",
     "SolverOptions",
     "SolverResult",

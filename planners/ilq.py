@@ -84,7 +84,9 @@ after ``max_backtracks`` reductions (``LINE_SEARCH_FAILED``). With
 previous unit steps (memory ``damping_memory``) is an overshoot, and the next iteration
 starts at ``eta * step_decay``; otherwise at ``initial_step``. Both checks are
 player-neutral: a game has no single merit function that every player's update
-decreases, so there is no Armijo rule on costs.
+decreases, so there is no Armijo rule on costs. With ``player_steps`` each player has its
+own ``eta_i``, cut by the trust region on its own states (games whose state stacks the
+players' states): a player whose plan needs a long step no longer shortens the others'.
 
 ``step_control="residual"`` (open loop only) backtracks on the squared first-order Nash
 residual ``sum_i |dJ^i/du^i|^2`` with sufficient decrease ``1 - 2e-4 eta``; when no trial
@@ -261,6 +263,17 @@ class SolverOptions:
             stage's ``Q^i``, in every ``convexify`` mode (before the PSD projection). The
             gradients, and so the open-loop fixed points, do not change; the feedback gains
             do (they follow ``Q``). No effect on problems without the hook.
+        player_steps: one step size per player instead of one for all (trust-region rule
+            only): player ``i``'s feed-forward term is scaled by its own ``eta_i``, which
+            shrinks until the step changes player ``i``'s own states by at most
+            ``trust_radius``. For games whose state stacks the players' states, ``n = N n_i``
+            (player ``i``'s rows ``[i n_i, (i + 1) n_i)``; every RaceGame), refused for
+            others when the solver is traced. With one ``eta`` a player whose own plan
+            needs a long step (a car far off the track, whose boundary cost asks for
+            hundreds of metres) cuts every player's step to a few percent; a real-time
+            re-plan of a few iterations then barely moves the others' plans. The fixed
+            points are the same (``k = 0``); a step counts toward convergence only when no
+            player's ``eta`` was cut.
     """
 
     mode: str = methods.FEEDBACK
@@ -281,6 +294,7 @@ class SolverOptions:
     feedforward_regularization: bool = False
     dynamics_curvature: bool = True
     best_iterate: bool = False
+    player_steps: bool = False
 
     @property
     def guaranteed_control_regularization(self) -> float:
@@ -293,7 +307,7 @@ class SolverOptions:
 
     def __post_init__(self) -> None:
         for name in ("oscillation_damping", "adaptive_regularization", "feedforward_regularization",
-                     "dynamics_curvature", "best_iterate"):
+                     "dynamics_curvature", "best_iterate", "player_steps"):
             # a string such as "false" would be truthy
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"SolverOptions.{name} must be True or False, got {getattr(self, name)!r}")
@@ -307,6 +321,11 @@ class SolverOptions:
             raise ValueError(
                 "step_control='residual' needs mode='open_loop' (of the agents, ilqgame-ol): it "
                 "decreases the open-loop Nash residual, which a feedback equilibrium does not zero"
+            )
+        if self.player_steps and self.step_control != "trust_region":
+            raise ValueError(
+                "player_steps needs step_control='trust_region': each player's step size is cut by "
+                f"the trust region on its own states, got step_control={self.step_control!r}"
             )
         if self.adaptive_regularization and not self.control_regularization > 0:
             raise ValueError(
@@ -460,7 +479,8 @@ def forward(problem: GameProblem, xs_hat: Array, us_hat: Array, K: Array, k: Arr
 
     ``u_t = u_hat_t - K_t (x_t - x_hat_t) - eta k_t``, ``x_{t+1} = f_t(x_t, u_t)`` with the
     nominal ``xs_hat (T+1, n)``, ``us_hat (T, N, m)``, gains ``K (T, N, m, n)`` and
-    feed-forward terms ``k (T, N, m)``. Returns the new ``xs (T+1, n)``, ``us (T, N, m)``.
+    feed-forward terms ``k (T, N, m)``; ``eta`` a scalar, or ``(N, 1)`` for a step size per
+    player (``SolverOptions.player_steps``). Returns the new ``xs (T+1, n)``, ``us (T, N, m)``.
     """
     params = problem.params
 
@@ -554,6 +574,8 @@ def _step(problem, xs_hat, us_hat, K, k, eta0, merit0, options: SolverOptions):
     if options.step_control == "residual":
         return _residual_step(problem, xs_hat, us_hat, K, k, eta0, merit0, options)
 
+    if options.player_steps:
+        return _player_step(problem, xs_hat, us_hat, K, k, eta0, merit0, options)
     radius = options.trust_radius
     # Trial 0 runs at eta0, trial j > 0 at eta0 * step_decay^j. The first trial is a pass of
     # the loop too, so the compiled solver holds one forward pass instead of two (compile
@@ -571,6 +593,49 @@ def _step(problem, xs_hat, us_hat, K, k, eta0, merit0, options: SolverOptions):
     start = (xs_hat, us_hat, eta0, jnp.asarray(jnp.inf, xs_hat.dtype), 0)
     xs, us, eta, dev, _ = jax.lax.while_loop(cond, body, start)
     return xs, us, eta, dev, dev <= radius, merit0
+
+
+def _player_deviations(xs_new: Array, xs_hat: Array, num_players: int) -> Array:
+    """Max-norm change of each player's own states, ``(N,)``, for a state ``(T+1, n)`` that
+    stacks the players' states (``n = N n_i``); ``inf`` where it is not finite."""
+    n = xs_hat.shape[-1]
+    if n % num_players:
+        raise ValueError(f"player_steps needs a state that stacks the players' states (n = N n_i); "
+                         f"got n = {n} for N = {num_players} players")
+    d = jnp.abs(xs_new - xs_hat).reshape(xs_hat.shape[:-1] + (num_players, n // num_players))
+    d = jnp.max(d, axis=tuple(range(d.ndim - 2)) + (d.ndim - 1,))
+    return jnp.where(jnp.isfinite(d), d, jnp.inf)
+
+
+def _player_step(problem, xs_hat, us_hat, K, k, eta0, merit0, options: SolverOptions):
+    """The trust-region search with one step size per player (``options.player_steps``):
+    every ``eta_i`` starts at ``eta0``; after each trial the players whose own states moved
+    by more than ``trust_radius`` have theirs multiplied by ``step_decay``, until no player's
+    did (or ``max_backtracks`` trials). A player's rollout depends on the others' through
+    its gains ``K``, so every trial rolls out all players again. Returns ``(xs, us, eta,
+    deviation, ok, merit0)`` as :func:`_step` does, with ``eta`` the smallest ``eta_i`` and
+    ``deviation`` the largest of ``deviation_i * eta / eta_i``, so that ``deviation *
+    initial_step / eta`` is the largest full-step change of a player (the convergence
+    measure of :func:`iterate`)."""
+    radius = options.trust_radius
+    N = problem.num_players
+    etas0 = jnp.full((N,), eta0, xs_hat.dtype)
+
+    def cond(c):
+        _, _, _, dev, trial = c
+        return (trial == 0) | (jnp.any(dev > radius) & (trial <= options.max_backtracks))
+
+    def body(c):
+        _, _, etas, dev, trial = c
+        etas = jnp.where((trial > 0) & (dev > radius), etas * options.step_decay, etas)
+        xs, us = forward(problem, xs_hat, us_hat, K, k, etas[:, None])
+        return xs, us, etas, _player_deviations(xs, xs_hat, N), trial + 1
+
+    start = (xs_hat, us_hat, etas0, jnp.full((N,), jnp.inf, xs_hat.dtype), 0)
+    xs, us, etas, dev, _ = jax.lax.while_loop(cond, body, start)
+    eta = jnp.min(etas)
+    scaled = jnp.max(dev * (eta / etas))
+    return xs, us, eta, jnp.where(jnp.isfinite(scaled), scaled, jnp.inf), jnp.all(dev <= radius), merit0
 
 
 class BestIterate(NamedTuple):

@@ -26,6 +26,7 @@ __all__ = [
     "PLANNERS",
     "PREDICTIONS",
     "RACELINE",
+    "RANDOM",
     "RL",
     "SOLVER_MODES",
 ]
@@ -50,9 +51,11 @@ CONSTANT_SPEED = "constant-speed"
 """The scripted constant-speed cruiser (:class:`planners.ConstantSpeedAgent`)."""
 RACELINE = "raceline"
 """The scripted racing-line driver (:class:`planners.RacelineAgent`)."""
+RANDOM = "random"
+"""The random driver (:class:`planners.RandomAgent`): uniform random actions, seeded by its reset."""
 RL = "rl"
 """A saved stable-baselines3 policy (:class:`planners.SB3Agent`): specs ``rl:PATH`` or ``rl:ALGO:PATH``."""
-AGENT_METHODS = (ILQR, OPEN_LOOP_GAME, FEEDBACK_GAME, RACELINE, LANE_KEEPING, CONSTANT_SPEED)
+AGENT_METHODS = (ILQR, OPEN_LOOP_GAME, FEEDBACK_GAME, RACELINE, LANE_KEEPING, CONSTANT_SPEED, RANDOM)
 """The agent names of the registry, in the order help text lists them (``rl:`` specs apart)."""
 
 GAME_MODES = {FEEDBACK_GAME: FEEDBACK, OPEN_LOOP_GAME: OPEN_LOOP}

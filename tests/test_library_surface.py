@@ -19,7 +19,7 @@ from racing_env.scenarios import PAPER_WEIGHTS, paper_game
 DOCUMENTED = {
     # agents
     "Agent", "BaseAgent", "FeedbackGameAgent", "OpenLoopGameAgent", "ILQRAgent", "LaneKeepingAgent", "RacelineAgent",
-    "ConstantSpeedAgent", "SB3Agent", "JaxPolicyAgent", "make_agent", "AGENTS", "agent_options", "reset_agents",
+    "ConstantSpeedAgent", "RandomAgent", "SB3Agent", "JaxPolicyAgent", "make_agent", "AGENTS", "agent_options", "reset_agents",
     # batched opponents (one object drives one car in B races)
     "BatchedOpponent", "make_batched_opponent",
     # solvers
@@ -36,6 +36,7 @@ SPEC_CLASSES = {
     "raceline": "RacelineAgent",
     "lane-keeping": "LaneKeepingAgent",
     "constant-speed": "ConstantSpeedAgent",
+    "random": "RandomAgent",
 }
 
 

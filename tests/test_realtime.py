@@ -3,6 +3,7 @@ and the agents' options for them."""
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -153,3 +154,101 @@ def test_the_restored_warm_start_saves_iterations_in_a_race():
     plain = _race_iterations("ilqgame-ol", 30)
     assert sum(restored) < sum(plain)
     assert np.median(restored) < np.median(plain)
+
+
+# --- a step size per player (SolverOptions.player_steps) ------------------------------------
+
+X_FAR_OFF = np.array([[10.0, 20.0, 0.0, 0.0, 0.0, 0.0], [-150.0, 10.0, -60.0, 0.3, 0.0, 0.0]])
+"""The ego on a 12 m wide straight, the rival 150 m behind and 54 m beyond its right edge:
+the rival's boundary cost asks for a step of tens of metres, the ego's for a short one."""
+
+
+def _own_changes(game, result, x0) -> np.ndarray:
+    """Each car's largest change of its own states from the zero-input rollout, ``(N,)``."""
+    warm = np.asarray(game.rollout(x0, np.zeros((game.horizon, game.num_players, 2))))
+    return np.abs(np.asarray(result.xs) - warm).max(axis=(0, 2))
+
+
+def test_a_step_size_per_player_keeps_each_cars_change_in_the_trust_region_and_frees_the_ego(game):
+    radius = 2.0
+    joint = ilq.solve(game, X_FAR_OFF, mode="feedback", max_iterations=1, trust_radius=radius)
+    own = ilq.solve(game, X_FAR_OFF, mode="feedback", max_iterations=1, trust_radius=radius, player_steps=True)
+    joint_changes, own_changes = _own_changes(game, joint, X_FAR_OFF), _own_changes(game, own, X_FAR_OFF)
+    assert np.all(joint_changes <= radius) and np.all(own_changes <= radius)
+    # the rival's step is the same one (its eta is cut as the joint one was; 150 m away, it
+    # hardly reacts to the ego's change through its gains) ...
+    assert own_changes[1] == pytest.approx(joint_changes[1], rel=1e-3)
+    # ... and no longer cuts the ego's: one eta holds the ego's change to a few percent of the radius
+    assert joint_changes[0] < 0.1 * radius < 0.5 * radius < own_changes[0]
+    assert float(own.eta) == float(joint.eta)  # the reported eta is the smallest player's
+
+
+def test_a_step_size_per_player_changes_nothing_where_no_step_is_cut(game):
+    joint = ilq.solve(game, X0, mode="feedback")
+    own = ilq.solve(game, X0, mode="feedback", player_steps=True)
+    assert bool(joint.converged) and bool(own.converged) and int(own.iterations) == int(joint.iterations)
+    np.testing.assert_array_equal(np.asarray(own.xs), np.asarray(joint.xs))
+
+
+def test_player_steps_needs_the_trust_region_and_a_stacked_state():
+    with pytest.raises(ValueError, match="player_steps needs step_control='trust_region'"):
+        ilq.SolverOptions(player_steps=True, step_control="none")
+    with pytest.raises(ValueError, match="player_steps needs step_control='trust_region'"):
+        make_agent("ilqgame-ol:player_steps=true,step_control=residual")
+    from planners import GameProblem
+
+    def dynamics(p, t, x, u):  # three states, two players: no stacked per-player state
+        return x + 0.1 * jnp.concatenate([u[:, 0], u[:1, 0]])
+
+    def stage_cost(p, t, i, x, u_i):
+        return jnp.sum((x - 1.0) ** 2) + u_i @ u_i
+
+    def terminal_cost(p, i, x):
+        return jnp.sum(x ** 2)
+
+    problem = GameProblem(dynamics, stage_cost, terminal_cost, num_players=2, state_dim=3, input_dim=1, horizon=5)
+    with pytest.raises(ValueError, match="stacks the players' states"):
+        ilq.solve(problem, np.zeros(3), player_steps=True)
+
+
+def test_the_real_time_feedback_planner_takes_a_step_size_per_player_by_default():
+    assert make_agent("ilqgame-fb:iterations=2").solver_options["player_steps"] is True
+    assert make_agent("ilqgame-fb:budget_ms=5").solver_options["player_steps"] is True
+    assert make_agent("ilqgame-fb:iterations=2,player_steps=false").solver_options["player_steps"] is False
+    for spec in ("ilqgame-fb", "ilqgame-ol:iterations=2", "ilqr:iterations=2"):
+        assert "player_steps" not in make_agent(spec).solver_options
+
+
+@pytest.fixture(scope="module")
+def race_against_random():
+    """Car 0 at ``iterations=2,trust_radius=10`` against the random driver on the trefoil,
+    grid seed 0, 25 s: the rival is tens of metres off the track from about 10 s on."""
+
+    def race(spec: str) -> tuple[int, np.ndarray]:
+        env = parallel_env(track="trefoil", num_agents=2, max_steps=220)
+        agents = [make_agent(spec), make_agent("random")]
+        observations, _ = env.reset(seed=0)
+        reset_agents(agents, env, seed=0)
+        off, far = 0, []
+        while env.agents:
+            state = env.state()
+            actions = {car: agents[i].act(observations[car], state)
+                       for i, car in enumerate(env.possible_agents) if car in env.agents}
+            observations, _, _, _, infos = env.step(actions)
+            off += bool(infos["car_0"]["off_track"])
+            far.append(abs(env.state()[1, 2]))
+        return off, np.array(far)
+
+    return race
+
+
+def test_the_real_time_feedback_planner_stays_on_the_track_against_a_random_rival(race_against_random):
+    off, rival_offset = race_against_random("ilqgame-fb:iterations=2,trust_radius=10")
+    assert rival_offset.max() > 30.0  # the rival was far off the track
+    assert off == 0
+
+
+@pytest.mark.slow
+def test_with_one_step_size_the_real_time_feedback_planner_left_the_track_in_that_race(race_against_random):
+    off, _ = race_against_random("ilqgame-fb:iterations=2,trust_radius=10,player_steps=false")
+    assert off > 0

@@ -10,7 +10,8 @@ The modules, one job each:
 * :mod:`~planners.agents.receding_horizon`: :class:`RecedingHorizonAgent` and the planners
   :class:`FeedbackGameAgent`, :class:`OpenLoopGameAgent`, :class:`ILQRAgent`
   (:mod:`~planners.agents.weights`: their beliefs and private cost weights);
-* :mod:`~planners.agents.scripted`: :class:`RacelineAgent`, :class:`LaneKeepingAgent`, :class:`ConstantSpeedAgent`;
+* :mod:`~planners.agents.scripted`: :class:`RacelineAgent`, :class:`LaneKeepingAgent`, :class:`ConstantSpeedAgent`,
+  :class:`RandomAgent` (uniform random actions, seeded by its reset);
 * :mod:`~planners.agents.sb3`: :class:`SB3Agent` (loaded on first use: the RL layer);
 * :mod:`~planners.agents.jax_policy`: :class:`JaxPolicyAgent`, a JAX learner's policy
   (flax loaded when one is built);
@@ -31,6 +32,7 @@ from typing import Any
 from planners.agents.batched import (
     BatchedOpponent,
     BatchedPool,
+    BatchedRandom,
     BatchedSB3,
     BatchedScripted,
     LoopedOpponent,
@@ -59,7 +61,7 @@ from planners.agents.registry import (
     with_options,
 )
 from planners.agents.jax_policy import JaxPolicyAgent
-from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent, RacelineAgent
+from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent, RacelineAgent, RandomAgent
 
 _SB3_NAMES = ("SB3Agent", "SB3_ALGOS", "VECNORMALIZE_SUFFIX", "vecnormalize_path")
 
@@ -72,6 +74,7 @@ __all__ = [
     "BatchedOpponent",
     "BatchedPlanner",
     "BatchedPool",
+    "BatchedRandom",
     "BatchedSB3",
     "BatchedScripted",
     "ConstantSpeedAgent",
@@ -80,6 +83,7 @@ __all__ = [
     "JaxPolicyAgent",
     "LaneKeepingAgent",
     "RacelineAgent",
+    "RandomAgent",
     "LoopedOpponent",
     "OpenLoopGameAgent",
     "RECOVERED_SPEED",

@@ -19,6 +19,9 @@ reset. The kinds:
   one batched solve (:func:`planners.ilq_batch.solve_batch`) of the races due to re-plan;
 * :class:`BatchedSB3` (``rl:PATH``, a stable-baselines3 ``.zip`` or a JAX learner's ``.npz``):
   the saved model predicts for all B observations at once;
+* :class:`BatchedRandom` (``random``): each race's own generator, seeded from the race's seed
+  as the single agent seeds its own, so it draws the single agent's actions (host side: it
+  has no JAX law, and a compiled race refuses it);
 * :class:`BatchedPool` (a list of specs): each race's driver drawn from its own seed;
 * :class:`LoopedOpponent`: B single agents, one race at a time, for what cannot be batched.
 
@@ -42,7 +45,7 @@ import numpy as np
 from planners.agents.batched_protocol import DIAGNOSTIC_FIELDS, BatchedOpponent, empty_diagnostics
 from planners.agents.protocol import BaseAgent
 from planners.agents.registry import make_agent
-from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent, RacelineAgent
+from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent, RacelineAgent, RandomAgent, random_generator
 from planners.methods import RL
 from planners import scripted as scripted_laws
 
@@ -52,6 +55,7 @@ SCRIPTED_AGENTS = (RacelineAgent, LaneKeepingAgent, ConstantSpeedAgent)
 __all__ = [
     "BatchedOpponent",
     "BatchedPool",
+    "BatchedRandom",
     "BatchedSB3",
     "BatchedScripted",
     "DIAGNOSTIC_FIELDS",
@@ -101,6 +105,34 @@ class BatchedScripted(BatchedOpponent):
         diagnostics["fallback"] |= braked
         diagnostics["brake"] |= braked
         return self._finish(actions, x, diagnostics), diagnostics
+
+
+class BatchedRandom(BatchedOpponent):
+    """The random driver (:class:`planners.agents.RandomAgent`) in B races: one generator per
+    race, made at the race's reset from its episode seed and the car's index
+    (:func:`planners.agents.scripted.random_generator`), so each race draws the actions a
+    single agent reset with that seed draws, one ``(2,)`` draw per step in which the car races.
+
+    It runs on the host (``jax_policy`` is None): a JAX law would need a key in the race's
+    state, so the compiled races (:class:`racing_env.vector.GymnaxRace`) refuse it, while
+    :class:`racing_env.vector.RaceVectorEnv` drives it between its compiled steps.
+    """
+
+    def __init__(self, agent: RandomAgent, game: Any, index: int, num_races: int, spec: str | None = None) -> None:
+        if not isinstance(agent, RandomAgent):
+            raise TypeError(f"BatchedRandom needs a RandomAgent, got {type(agent).__name__}")
+        super().__init__(spec or agent.spec, game, index, num_races)
+        self.scale = agent.scale
+        self.generators: list[np.random.Generator | None] = [None] * self.num_races
+
+    def _reset_rows(self, rows, seeds):
+        for row, seed in zip(rows, seeds):
+            self.generators[row] = random_generator(int(seed), self.index)
+
+    def _act_rows(self, rows, observations, x, racing):
+        actions = np.array([self.generators[row].uniform(-self.scale, self.scale, size=2) for row in rows])
+        diagnostics = empty_diagnostics(self.diagnostic_fields, rows.size)
+        return self._finish(actions.reshape(rows.size, 2), x, diagnostics), diagnostics
 
 
 # --------------------------------------------------------------------------------------
@@ -303,8 +335,9 @@ def make_batched_opponent(spec: str | Sequence[str], game: Any, index: int, num_
             (:class:`planners.agents.batched_planners.BatchedPlanner`); other kinds ignore them.
 
     Returns:
-        A :class:`BatchedScripted`, :class:`~planners.agents.batched_planners.BatchedPlanner`,
-        :class:`BatchedSB3` or :class:`BatchedPool`; a :class:`LoopedOpponent` (with a
+        A :class:`BatchedScripted`, :class:`BatchedRandom`,
+        :class:`~planners.agents.batched_planners.BatchedPlanner`, :class:`BatchedSB3` or
+        :class:`BatchedPool`; a :class:`LoopedOpponent` (with a
         warning, it is slow) for a planner option that cannot be batched (an iLQR prediction
         other than constant velocity).
 
@@ -327,6 +360,8 @@ def batched_from_agent(agent: BaseAgent, spec: str, game: Any, index: int, num_r
 
     if isinstance(agent, SCRIPTED_AGENTS):
         return BatchedScripted(agent, game, index, num_races, spec=spec)
+    if isinstance(agent, RandomAgent):
+        return BatchedRandom(agent, game, index, num_races, spec=spec)
     if spec.strip().lower().startswith(f"{RL}:"):
         return BatchedSB3(agent, game, index, num_races, spec=spec)
     reason = batched_planners.unbatchable(agent)

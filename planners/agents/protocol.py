@@ -217,8 +217,8 @@ class BaseAgent:
         return dict(self._last)
 
     def summary(self) -> dict:
-        """Aggregates over the steps since reset: re-plans, solve-time percentiles, fallbacks,
-        shares of converged (and, where certified, locally Nash) re-plans."""
+        """Aggregates over the steps since reset: re-plans, solve-time percentiles, iterations
+        (mean, median, 95th percentile), fallbacks, shares of converged (and, where certified, locally Nash) re-plans."""
         times = np.array([r["solve_time"] for r in self.history if r.get("solve_time") is not None])
         iters = [r["iterations"] for r in self.history if r.get("iterations") is not None]
         converged = [bool(r["converged"]) for r in self.history if r.get("converged") is not None]
@@ -247,6 +247,8 @@ class BaseAgent:
                 solve_time_p95=float(np.percentile(times, 95)),
                 solve_time_max=float(times.max()),
                 iterations_mean=float(np.mean(iters)) if iters else None,
+                iterations_median=float(np.median(iters)) if iters else None,
+                iterations_p95=float(np.percentile(iters, 95)) if iters else None,
             )
         return out
 

@@ -118,7 +118,12 @@ class RecedingHorizonAgent(BaseAgent):
             ``{"c_collision": 100.0}``: they will do much to avoid contact). Applied on top
             of ``belief_weights``.
         solver_options: further :class:`planners.ilq.SolverOptions` fields; the
-            ``tolerance`` defaults to :data:`REPLAN_TOLERANCE`. Checked here, so a bad
+            ``tolerance`` defaults to :data:`REPLAN_TOLERANCE`, and ``player_steps`` (a step
+            size per car) to true for the real-time re-plans (``iterations`` or
+            ``budget_ms``) of the feedback game agent: with one step size, a rival far off the track,
+            whose boundary cost asks for a step of hundreds of metres, cuts the ego's step
+            to a few percent and the ego's plan lags behind until it leaves the track
+            (docs/experiments/cheap-replans.md). Checked here, so a bad
             option fails when the agent is made.
     """
 
@@ -126,6 +131,9 @@ class RecedingHorizonAgent(BaseAgent):
     feedback = False
     mode = FEEDBACK  # the solver mode of its plans (iLQR's is a one-player feedback solve)
     planned_players = 1  # players of its own solve: 1 for iLQR, 2 (or more) for a game
+    # whether its real-time re-plans (iterations, budget_ms) take a step size per player by
+    # default (SolverOptions.player_steps): the feedback game's do
+    realtime_player_steps = False
 
     def __init__(
         self,
@@ -177,6 +185,11 @@ class RecedingHorizonAgent(BaseAgent):
         self.trailing_weights = checked_weight_changes("trailing_weights", trailing_weights)
         self.opponent_weights = checked_weight_changes("opponent_weights", opponent_weights)
         self.solver_options = {"tolerance": REPLAN_TOLERANCE, **solver_options}
+        if "player_steps" not in solver_options and self.realtime_player_steps and (
+                iterations is not None or budget_ms is not None):
+            # real-time feedback re-plans: a rival whose own plan needs a long step (a car far
+            # off the track) must not cut the ego's step to a few percent (docs/solvers.md)
+            self.solver_options["player_steps"] = True
         unknown = sorted(set(self.solver_options) - set(self._solver_option_types()) - {"mode"})
         if unknown:
             raise ValueError(f"unknown solver options {unknown}; allowed: {sorted(self._solver_option_types())}")
@@ -210,6 +223,8 @@ class RecedingHorizonAgent(BaseAgent):
                           "iterations", "budget_ms", "require_converged", "recovery_track_scale")})
         defaults["tolerance"] = REPLAN_TOLERANCE
         defaults["restore_accelerations"] = "true with iterations or budget_ms, else false"
+        if cls.realtime_player_steps:
+            defaults["player_steps"] = "true with iterations or budget_ms, else false"
         for name in weight_names():
             defaults[name] = "the race's"
             defaults.update({f"{place}.{name}": name for place in PLACE_PREFIXES})
@@ -443,6 +458,7 @@ class FeedbackGameAgent(_GameAgent):
     spec = name = FEEDBACK_GAME
     mode = GAME_MODES[FEEDBACK_GAME]
     feedback = True
+    realtime_player_steps = True
 
 
 class OpenLoopGameAgent(_GameAgent):

@@ -31,7 +31,7 @@ from planners.agents.receding_horizon import (
     ILQRAgent,
     OpenLoopGameAgent,
 )
-from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent, RacelineAgent
+from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent, RacelineAgent, RandomAgent
 from planners.agents.weights import PLACE_PREFIXES, weight_names
 from planners.methods import (
     AGENT_METHODS,
@@ -42,6 +42,7 @@ from planners.methods import (
     LANE_KEEPING,
     OPEN_LOOP_GAME,
     RACELINE,
+    RANDOM,
     RL,
 )
 
@@ -66,7 +67,7 @@ __all__ = [
 # --------------------------------------------------------------------------------------
 
 _CLASSES = {cls.spec: cls for cls in (ILQRAgent, OpenLoopGameAgent, FeedbackGameAgent, RacelineAgent, LaneKeepingAgent,
-                                      ConstantSpeedAgent)}
+                                      ConstantSpeedAgent, RandomAgent)}
 AGENTS: dict[str, type[BaseAgent]] = {name: _CLASSES[name] for name in AGENT_METHODS}
 """Agent name -> class (each class's ``spec`` is its name). ``rl:`` specs are not in it: they
 name a saved model (:class:`planners.agents.sb3.SB3Agent`, loaded with stable-baselines3)."""
@@ -82,13 +83,14 @@ AGENT_SUMMARIES = {
     RACELINE: "scripted: the circuit's racing line at its lap-time limit's speeds (pace=0.95: slower); no avoidance",
     LANE_KEEPING: "scripted: holds a lateral offset at a cruise speed, slowing for curves within grip",
     CONSTANT_SPEED: "scripted: the centre line at a constant speed (slowing only for curves)",
+    RANDOM: "uniform random actions every step, seeded by the race (a rival no planner can predict)",
 }
 """One line per agent name, for help text."""
 
 
 def make_agent(spec: str, **kwargs: Any) -> Agent:
-    """An agent from a spec: ``ilqr``, ``ilqgame-ol``, ``ilqgame-fb``, ``lane-keeping``,
-    ``constant-speed`` or ``rl:path/to/model.zip`` (``rl:sac:path`` names the algorithm).
+    """An agent from a spec: ``ilqr``, ``ilqgame-ol``, ``ilqgame-fb``, ``raceline``, ``lane-keeping``,
+    ``constant-speed``, ``random`` or ``rl:path/to/model.zip`` (``rl:sac:path`` names the algorithm).
 
     A non-RL spec may carry options, ``name:option=value,...`` (see :func:`split_spec` and
     :func:`agent_options`), e.g. ``ilqgame-fb:max_iterations=100,c_collision=1``. ``kwargs``
@@ -192,6 +194,9 @@ _SOLVER_HELP = {
     "convexify": "auto, gauss_newton, eig, diag or none: how the cost Hessians are made convex",
     "best_iterate": ("adopt the iterate whose first-stage LQ step is smallest instead of the last "
                      "one when a re-plan stops unconverged (races worse: docs/agents.md)"),
+    "player_steps": ("a step size per car, each cut by the trust region on its own states (default: on for "
+                     f"{FEEDBACK_GAME}'s real-time re-plans, iterations or budget_ms): a rival whose plan needs a "
+                     "long step no longer shortens the ego's"),
     "dynamics_curvature": ("give each car's local game the curvature of its progress in its "
                            "heading, which linearising the dynamics drops (false: the plain iLQ model)"),
 }
@@ -208,7 +213,8 @@ _PREDICTION_HELP = {
 _SCRIPTED_HELP = {"target_speed": "cruise speed [m/s]", "target_n": "lateral offset to hold [m], positive left",
                   "pace": "fraction of the lap-time limit's speed profile driven, in (0, 1]",
                   "margin": "the racing line is kept this far inside the track boundaries [m]",
-                  "line": "raceline (the circuit's; the centre line where none is shipped) or centerline"}
+                  "line": "raceline (the circuit's; the centre line where none is shipped) or centerline",
+                  "scale": "random: actions drawn uniformly from [-scale, scale]^2, a fraction of the action box in (0, 1]"}
 
 _WEIGHT_MEANINGS = {
     "r_jx": "longitudinal jerk weight",

@@ -1,10 +1,12 @@
-"""The scripted drivers as agents: the racing-line driver, the lane keeper and the constant-speed
-cruiser.
+"""The scripted drivers as agents: the racing-line driver, the lane keeper, the constant-speed
+cruiser and the random driver.
 
 The drivers themselves (their control laws) live in :mod:`planners.scripted`, which the
 opponent predictions (:mod:`planners.prediction`) use as well; here they get the agent
 protocol (:class:`planners.agents.protocol.BaseAgent`): reset for a car of a race, options from
 a spec (``lane-keeping:target_speed=20,target_n=1.5``), diagnostics and a braking fallback.
+:class:`RandomAgent` has no control law: it draws its actions from a generator seeded at its
+reset, a rival whose moves no planner can predict.
 """
 
 from __future__ import annotations
@@ -14,11 +16,11 @@ from typing import Any
 import numpy as np
 
 from planners.agents.protocol import BaseAgent
-from planners.methods import CONSTANT_SPEED, LANE_KEEPING, RACELINE
+from planners.methods import CONSTANT_SPEED, LANE_KEEPING, RACELINE, RANDOM
 from planners.scripted import RACELINE_MARGIN, ConstantSpeed, LaneKeeping, RacelineDriver, check_raceline_options, \
     check_targets
 
-__all__ = ["ConstantSpeedAgent", "LaneKeepingAgent", "RacelineAgent"]
+__all__ = ["ConstantSpeedAgent", "LaneKeepingAgent", "RacelineAgent", "RandomAgent", "check_random_scale", "random_generator"]
 
 
 class _ScriptedAgent(BaseAgent):
@@ -99,3 +101,68 @@ class RacelineAgent(_ScriptedAgent):
     @classmethod
     def spec_defaults(cls) -> dict[str, Any]:
         return {"pace": 1.0, "margin": RACELINE_MARGIN, "line": "raceline"}
+
+
+def check_random_scale(scale: Any) -> float:
+    """``scale`` as a float in ``(0, 1]`` (the fraction of the action box the random driver
+    draws from); a ``ValueError`` that says so otherwise."""
+    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.integer, np.floating)):
+        raise ValueError(f"scale must be a number in (0, 1], got {scale!r}")
+    value = float(scale)
+    if not (np.isfinite(value) and 0.0 < value <= 1.0):
+        raise ValueError(f"scale must be a number in (0, 1] (the fraction of the action box), got {scale!r}")
+    return value
+
+
+def random_generator(seed: int | None, index: int) -> np.random.Generator:
+    """The random driver's generator for car ``index`` of a race with episode seed ``seed``:
+    ``np.random.default_rng([seed, index])``, so that the same seed replays the same actions
+    and two random cars of one race draw different ones; ``seed=None`` draws fresh entropy
+    (not reproducible). A seed must be an integer >= 0."""
+    if seed is None:
+        return np.random.default_rng()
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or int(seed) < 0:
+        raise ValueError(f"the random driver's seed must be an integer >= 0 or None, got {seed!r}")
+    return np.random.default_rng([int(seed), int(index)])
+
+
+class RandomAgent(BaseAgent):
+    """A driver that acts uniformly at random: each step's action is drawn independently and
+    uniformly from ``[-scale, scale]^2`` of the normalised action box (jerks of up to
+    ``scale`` times the car's jerk limits [m/s^3]).
+
+    It is the rival no planner can predict: a planner's prediction of it (the game's
+    equilibrium, a constant-velocity or lane-keeping model) is wrong at every step, by a
+    jerk of up to the car's limit. The draws come from :func:`random_generator` seeded by
+    :meth:`reset`'s ``seed`` and the car's index, so a race is reproducible for a seed; the
+    batched form (:class:`planners.agents.batched.BatchedRandom`) draws the same numbers in
+    each race from the race's seed.
+
+    Args:
+        scale: the fraction of the action box, in ``(0, 1]`` (default 1: the whole box).
+    """
+
+    spec = name = RANDOM
+
+    def __init__(self, scale: float = 1.0) -> None:
+        super().__init__()
+        self.scale = check_random_scale(scale)
+        self.rng: np.random.Generator | None = None
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        return {"scale": float}
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        return {"scale": 1.0}
+
+    def reset(self, seed: int | None, index: int, env_info: Any) -> None:
+        super().reset(seed, index, env_info)
+        self.rng = random_generator(seed, self.index)
+
+    def _draw(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        return self.rng.uniform(-self.scale, self.scale, size=2)
+
+    def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        return self._act_guarded(self._draw, observation, joint_state)
