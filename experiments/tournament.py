@@ -405,8 +405,9 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
         return board
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
     certified_header, certified = _certified_cells(board)
+    limits = any(row.get("mean_limit_ratio") is not None for row in board["rows"])  # circuits with a lap-time limit
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "finished",
-                *(("retired",) if retire else ()), "margin [s]", "x limit", "errors", "contact steps", "off-track steps", "act [ms]",
+                *(("retired",) if retire else ()), "margin [s]", *(("x limit",) if limits else ()), "errors", "contacts", "off track", "act [ms]",
                 "converged", *certified_header):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
@@ -414,7 +415,8 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
         table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
                       f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", f"{row['finished']}/{row['races']}",
                       *((str(row["retired"]),) if retire else ()),
-                      or_dash(row["mean_margin_s"], "{:+.2f}"), or_dash(row.get("mean_limit_ratio"), "{:.3f}"),
+                      or_dash(row["mean_margin_s"], "{:+.2f}"),
+                      *((or_dash(row.get("mean_limit_ratio"), "{:.3f}"),) if limits else ()),
                       str(row["errors"]),
                       str(row["collision_steps"]), or_dash(row.get("off_track_steps"), "{:d}"),
                       f"{1e3 * row['mean_act_time_s']:.1f}",

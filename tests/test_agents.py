@@ -389,7 +389,7 @@ def test_make_agent_specs(tmp_path):
         assert type(agent) is cls and agent.name == spec
         assert isinstance(agent, Agent)
     assert make_agent("ilqgame-fb", max_iterations=5, replan_every=2).replan_every == 2
-    for bad in ["ilqgame", "", "rl:", "random"]:
+    for bad in ["ilqgame", "", "rl:", "lane-keeper"]:
         with pytest.raises(ValueError, match="ilqgame-fb"):
             make_agent(bad)
     with pytest.raises(ValueError, match="could not load"):

@@ -123,8 +123,12 @@ def _compare_step(opponent, singles, races) -> tuple[np.ndarray, dict, list[dict
 # --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("replan_every", [1, 3])
-@pytest.mark.parametrize("method", ["ilqgame-fb", "ilqgame-ol", "ilqr"])
+# Every method re-planning every step, and feedback iLQGame following its plans in between
+# (the path the three share); the other two between re-plans run with the slow tests.
+@pytest.mark.parametrize("method, replan_every", [
+    ("ilqgame-fb", 1), ("ilqgame-ol", 1), ("ilqr", 1), ("ilqgame-fb", 3),
+    pytest.param("ilqgame-ol", 3, marks=pytest.mark.slow), pytest.param("ilqr", 3, marks=pytest.mark.slow),
+])
 def test_a_batched_planner_takes_the_single_agents_actions(method, replan_every):
     """Three races, two of which restart mid-way (each race has its own plan age), driven
     forward by the batched actions; every step's actions equal the single agents'."""

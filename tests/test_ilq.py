@@ -179,7 +179,8 @@ def test_feedback_solution_has_vanishing_feedforward_and_is_not_open_loop_nash(
     np.testing.assert_allclose(feedback.xs, game.rollout(jnp.asarray(X0), feedback.us))
 
 
-@pytest.mark.parametrize("mode", ["feedback", "open_loop"])
+# open loop (the same masks, the other LQ solve) with the slow tests
+@pytest.mark.parametrize("mode", ["feedback", pytest.param("open_loop", marks=pytest.mark.slow)])
 def test_with_the_opponent_out_of_the_race_each_car_plans_as_if_alone(game, mode, request):
     """The paper scene with car 1 out of the race decouples into two one-car problems: the
     game's solution is each car's own optimum. Checked against one-car solves of the same
@@ -275,6 +276,7 @@ def test_residual_step_control_decreases_the_open_loop_residual(game, open_loop)
                                atol=1e-5)
 
 
+@pytest.mark.slow  # the rule's per-step decrease is checked by the test above, by default
 def test_residual_step_control_converges_where_the_trust_region_cycles():
     game = paper_game(CostWeights(r_jx=0.01, r_jy=0.01))  # the tournaments' jerk weight
     trust_region = ilq.solve(game, X0, mode="open_loop", **PLAIN)
@@ -441,9 +443,10 @@ def _assert_same_solution(batch, b, single):
     np.testing.assert_allclose(batch.us[b], single.us, atol=1e-10)
 
 
-@pytest.mark.parametrize("mode,where,batching", [
-    ("feedback", "all devices", "auto"), ("open_loop", "all devices", "auto"), ("feedback", "one device", "auto"),
-    ("feedback", "all devices", "vmap"), ("open_loop", "one device", "vmap"),
+@pytest.mark.parametrize("mode,where,batching", [  # the one-device splits with the slow tests
+    ("feedback", "all devices", "auto"), ("open_loop", "all devices", "auto"), ("feedback", "all devices", "vmap"),
+    pytest.param("feedback", "one device", "auto", marks=pytest.mark.slow),
+    pytest.param("open_loop", "one device", "vmap", marks=pytest.mark.slow),
 ])
 def test_batch_matches_individual_solves(game, mode, where, batching, monkeypatch):
     assert len(jax.local_devices()) == 2  # conftest: the split path is exercised
@@ -903,7 +906,8 @@ def test_dynamics_curvature_keeps_the_open_loop_fixed_point(game, open_loop):
     assert np.all(np.asarray(nash.nash_residual(game, X0, without.us)) <= 1e-4 * zero)
 
 
-@pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
+# three cars (the same hook, more rows) with the slow tests
+@pytest.mark.parametrize("scene", ["paper", pytest.param("three_cars_trefoil", marks=pytest.mark.slow)])
 def test_ilqr_ego_problem_has_the_games_own_heading_curvature(game, scene):
     """Every ego's curvature is its block of the game's, at the joint state with the
     others at their prediction, and iLQR's local problem gets it."""

@@ -107,7 +107,7 @@ def test_ctrl_c_stops_the_worker_processes_and_the_sweep_resumes(tmp_path):
     """SIGINT to the process group of a real `racing sweep --workers 2` (as a terminal sends
     Ctrl-C): exit status 130, the finished races kept, no process left; rerun: complete."""
     path = tmp_path / "long.toml"
-    path.write_text(TINY_TOML.replace("grids = 2", "grids = 40"))
+    path.write_text(TINY_TOML.replace("grids = 2", "grids = 12"))
     out = tmp_path / "out"
     args = ["sweep", str(path), "--workers", "2", "--out", str(out), "--no-compile-cache"]
     process = start_racing(args)

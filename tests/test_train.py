@@ -112,7 +112,9 @@ def test_a_checkpoint_cut_short_while_saving_is_not_resumed_from(tmp_path):
     assert vecnormalize_path(first).exists()
 
 
-@pytest.mark.parametrize("subprocesses", [False, True], ids=["one-process", "worker-processes"])
+# in worker processes with the slow tests (test_sweep's Ctrl-C test stops worker processes)
+@pytest.mark.parametrize("subprocesses", [False, pytest.param(True, marks=pytest.mark.slow)],
+                         ids=["one-process", "worker-processes"])
 def test_interrupted_training_process_resumes(tmp_path, subprocesses):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) on a real `racing train`
     after its first checkpoint: it saves a checkpoint where it stopped, exits with 130 and
