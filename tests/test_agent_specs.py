@@ -99,6 +99,15 @@ def test_spec_options_reach_the_agent():
     ("lane-keeping:max_iterations=3", "has no option 'max_iterations'"),
     ("constant-speed:target_n=1", "has no option 'target_n'"),
     ("wizard:x=1", "unknown agent spec"),
+    ("random:scale=0", r"scale must be a number in \(0, 1\]"),
+    ("random:scale=1.5", r"scale must be a number in \(0, 1\]"),
+    ("random:scale=nan", r"scale must be a number in \(0, 1\]"),
+    ("random:scale=-1", r"scale must be a number in \(0, 1\]"),
+    ("random:scale=big", "expected a number"),
+    ("random:target_speed=3", "has no option 'target_speed'"),
+    ("ilqgame-fb:iterations=0", "iterations must be an integer >= 1"),
+    ("ilqgame-ol:iterations=2,max_iterations=10", "give iterations"),
+    ("ilqr:prediction=ilqr,budget_ms=2", "budget_ms bounds one solve"),
 ])
 def test_bad_options_are_refused_when_the_agent_is_made(spec, message):
     with pytest.raises(ValueError, match=message):
