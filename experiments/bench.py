@@ -814,6 +814,7 @@ def _figure(row: dict[str, Any]) -> str:
 _TARGETS = {
     "target_steps_per_s": ("steps_per_s", True),
     "target_ratio": ("throughput_ratio", True),
+    "target_vs_endless": ("vs_endless", True),
     "target_ms_p95": ("ms_p95", False),
     "target_ms": (("ms_per_iter", "ms_per_solve", "ms_per_frame"), False),
 }

@@ -1,7 +1,9 @@
 """`racing bench --only rl`: the throughput of the loops RL trains in.
 
 Rows: the PettingZoo env and the vectorised env (:mod:`racing_env.vector`) at B = 1, 64 and
-1,024 races with random actions, in the same run; the vectorised env against each kind of
+1,024 races with random actions, in the same run; the vectorised env at 1,024 races on Monza
+against the lane keeper, with endless races and with short episodes that autoreset every few
+dozen steps (the cost of a reset); the vectorised env against each kind of
 opponent at B = 64, re-planning every step and every 5 steps (the learner's car driven by the
 lane keeper, and, for the planners, by random actions); and stable-baselines3 PPO
 training against the lane keeper and against feedback iLQGame, today's path (copies of the
@@ -48,6 +50,16 @@ def _vector_env(num_envs: int, opponents: list | None = None):
 
     return gymnasium.make_vec("racing_env/Race-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
                               opponents=opponents, **RACE)
+
+
+def _vector_env_on(num_envs: int, track: str, **race: Any):
+    """The vectorised env on ``track`` against the lane keeper, with the race settings ``race``."""
+    import gymnasium
+
+    import racing_env  # noqa: F401 - registers racing_env/Race-v0
+
+    return gymnasium.make_vec("racing_env/Race-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
+                              opponents=["lane-keeping"], track=track, **race)
 
 
 def pettingzoo_row(steps: int = 2000, repeats: int = 3) -> dict[str, Any]:
@@ -155,6 +167,52 @@ def opponent_rows(num_envs: int = 64, calls: int = 30, opponents: tuple[str, ...
             yield row
 
 
+#: What makes the episodes of the short-episode row short: 150 m races, retired off the track.
+SHORT_EPISODES = dict(race_distance=150.0, on_off_track="terminate")
+
+
+def short_episode_rows(num_envs: int = 1024, calls: int = 200, repeats: int = 3, track: str = "Monza"
+                       ) -> Iterator[dict[str, Any]]:
+    """The vectorised env on a real circuit against the lane keeper with random learner
+    actions: races that never end while timed, and short episodes (:data:`SHORT_EPISODES`:
+    the first hour of a training that retires cars off the track) that autoreset every few
+    dozen steps. The two are timed in turns, ``calls`` steps each, ``repeats`` times; the
+    short row reports its rate against the endless one (target: at least half of it), the
+    episode ends per step and the cost of one reset, ``(time per step, short - endless) /
+    resets per step``."""
+    endless = _vector_env_on(num_envs, track, max_steps=10**9, laps=1000)
+    short = _vector_env_on(num_envs, track, **SHORT_EPISODES)
+    actions = np.random.default_rng(0).uniform(-1, 1, (calls, num_envs, 2))
+    compile_s, ends = {}, {"endless": 0, "short": 0}
+    for name, envs in (("endless", endless), ("short", short)):
+        envs.reset(seed=0)
+        start = time.perf_counter()
+        envs.step(actions[0])
+        compile_s[name] = time.perf_counter() - start
+        for a in actions[1:50]:  # past the first episodes' common length: resets spread out
+            envs.step(a)
+    seconds: dict[str, list[float]] = {"endless": [], "short": []}
+    for _ in range(repeats):
+        for name, envs in (("endless", endless), ("short", short)):
+            start = time.perf_counter()
+            for a in actions:
+                _, _, terminated, truncated, _ = envs.step(a)
+                ends[name] += int(np.sum(terminated | truncated))
+            seconds[name].append(time.perf_counter() - start)
+    rate = {name: num_envs * calls / float(np.median(times)) for name, times in seconds.items()}
+    resets_per_step = ends["short"] / (repeats * calls)
+    per_step = {name: float(np.median(times)) / calls for name, times in seconds.items()}
+    yield {"name": f"vector_env_{track}_lane-keeping_B{num_envs}", "races": num_envs, "track": track,
+           "steps_per_s": rate["endless"], "compile_s": compile_s["endless"], "episode_ends_per_step": 0.0,
+           "repeats": [round(num_envs * calls / t) for t in seconds["endless"]]}
+    yield {"name": f"vector_env_{track}_lane-keeping_B{num_envs}_short_episodes", "races": num_envs, "track": track,
+           **SHORT_EPISODES, "steps_per_s": rate["short"], "compile_s": compile_s["short"],
+           "vs_endless": rate["short"] / rate["endless"], "target_vs_endless": 0.5,
+           "episode_ends_per_step": resets_per_step,
+           "ms_per_reset": 1e3 * (per_step["short"] - per_step["endless"]) / resets_per_step if resets_per_step else None,
+           "repeats": [round(num_envs * calls / t) for t in seconds["short"]]}
+
+
 #: (opponent spec, target steps/s) of the training rows.
 TRAINING_OPPONENTS = (("lane-keeping", 5_000), ("ilqgame-fb", 1_500), ("ilqgame-fb:replan_every=5", 1_500))
 #: (label, envs, vector) of the training paths: today's copies in a DummyVecEnv and the vectorised race.
@@ -251,6 +309,7 @@ def bench_rl() -> Iterator[dict[str, Any]]:
     baseline = pettingzoo_row()
     yield baseline
     yield from vector_rows(baseline["steps_per_s"])
+    yield from short_episode_rows()
     yield from opponent_rows()
     yield from opponent_rows(opponents=RANDOM_LEARNER_OPPONENTS, learner_acts="random", replan_every=(1,))
     yield from training_rows()

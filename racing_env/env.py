@@ -36,6 +36,7 @@ from racing_env.packing import Layout, pack, unpack
 from racing_env.race import RaceInfo, RaceParams, check_starts_behind, finish_line
 from racing_env.referee import REWARD_TERMS, RaceStatus
 from racing_env.scenarios import make_scenario
+from racing_env.starts import fresh_key, key_from_seed
 from racing_env.track import get_track
 
 
@@ -73,6 +74,14 @@ def _race_start(constants: jax.Array, layout: Layout, x):
     params = unpack(constants, layout)
     state, obs, info = race.start(x, params)
     return (obs,) + _per_car_rows(params, state.status, jnp.zeros(x.shape[0], x.dtype), info)
+
+
+@functools.partial(jax.jit, static_argnames=("layout",))
+def _race_draw(constants: jax.Array, layout: Layout, key):
+    """The next episode of a race's ``key`` (:func:`racing_env.race.next_start`): the key
+    carried on, the start ``x0 (N, 6)`` and whether it is free of overlaps."""
+    carried, x0, free, _ = race.next_start(key, unpack(constants, layout))
+    return carried, x0, free
 
 
 def _is_real(action: Any) -> bool:
@@ -136,7 +145,7 @@ class RacingParallelEnv(ParallelEnv):
         self._obs_space = gymnasium.spaces.Box(-big, big, (obs_dim,), np.float32)
         self._act_space = gymnasium.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.state_space = gymnasium.spaces.Box(-np.inf, np.inf, (num, STATE_DIM), np.float64)
-        self._rng = np.random.default_rng()
+        self._key: np.ndarray | None = None  # the race's key (racing_env.starts), set by reset
         self._x = np.zeros((num, STATE_DIM))
         self._renderer = None
 
@@ -159,10 +168,18 @@ class RacingParallelEnv(ParallelEnv):
 
     # --- episode --------------------------------------------------------------------------
     def reset(self, seed: int | None = None, options: Mapping[str, Any] | None = None):
-        """Start a race. ``options`` may hold ``x0`` (a joint start state ``(N, 6)``)."""
+        """Start a race. ``options`` may hold ``x0`` (a joint start state ``(N, 6)``).
+
+        The start is drawn with JAX from the scenario (:mod:`racing_env.starts`): ``seed``
+        (an integer >= 0) sets the race's key, and each reset draws the next episode of it,
+        so a seeded env runs the same episodes as the vectorised env's race of that seed.
+        """
         if seed is not None:
-            self._rng = np.random.default_rng(seed)
-        scenario_seed = int(self._rng.integers(2**31 - 1))
+            self._key = key_from_seed(seed)
+        elif self._key is None:
+            self._key = fresh_key()
+        key, drawn, free = (np.asarray(a) for a in _race_draw(self._constants, self._layout, self._key))
+        self._key = key
         options = dict(options or {})
         if "x0" in options:
             x0 = np.array(options.pop("x0"), dtype=np.float64)
@@ -172,11 +189,11 @@ class RacingParallelEnv(ParallelEnv):
                     f"got shape {x0.shape}"
                 )
         else:
-            config = self.config
-            x0 = make_scenario(config.scenario, self.track, self.num_cars, config.vehicles, scenario_seed,
-                               self.finish_s).x0
+            if not free:
+                raise ValueError(f"scenario {self.config.scenario!r} found no start without overlapping cars")
+            x0 = np.array(drawn)
             # seed 0's grid was checked in __init__; another seed's jitter moves cars by up to 1 m
-            check_starts_behind(self.finish_s, x0, config.scenario)
+            check_starts_behind(self.finish_s, x0, self.config.scenario)
         if options:
             # PettingZoo's parallel_api_test resets with options={"options": 1}: unknown keys
             # are ignored with a warning rather than refused.

@@ -32,11 +32,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from racing_env.config import RETIRING_MODES, RaceConfig
-from racing_env.dynamics import N_LAT, S, V
+from racing_env.dynamics import S, V
 from racing_env.game import RaceGame
 from racing_env.observation import observe
 from racing_env.physics import drive, footprint_overlap, off_track
+from racing_env import starts as starts_lib
 from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
+from racing_env.scenarios import scenario_starts
+from racing_env.starts import Starts
 from racing_env.track import Track
 
 __all__ = [
@@ -46,6 +49,7 @@ __all__ = [
     "check_starts_behind",
     "draw_start",
     "finish_line",
+    "next_start",
     "race_params",
     "race_rules",
     "reset",
@@ -64,7 +68,8 @@ class RaceParams(NamedTuple):
         preview: the observation's preview distances ``(P,)`` [m].
         rules: incident rules and reward weights.
         max_steps: steps after which a race is truncated (int32 scalar).
-        grid: the start grid of :func:`draw_start` (see :class:`StartGrid`).
+        starts: the scenario's start distribution, which :func:`draw_start` draws from
+            (:class:`racing_env.starts.Starts`).
     """
 
     game: RaceGame
@@ -72,25 +77,7 @@ class RaceParams(NamedTuple):
     preview: jax.Array
     rules: RaceRules
     max_steps: jax.Array
-    grid: "StartGrid"
-
-
-class StartGrid(NamedTuple):
-    """The seeded start of :func:`draw_start`: the staggered grid of
-    :func:`racing_env.scenarios.grid` (slot k at ``front - k * spacing / 2``, alternately
-    ``+offset`` and ``-offset``), its order shuffled and jittered (up to ``jitter = (ds, dn,
-    dV)``) per draw, speeds capped to ``[0, 0.95 v_max]``. A fixed start (``paper``,
-    ``side_by_side``) has ``shuffle = False`` and zero jitter, and the cars at their slots.
-
-    Attributes:
-        slots: ``(N, 6)`` the unshuffled slot states (slot k's ``s``, ``V``, ``n``).
-        shuffle: whether a draw permutes the cars over the slots (bool scalar).
-        jitter: ``(3,)`` half-widths [m, m, m/s] of the uniform jitter of ``s``, ``n``, ``V``.
-    """
-
-    slots: jax.Array
-    shuffle: jax.Array
-    jitter: jax.Array
+    starts: Starts
 
 
 class RaceState(NamedTuple):
@@ -179,21 +166,6 @@ def check_starts_behind(finish_s: float, x0: np.ndarray, scenario: str) -> None:
         )
 
 
-def _start_grid(config: RaceConfig, track: Track) -> StartGrid:
-    """The :class:`StartGrid` of the config's scenario (``grid``, ``paper``, ``side_by_side``);
-    for ``anywhere`` (not drawn in JAX) the unjittered grid, which :func:`draw_start` refuses."""
-    from racing_env.scenarios import FIXED_STARTS, make_scenario
-
-    num = config.num_agents
-    if config.scenario in FIXED_STARTS:
-        x0 = make_scenario(config.scenario, track, num, config.vehicles, seed=None).x0
-        return StartGrid(np.asarray(x0), np.asarray(False), np.zeros(3))
-    # the grid's slots in car order (no shuffle, no jitter)
-    x0 = make_scenario("grid", track, num, config.vehicles, seed=None).x0
-    jitter = np.array([1.0, 0.3, 1.0]) if config.scenario == "grid" else np.zeros(3)
-    return StartGrid(np.asarray(x0), np.asarray(config.scenario == "grid"), jitter)
-
-
 def race_params(config: RaceConfig, track: Track, game: RaceGame, finish_s: float) -> RaceParams:
     """The :class:`RaceParams` of a configured race on ``track`` with ``game`` (the env's)
     and the finish line ``finish_s`` [m] (:func:`finish_line`)."""
@@ -203,7 +175,7 @@ def race_params(config: RaceConfig, track: Track, game: RaceGame, finish_s: floa
         preview=np.asarray(config.preview_distances, dtype=np.float64),
         rules=race_rules(config),
         max_steps=np.int32(config.max_steps),
-        grid=_start_grid(config, track),
+        starts=scenario_starts(config.scenario, track, config.num_agents, config.vehicles, finish_s),
     )
 
 
@@ -243,20 +215,19 @@ def start(x0: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array, Race
 
 
 def draw_start(key: jax.Array, params: RaceParams) -> jax.Array:
-    """A seeded start ``x0 (N, 6)`` from ``params.grid`` (:class:`StartGrid`): the grid's
-    distribution of :func:`racing_env.scenarios.grid` (a uniform shuffle of the slots, uniform
-    jitter, speeds capped to ``[0, 0.95 v_max]``) drawn with JAX's generator, or the fixed
-    start. The NumPy scenarios draw the same distribution from a NumPy generator, so a JAX
-    start and a NumPy start of the same seed differ."""
-    grid = params.grid
-    num = grid.slots.shape[0]
-    k_order, k_jitter = jax.random.split(key)
-    order = jnp.where(grid.shuffle, jax.random.permutation(k_order, num), jnp.arange(num))
-    x0 = jnp.zeros_like(grid.slots).at[order].set(grid.slots)  # car order[k] takes slot k
-    noise = jax.random.uniform(k_jitter, (3, num), grid.slots.dtype, -1.0, 1.0) * grid.jitter[:, None]
-    x0 = x0.at[:, S].add(noise[0]).at[:, N_LAT].add(noise[1]).at[:, V].add(noise[2])
-    v_cap = 0.95 * jnp.broadcast_to(params.game.vehicles.v_max, (num,))
-    return x0.at[:, V].set(jnp.clip(x0[:, V], 0.0, v_cap))
+    """A start ``x0 (N, 6)`` drawn with ``key`` from the race's scenario (``params.starts``,
+    :func:`racing_env.starts.draw`): the env's episodes draw theirs this way, so a key gives
+    the same start in every face of the race."""
+    return starts_lib.draw(key, params.starts, params.game.track, params.game.vehicles)[0]
+
+
+def next_start(key: jax.Array, params: RaceParams) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """The next episode of a race whose key is ``key`` (:mod:`racing_env.starts`): ``(key
+    carried on, x0 (N, 6), free, episode seed)``; ``free`` is false when an ``anywhere``
+    scene found no start without overlapping cars. Every env's episodes begin here."""
+    carried, episode = starts_lib.next_episode(key)
+    x0, free = starts_lib.draw(episode, params.starts, params.game.track, params.game.vehicles)
+    return carried, x0, free, starts_lib.episode_seed(episode)
 
 
 def reset(key: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array]:

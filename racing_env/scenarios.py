@@ -5,6 +5,11 @@ studies (:func:`random_scenes`); and the paper's whole game (:func:`paper_game`)
 A scenario returns the joint start state ``x0 (N, 6)`` and the cars' parameters. On closed
 tracks the grid lines up just behind the start/finish line at ``s = 0`` (negative ``s`` is
 the end of the lap before); on open tracks it starts at ``s >= 0``. See docs/env.md.
+
+Each scenario is a start distribution (:func:`scenario_starts`, a
+:class:`racing_env.starts.Starts`) that every env draws from with JAX's generator, inside
+its compiled step where races autoreset; ``make_scenario(name, ..., seed=s)`` is the start
+an env reset with seed ``s`` draws first.
 """
 
 from __future__ import annotations
@@ -12,18 +17,14 @@ from __future__ import annotations
 import dataclasses
 from typing import Callable, Sequence
 
-import jax
 import numpy as np
 
 from racing_env.costs import CostWeights
 from racing_env.dynamics import STATE_DIM, N_LAT, S, V
 from racing_env.game import RaceGame
-from racing_env.physics import footprint_overlap
+from racing_env.starts import MAX_TRIES, Starts, draw_episode, fresh_key, key_from_seed
 from racing_env.track import Track, straight
 from racing_env.vehicle import VehicleParams, stack_vehicles
-
-# The env's own contact test, so a random scene never starts in a contact the env would count.
-_footprint_overlap = jax.jit(footprint_overlap)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,6 +100,40 @@ def paper_game(weights: CostWeights = PAPER_WEIGHTS,
     return game, scenario.x0
 
 
+def _drawn(starts: Starts, track: Track, vehicles: Sequence[VehicleParams], seed: int | None) -> np.ndarray:
+    """The start ``x0 (N, 6)`` of ``starts`` for ``seed``: the first episode of a race reset
+    with that seed (:mod:`racing_env.starts`); None draws from fresh entropy."""
+    key = fresh_key() if seed is None else key_from_seed(seed)
+    _, x0, free = draw_episode(key, starts, track, stack_vehicles(vehicles))
+    if not free:
+        raise ValueError(f"no overlap-free start for {len(vehicles)} cars within spread={float(starts.spread):g} m "
+                         f"in {MAX_TRIES} draws")
+    return x0
+
+
+def grid_starts(
+    track: Track,
+    num_cars: int = 2,
+    row_spacing: float = 8.0,
+    lateral_offset: float = 2.0,
+    speed: float = 15.0,
+    jitter: bool = True,
+    shuffle: bool = True,
+) -> Starts:
+    """The distribution of :func:`grid`: slot k ``k * row_spacing / 2`` metres behind the
+    front, alternately at ``+lateral_offset`` (left) and ``-lateral_offset``, at ``speed``
+    [m/s]; the cars shuffled over the slots (``shuffle``) and jittered (``jitter``: up to
+    +-1 m in s, +-0.3 m in n and +-1 m/s in speed)."""
+    depth = 0.5 * row_spacing * (num_cars - 1)
+    front = _front_of_grid(track, depth)
+    slots = np.zeros((num_cars, STATE_DIM))
+    for slot in range(num_cars):
+        slots[slot, S] = front - 0.5 * row_spacing * slot
+        slots[slot, N_LAT] = lateral_offset if slot % 2 == 0 else -lateral_offset
+        slots[slot, V] = speed
+    return Starts.grid(slots, shuffle, (1.0, 0.3, 1.0) if jitter else (0.0, 0.0, 0.0))
+
+
 def grid(
     track: Track,
     num_cars: int = 2,
@@ -109,31 +144,14 @@ def grid(
     speed: float = 15.0,
     jitter: bool = True,
 ) -> Scenario:
-    """A staggered two-column rolling start; the seed shuffles the grid order and jitters it.
-
-    Slot k sits ``k * row_spacing / 2`` metres behind the front, alternately at
-    ``+lateral_offset`` (left) and ``-lateral_offset``. With ``jitter`` each car gets up to
-    +-1 m in s, +-0.3 m in n and +-1 m/s in speed, drawn from ``seed``. Start speeds [m/s]
-    are then capped to ``[0, 0.95 * v_max]`` of each car.
-    """
+    """A staggered two-column rolling start (:func:`grid_starts`); the seed shuffles the
+    grid order and, with ``jitter``, jitters it (drawn with JAX, :mod:`racing_env.starts`).
+    Without a seed the cars take the slots in order, unjittered. Start speeds [m/s] are
+    then capped to ``[0, 0.95 * v_max]`` of each car."""
     vehicles = _default_vehicles(num_cars, vehicles)
-    rng = np.random.default_rng(seed)
-    order = rng.permutation(num_cars) if seed is not None else np.arange(num_cars)
-    depth = 0.5 * row_spacing * (num_cars - 1)
-    front = _front_of_grid(track, depth)
-    x0 = np.zeros((num_cars, STATE_DIM))
-    for slot, car in enumerate(order):
-        x0[car, S] = front - 0.5 * row_spacing * slot
-        x0[car, N_LAT] = lateral_offset if slot % 2 == 0 else -lateral_offset
-        x0[car, V] = speed
-    if jitter and seed is not None:
-        x0[:, S] += rng.uniform(-1.0, 1.0, num_cars)
-        x0[:, N_LAT] += rng.uniform(-0.3, 0.3, num_cars)
-        x0[:, V] += rng.uniform(-1.0, 1.0, num_cars)
-    # capped after the jitter, which could otherwise lift a car above its cap (or below 0)
-    v_cap = np.array([0.95 * float(v.v_max) for v in vehicles])
-    x0[:, V] = np.clip(x0[:, V], 0.0, v_cap)
-    return Scenario("grid", x0, vehicles)
+    starts = grid_starts(track, num_cars, row_spacing, lateral_offset, speed, jitter=jitter and seed is not None,
+                         shuffle=seed is not None)
+    return Scenario("grid", _drawn(starts, track, vehicles, seed), vehicles)
 
 
 def side_by_side(track: Track, num_cars: int = 2, vehicles=None, seed: int | None = None) -> Scenario:
@@ -149,6 +167,32 @@ def check_scene_ranges(spread: float, speed: tuple[float, float], margin: float 
     if not (spread >= 0 and margin >= 0 and 0 < speed[0] <= speed[1]):
         raise ValueError(f"need spread >= 0, margin >= 0 and 0 < speed[0] <= speed[1]; "
                          f"got spread={spread!r}, margin={margin!r}, speed={speed!r}")
+
+
+def scene_starts(
+    track: Track,
+    num_cars: int,
+    spread: float = 15.0,
+    speed: tuple[float, float] = (10.0, 19.0),
+    margin: float = 1.5,
+    s_max: float | None = None,
+) -> Starts:
+    """The distribution of :func:`random_scenes` (its docstring says what the arguments
+    bound); raises ``ValueError`` when the ranges leave no room on ``track``."""
+    if num_cars < 1:
+        raise ValueError(f"need at least 1 car, got {num_cars}")
+    check_scene_ranges(spread, speed, margin)
+    if not track.closed and track.length <= spread:
+        raise ValueError(f"the open track {track.name!r} ({track.length} m) is not longer than spread={spread} m")
+    lo = spread if not track.closed else 0.0  # open tracks: every car at s >= 0
+    hi = track.length if s_max is None else min(track.length, s_max)
+    if not hi > lo:
+        raise ValueError(f"no room for a scene on track {track.name!r}: its reference arc length would be "
+                         f"drawn from [{lo:g}, {hi:g}) m")
+    if np.min(np.asarray(track.width_left) + np.asarray(track.width_right)) < 2 * margin:
+        raise ValueError(f"margin={margin} m leaves no room on track {track.name!r}: it is narrower than "
+                         f"{2 * margin:g} m somewhere")
+    return Starts.scenes(num_cars, (lo, hi), spread, margin, speed)
 
 
 def random_scenes(
@@ -171,38 +215,22 @@ def random_scenes(
     zero. No two cars start in contact by the env's test,
     :func:`racing_env.physics.footprint_overlap` (positions drawn again until so). For
     solver robustness sweeps: unlike :func:`grid` the scenes cover the whole lap, its curves
-    and its width changes.
+    and its width changes. Scene k is the start of episode k of a race reset with ``seed``
+    (:mod:`racing_env.starts`).
     """
-    num_cars = len(vehicles)
-    if num_cars < 1 or int(count) < 1:
-        raise ValueError(f"need at least 1 car and 1 scene, got {num_cars} cars and count={count!r}")
-    check_scene_ranges(spread, speed, margin)
-    if not track.closed and track.length <= spread:
-        raise ValueError(f"the open track {track.name!r} ({track.length} m) is not longer than spread={spread} m")
-    rng = np.random.default_rng(seed)
+    if int(count) < 1:
+        raise ValueError(f"need at least 1 scene, got count={count!r}")
+    starts = scene_starts(track, len(vehicles), spread, speed, margin, s_max)
     stacked = stack_vehicles(vehicles)
-    v_max = np.array([float(v.v_max) for v in vehicles])
-    lo = spread if not track.closed else 0.0  # open tracks: every car at s >= 0
-    hi = track.length if s_max is None else min(track.length, s_max)
-    if not hi > lo:
-        raise ValueError(f"no room for a scene on track {track.name!r}: its reference arc length would be "
-                         f"drawn from [{lo:g}, {hi:g}) m")
-    scenes = np.zeros((int(count), num_cars, STATE_DIM))
-    for scene in scenes:
-        for _ in range(1000):
-            s = rng.uniform(lo, hi) - rng.uniform(0.0, spread, num_cars)
-            left = np.asarray(track.width_left_at(s)) - margin
-            right = np.asarray(track.width_right_at(s)) - margin
-            if np.any(left + right < 0):
-                raise ValueError(f"margin={margin} m leaves no room on track {track.name!r}")
-            n = rng.uniform(-right, left)
-            scene[:, S], scene[:, N_LAT] = s, n
-            if not np.any(_footprint_overlap(scene, stacked, track)):
-                break
-        else:
-            raise ValueError(f"no overlap-free start for {num_cars} cars within spread={spread} m")
-        scene[:, V] = np.minimum(rng.uniform(speed[0], speed[1], num_cars), 0.95 * v_max)
-    return scenes
+    key = fresh_key() if seed is None else key_from_seed(seed)
+    scenes = []
+    for _ in range(int(count)):
+        key, x0, free = draw_episode(key, starts, track, stacked)
+        if not free:
+            raise ValueError(f"no overlap-free start for {len(vehicles)} cars within spread={spread} m "
+                             f"in {MAX_TRIES} draws")
+        scenes.append(x0)
+    return np.stack(scenes)
 
 
 #: How far [m] before the finish line an ``anywhere`` scene's reference point lies at least, so
@@ -214,6 +242,16 @@ ANYWHERE_MIN_RUN = 100.0
 ANYWHERE_SPEED = (5.0, 19.0)
 
 
+def anywhere_starts(track: Track, num_cars: int = 2, finish_s: float | None = None) -> Starts:
+    """The distribution of :func:`anywhere`: :func:`scene_starts` at :data:`ANYWHERE_SPEED`,
+    the reference point at least :data:`ANYWHERE_MIN_RUN` metres before ``finish_s`` [m]."""
+    if finish_s is not None and finish_s <= ANYWHERE_MIN_RUN:
+        raise ValueError(f"scenario 'anywhere' places its scenes at least {ANYWHERE_MIN_RUN:g} m before the finish "
+                         f"line, which lies at s = {finish_s:g} m: race further (race_distance)")
+    s_max = None if finish_s is None else finish_s - ANYWHERE_MIN_RUN
+    return scene_starts(track, num_cars, speed=ANYWHERE_SPEED, s_max=s_max)
+
+
 def anywhere(
     track: Track, num_cars: int = 2, vehicles=None, seed: int | None = 0, finish_s: float | None = None
 ) -> Scenario:
@@ -223,12 +261,20 @@ def anywhere(
     ``finish_s`` [m] (if given). For training on long circuits: episodes start in every
     corner instead of always on the grid, so a policy meets the whole lap early."""
     vehicles = _default_vehicles(num_cars, vehicles)
-    if finish_s is not None and finish_s <= ANYWHERE_MIN_RUN:
-        raise ValueError(f"scenario 'anywhere' places its scenes at least {ANYWHERE_MIN_RUN:g} m before the finish "
-                         f"line, which lies at s = {finish_s:g} m: race further (race_distance)")
-    s_max = None if finish_s is None else finish_s - ANYWHERE_MIN_RUN
-    x0 = random_scenes(track, vehicles, 1, seed=seed, speed=ANYWHERE_SPEED, s_max=s_max)[0]
-    return Scenario("anywhere", x0, vehicles)
+    return Scenario("anywhere", _drawn(anywhere_starts(track, num_cars, finish_s), track, vehicles, seed), vehicles)
+
+
+def scenario_starts(name: str, track: Track, num_cars: int, vehicles=None, finish_s: float | None = None) -> Starts:
+    """The start distribution (:class:`racing_env.starts.Starts`) of the named scenario,
+    the one its seeded draws come from: what an env draws every episode from."""
+    if name not in SCENARIOS:
+        raise ValueError(f"unknown scenario {name!r}; choose one of {sorted(SCENARIOS)}")
+    if name == "grid":
+        return grid_starts(track, num_cars)
+    if name == "anywhere":
+        return anywhere_starts(track, num_cars, finish_s)
+    # the fixed starts: their one state, never shuffled or jittered
+    return Starts.grid(SCENARIOS[name](track, num_cars, vehicles).x0, False, (0.0, 0.0, 0.0), capped=False)
 
 
 SCENARIOS: dict[str, Callable[..., Scenario]] = {

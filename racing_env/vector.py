@@ -29,9 +29,11 @@ the new race's, and the last one is in ``infos["final_obs"]`` (with ``infos["fin
 
 Seeding: ``reset(seed=s)`` gives race b the seed ``s + b`` (or ``seed=[s_0, ..., s_{B-1}]``),
 and race b then runs exactly the episodes of ``gymnasium.make("racing_env/Race-v0", ...)``
-reset with seed ``s + b`` and autoreset after: the same starts (drawn with NumPy as the
-single env draws them) whatever B. The states agree to a few ulps rather than bit for bit:
-XLA:CPU evaluates sin and cos with a vectorised kernel across races (docs/env.md).
+reset with seed ``s + b`` and autoreset after, whatever B: every race carries its own JAX
+key, and each episode's start is drawn from it (:mod:`racing_env.starts`) inside the
+compiled step, for every scenario, as the single env draws its own. The states agree to a
+few ulps rather than bit for bit: XLA:CPU evaluates sin and cos with a vectorised kernel
+across races (docs/env.md).
 
 :class:`GymnaxRace` is the same race for JAX learners, in gymnax's ``Environment``
 interface (``reset(key, params)``, ``step(key, state, action, params)`` with autoreset,
@@ -58,7 +60,7 @@ from racing_env.env import RacingParallelEnv, agent_name
 from racing_env.packing import pack, unpack
 from racing_env.race import RaceParams, RaceState
 from racing_env.referee import REWARD_TERMS
-from racing_env.scenarios import make_scenario
+from racing_env.starts import fresh_key, key_from_seed
 
 __all__ = ["GymnaxRace", "PlannedRace", "RaceVectorEnv", "coasting", "make_opponent"]
 
@@ -209,37 +211,23 @@ class RaceVectorEnv(VectorEnv):
         self._step = _compile_step(tuple(self.opponents[j].jax_policy for j in self._jax_cars), self._jax_cars,
                                    self.learner, self.autoreset_mode == AutoresetMode.SAME_STEP, layout, shardings)
         self._start = _compile_start(self.learner, layout, shardings)
-        self._rngs: list[np.random.Generator] = []
+        self._keys: jax.Array | None = None  # (B, 2) uint32: each race's key (racing_env.starts)
         self._state: RaceState | None = None
         self._obs_all = None
         self._needs_reset = np.zeros(self.num_envs, dtype=bool)
-        self._next_x0 = None  # same_step: each race's next start, drawn when its episode begins
-        self._next_seeds = None
 
     # --- starts ----------------------------------------------------------------------------
-    def _draw(self, race_index: int) -> tuple[np.ndarray, int]:
-        """Race ``race_index``'s next start ``(N, 6)`` and episode seed, from its own generator,
-        as :meth:`racing_env.RacingParallelEnv.reset` draws them."""
-        scenario_seed = int(self._rngs[race_index].integers(2**31 - 1))
-        config = self.config
-        x0 = make_scenario(config.scenario, self.race.track, self.num_cars, config.vehicles, scenario_seed,
-                           self.race.finish_s).x0
-        race.check_starts_behind(self.race.finish_s, x0, config.scenario)
-        return x0, scenario_seed
-
-    def _draw_many(self, races: np.ndarray, into: np.ndarray, seeds: np.ndarray) -> None:
-        for b in np.flatnonzero(races):
-            into[b], seeds[b] = self._draw(b)
-
-    def _seed_generators(self, seed: int | Sequence[int] | None) -> None:
+    def _seed_keys(self, seed: int | Sequence[int] | None) -> None:
+        """Each race's key from ``seed`` (race b: ``seed + b``, or the b-th of B seeds)."""
         if seed is None:
-            self._rngs = [np.random.default_rng() for _ in range(self.num_envs)]
+            keys = [fresh_key() for _ in range(self.num_envs)]
         elif isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
-            self._rngs = [np.random.default_rng(int(seed) + b) for b in range(self.num_envs)]
+            keys = [key_from_seed(int(seed) + b) for b in range(self.num_envs)]
         elif isinstance(seed, Sequence) and len(seed) == self.num_envs:
-            self._rngs = [np.random.default_rng(s) for s in seed]
+            keys = [key_from_seed(s) for s in seed]
         else:
             raise ValueError(f"seed must be None, an int or {self.num_envs} ints, got {seed!r}")
+        self._keys = jnp.asarray(np.stack(keys))
 
     # --- episode ---------------------------------------------------------------------------
     def reset(self, *, seed: int | Sequence[int] | None = None, options: dict[str, Any] | None = None):
@@ -254,20 +242,23 @@ class RaceVectorEnv(VectorEnv):
             raise ValueError(f"unknown reset options {sorted(options)}; allowed: ['reset_mask', 'x0']")
         if self._state is None and not mask.all():
             raise RuntimeError("the first reset must start every race (no reset_mask)")
-        if x0_given is not None:
+        given = x0_given is not None
+        if given:
             x0_given = np.broadcast_to(np.asarray(x0_given, dtype=np.float64), (self.num_envs, self.num_cars, 6))
             if not np.all(np.isfinite(x0_given)):
                 raise ValueError("options['x0'] must be finite")
-        if seed is not None or not self._rngs:
-            self._seed_generators(seed)
-        x0 = np.zeros((self.num_envs, self.num_cars, 6))
-        seeds = np.zeros(self.num_envs, dtype=np.int64)
-        self._draw_many(mask, x0, seeds)
-        if x0_given is not None:
-            x0 = np.where(mask[:, None, None], x0_given, x0)
+        else:
+            x0_given = np.zeros((self.num_envs, self.num_cars, 6))
+        if seed is not None or self._keys is None:
+            self._seed_keys(seed)
+        keys, state, obs_all, _, ints, floats, seeds, free = self._start(self._keys, mask, x0_given, given,
+                                                                         self._constants)
+        if not given and not np.asarray(free)[mask].all():
+            raise ValueError(f"scenario {self.config.scenario!r} found no start without overlapping cars")
+        self._keys = keys
+        seeds = np.asarray(seeds).astype(np.int64)
         for opponent in self.opponents.values():
             opponent.reset(mask, seeds)
-        state, obs_all, _, ints, floats = self._start(x0, self._constants)
         if self._state is None:
             self._state, self._obs_all = state, obs_all
         else:
@@ -276,10 +267,6 @@ class RaceVectorEnv(VectorEnv):
                 lambda old, new: jnp.where(keep.reshape((-1,) + (1,) * (new.ndim - 1)), old, new), self._state, state)
             self._obs_all = jnp.where(keep[:, None, None], self._obs_all, obs_all)
         self._needs_reset = np.where(mask, False, self._needs_reset)
-        if self.autoreset_mode == AutoresetMode.SAME_STEP:
-            if self._next_x0 is None:
-                self._next_x0, self._next_seeds = np.zeros_like(x0), np.zeros(self.num_envs, dtype=np.int64)
-            self._draw_many(mask, self._next_x0, self._next_seeds)
         obs = np.array(self._obs_all[:, self.learner])
         infos = self._infos(np.asarray(ints), np.asarray(floats), {}, with_terms=False)
         # infos describe the races that were reset (Gymnasium's masks)
@@ -311,14 +298,6 @@ class RaceVectorEnv(VectorEnv):
     def step(self, actions: Any):
         learner_actions = self._checked_actions(actions)
         resetting = self._needs_reset.copy()
-        x0 = np.zeros((self.num_envs, self.num_cars, 6))
-        seeds = np.zeros(self.num_envs, dtype=np.int64)
-        if self.autoreset_mode == AutoresetMode.NEXT_STEP and resetting.any():
-            self._draw_many(resetting, x0, seeds)
-            for opponent in self.opponents.values():
-                opponent.reset(resetting, seeds)
-        elif self.autoreset_mode == AutoresetMode.SAME_STEP:
-            x0 = self._next_x0
         all_actions = np.zeros((self.num_envs, self.num_cars, 2))
         all_actions[:, self.learner] = learner_actions
         diagnostics: dict[str, dict[str, np.ndarray]] = {}
@@ -332,13 +311,19 @@ class RaceVectorEnv(VectorEnv):
                 # an agent's actions are float32 (planners.agents.BaseAgent), a plain callable's as given
                 all_actions[:, j] = act if isinstance(self.opponents[j], _LoopedCallable) else np.float32(act)
                 diagnostics[agent_name(j)] = {k: np.asarray(v) for k, v in diag.items()}
-        out = self._step(self._state, all_actions, resetting, x0, self._constants)
-        self._state, self._obs_all, obs, reward, ints, floats, final = out
+        out = self._step(self._state, self._keys, all_actions, resetting, self._constants)
+        self._state, self._keys, self._obs_all, obs, reward, ints, floats, seeds, final = out
         obs, reward, ints, floats = np.array(obs), np.asarray(reward), np.asarray(ints), np.asarray(floats)
         terminated, truncated = ints[:, 7].astype(bool), ints[:, 8].astype(bool)
         infos = self._infos(ints, floats, diagnostics, with_terms=True)
         done = terminated | truncated
-        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+        same_step = self.autoreset_mode == AutoresetMode.SAME_STEP
+        # the races that began a new episode in this step: their opponents start it afresh
+        restarted = done if same_step else resetting
+        if restarted.any() and self._host_cars:
+            for j in self._host_cars:
+                self.opponents[j].reset(restarted, np.asarray(seeds).astype(np.int64))
+        if not same_step:
             self._needs_reset = done
         elif done.any():
             final_obs, final_ints, final_floats = (np.asarray(a) for a in final)
@@ -348,9 +333,6 @@ class RaceVectorEnv(VectorEnv):
             infos["_final_obs"] = done
             infos["final_info"] = self._infos(final_ints, final_floats, diagnostics, with_terms=True)
             infos["_final_info"] = done
-            for opponent in self.opponents.values():
-                opponent.reset(done, self._next_seeds)
-            self._draw_many(done, self._next_x0, self._next_seeds)
         return obs, reward, terminated, truncated, infos
 
     def _infos(self, ints: np.ndarray, floats: np.ndarray, diagnostics: dict, with_terms: bool) -> dict[str, Any]:
@@ -401,11 +383,37 @@ def _select(mask: jax.Array, a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
 
 
-def _restarted(restart: jax.Array, x0: jax.Array, params: RaceParams, fresh: tuple) -> tuple:
+def _restarted(restart: jax.Array, keys: jax.Array, params: RaceParams, fresh: tuple) -> tuple:
     """``fresh = (state, obs_all, info)`` of B races with the races ``restart (B,)`` replaced by
-    new races from their starts ``x0 (B, N, 6)``."""
-    started = jax.vmap(race.start, in_axes=(0, None))(x0, params)
-    return _select(restart, started, fresh)
+    the next episodes of their keys ``keys (B, 2)``: ``(races, keys, episode seeds (B,))``.
+
+    The restarting races are drawn and raced in batches of :func:`restart_batch` races,
+    scattered back, as many batches as needed (none in a step where no race restarts): a
+    step pays for the races that restart, not for all B.
+    """
+    num = restart.shape[0]
+    size = restart_batch(num)
+
+    def next_batch(carry):
+        races, keys, seeds, pending = carry
+        rows = jnp.nonzero(pending, size=size, fill_value=num)[0]  # num: no race (dropped below)
+        carried, x0, _, drawn = jax.vmap(race.next_start, in_axes=(0, None))(keys[jnp.minimum(rows, num - 1)], params)
+        started = jax.vmap(race.start, in_axes=(0, None))(x0, params)
+        put = lambda into, new: into.at[rows].set(new, mode="drop")
+        return (jax.tree_util.tree_map(put, races, started), put(keys, carried), put(seeds, drawn),
+                put(pending, jnp.zeros(size, bool)))
+
+    seeds = jnp.zeros(num, jnp.int32)
+    races, keys, seeds, _ = jax.lax.while_loop(lambda carry: carry[3].any(), next_batch,
+                                               (fresh, keys, seeds, restart))
+    return races, keys, seeds
+
+
+def restart_batch(num_races: int) -> int:
+    """How many of ``num_races`` races a step restarts per batch (:func:`_restarted`): an
+    eighth of them, which covers the episode ends of races a few dozen steps long in one
+    batch."""
+    return max(1, -(-num_races // 8))
 
 
 def _race_shardings(num_races: int):
@@ -434,21 +442,27 @@ def _jit(fn, shardings, races: int, shared: int):
 
 @functools.lru_cache(maxsize=None)
 def _compile_start(learner: int, layout, shardings):
-    def start(x0, constants):
+    def start(keys, mask, x0_given, given, constants):
+        """The next episodes of the races ``mask (B,)`` (their keys carried on), from
+        ``x0_given (B, N, 6)`` when ``given``, else drawn; every race's start state."""
         params = unpack(constants, layout)
+        carried, x0, free, seeds = jax.vmap(race.next_start, in_axes=(0, None))(keys, params)
+        x0 = jnp.where(given, x0_given, x0)
         state, obs_all, info = jax.vmap(race.start, in_axes=(0, None))(x0, params)
         none = jnp.zeros(x0.shape[0], dtype=bool)
         ints, floats = _learner_rows(state, info, learner, none, none)
-        return state, obs_all, obs_all[:, learner], ints, floats
+        keys = _select(mask, carried, keys)
+        return keys, state, obs_all, obs_all[:, learner], ints, floats, seeds, free
 
-    return _jit(start, shardings, races=1, shared=1)
+    return _jit(start, shardings, races=3, shared=2)
 
 
 @functools.lru_cache(maxsize=None)
 def _compile_step(policies: tuple, cars: tuple[int, ...], learner: int, same_step: bool, layout, shardings):
-    """The jitted step of B races: JAX opponents' actions, the race core, autoreset."""
+    """The jitted step of B races: JAX opponents' actions, the race core, autoreset (the
+    races that restart draw their next starts from their keys, :mod:`racing_env.starts`)."""
 
-    def step(state: RaceState, actions, resetting, x0, constants):
+    def step(state: RaceState, keys, actions, resetting, constants):
         params = unpack(constants, layout)
         for policy, car in zip(policies, cars):
             # rounded to float32, as the single agents round their actions
@@ -459,10 +473,9 @@ def _compile_step(policies: tuple, cars: tuple[int, ...], learner: int, same_ste
         truncated = truncs[:, learner]
         done = terminated | truncated
         restart = done if same_step else resetting
-        # the starts are computed only in the steps that need one (rare: races are long)
-        fresh = (stepped, obs_all, info)
-        new_state, new_obs_all, new_info = jax.lax.cond(
-            restart.any(), lambda: _restarted(restart, x0, params, fresh), lambda: fresh)
+        # the races that restart draw their starts from their keys (only those races)
+        (new_state, new_obs_all, new_info), keys, seeds = _restarted(restart, keys, params,
+                                                                     (stepped, obs_all, info))
         if same_step:
             ints, floats = _learner_rows(stepped, info, learner, terminated, truncated)
             final = (obs_all[:, learner], ints, floats)
@@ -472,7 +485,7 @@ def _compile_step(policies: tuple, cars: tuple[int, ...], learner: int, same_ste
             terminated, truncated = terminated & ~resetting, truncated & ~resetting
             ints, floats = _learner_rows(new_state, new_info, learner, terminated, truncated)
             reward = jnp.where(resetting, 0.0, rewards[:, learner])
-        return new_state, new_obs_all, new_obs_all[:, learner], reward, ints, floats, final
+        return new_state, keys, new_obs_all, new_obs_all[:, learner], reward, ints, floats, seeds, final
 
     return _jit(step, shardings, races=4, shared=1)
 
@@ -497,7 +510,7 @@ class GymnaxRace:
     resets a race that ends (gymnax's autoreset): ``done`` marks the step that ended it and
     ``obs`` is then the new race's; ``info`` holds ``terminated``, ``truncated`` and the
     learner's ``position``, ``finished``, ``out`` (retired) and ``finish_time``. Starts are drawn with
-    :func:`racing_env.race.draw_start` (scenarios ``grid``, ``paper``, ``side_by_side``).
+    :func:`racing_env.race.draw_start` from the race's scenario (any of them).
 
     Args:
         opponents: one :data:`JaxPolicy` per opponent car (or one for all); default coasting.
@@ -512,9 +525,6 @@ class GymnaxRace:
     """
 
     def __init__(self, opponents: Sequence[Any] | None = None, learner: int = 0, **config: Any) -> None:
-        if config.get("scenario", "grid") not in ("grid", "paper", "side_by_side"):
-            raise ValueError(f"GymnaxRace draws starts in JAX for scenarios grid, paper and side_by_side, "
-                             f"not {config['scenario']!r}")
         num, drivers = _opponent_cars(opponents, learner, config)
         self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
         self.learner = int(learner)

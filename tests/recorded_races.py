@@ -1,6 +1,6 @@
 """Races recorded with the PettingZoo env, replayed by tests/test_race_core.py.
 
-Each race is a config, a reset seed and a seeded sequence of actions; the recording holds
+Each race is a config, a reset seed, its start and a seeded sequence of actions; the recording holds
 every step's observations, rewards, terminations, truncations and infos. The races were
 chosen to exercise every rule: contacts and retirements on contact, off-track penalties and
 retirements, finishes (in turn, with places and finish times), a lap of a closed track, a
@@ -40,6 +40,20 @@ RACES: dict[str, tuple[dict[str, Any], int, int, list[tuple[float, float]], int]
 }
 
 
+#: name -> the race's start (N, 6): the one its reset seed drew when the races were recorded
+#: (starts were drawn with NumPy then, with JAX now: racing_env.starts), so the recording
+#: still replays bit for bit.
+STARTS: dict[str, list[list[float]]] = {
+    "contact_retire": [[5.0, 15.0, 2.0, 0.0, 0.0, 0.0], [5.0, 15.0, -2.0, 0.0, 0.0, 0.0]],
+    "trefoil_three": [[-8.692617416305596, 14.935846164142829, -2.2705262481871182, 0.0, 0.0, 0.0],
+                      [-5.6668878928426105, 15.986729875709726, 2.2463709130390614, 0.0, 0.0, 0.0],
+                      [-12.66450909277142, 15.531390784119777, 2.056374913879123, 0.0, 0.0, 0.0]],
+    "finish": [[4.464881676378395, 15.737536205260314, 2.0990010152027527, 0.0, 0.0, 0.0],
+               [13.00592620415999, 15.133973390867684, 2.059297194836673, 0.0, 0.0, 0.0],
+               [8.764178828646653, 14.008118384735129, -2.16088941622003, 0.0, 0.0, 0.0]],
+}
+
+
 def _actions(num: int, seed: int, bias: list[tuple[float, float]], steps: int) -> np.ndarray:
     """Seeded actions ``(steps, num, 2)``: each car's ``bias`` plus noise, mostly inside the
     box, some outside it (the env clips them)."""
@@ -56,7 +70,7 @@ def replay(name: str) -> list[dict[str, Any]]:
     config, seed, action_seed, bias, steps = RACES[name]
     config = {**config, "track": _track(config["track"])}
     env = racing_env.parallel_env(**config)
-    obs, infos = env.reset(seed=seed)
+    obs, infos = env.reset(seed=seed, options={"x0": np.array(STARTS[name])})
     frames = [{"obs": {a: o.tolist() for a, o in obs.items()}, "infos": infos}]
     actions = _actions(env.num_cars, action_seed, bias, steps)
     for k in range(steps):

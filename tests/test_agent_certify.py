@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 
 import numpy as np
 import pytest
@@ -83,7 +84,7 @@ def test_certified_race_records_carry_the_share_of_the_verdicts(monkeypatch):
         assert len(certified) == len(adopted) > 10  # every adopted re-plan, and only those
         for step in certified:
             assert step["verdict"] in VERDICTS and step["certified"] == (step["verdict"] == LOCAL_NASH)
-            assert 0.0 < step["certify_time"] < 30.0
+            assert step["certify_time"] > 0.0 and math.isfinite(step["certify_time"])  # seconds, a duration
         assert any(step["certified"] for step in certified)
         assert car["certified_share"] == pytest.approx(_recounted_share(agent.history), abs=1e-12)
         assert modes[agent.mode] == len(certified)

@@ -266,6 +266,18 @@ def test_rl_rows_measure_the_vectorised_env_and_its_opponents():
     assert 1 <= row["iterations_median"] <= row["iterations_p95"] <= 2  # capped at its 2 iterations
 
 
+def test_the_short_episode_row_counts_resets_and_judges_the_rate_against_endless_races():
+    from experiments import bench_rl
+
+    endless, short = bench_rl.short_episode_rows(num_envs=16, calls=40, repeats=1, track="trefoil")
+    assert endless["episode_ends_per_step"] == 0.0 and endless["steps_per_s"] > 0
+    assert short["race_distance"] == 150.0 and short["on_off_track"] == "terminate"
+    assert short["episode_ends_per_step"] > 0  # random actions leave the track within a few dozen steps
+    assert short["vs_endless"] == pytest.approx(short["steps_per_s"] / endless["steps_per_s"], rel=1e-12)
+    text, _ = bench._target_verdict(short)
+    assert "vs_endless" in text and ">= 0.5" in text
+
+
 @pytest.mark.slow
 def test_certificates_section_times_solve_and_certificates_of_each_mode():
     rows = list(bench.bench_certificates(rounds=1, cars=(2,)))

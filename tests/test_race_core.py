@@ -101,7 +101,7 @@ def test_reset_draws_the_grid_deterministically_from_the_key():
     assert not np.array_equal(np.asarray(a.x), np.asarray(c.x))
     assert obs_a.shape == (3, env.observation_space("car_0").shape[0]) and obs_a.dtype == jnp.float32
     # the grid's slots, shuffled and jittered within their bounds
-    slots = np.asarray(env.params.grid.slots)
+    slots = np.asarray(env.params.starts.slots)
     x = np.asarray(a.x)
     for car in range(3):
         slot = np.argmin(np.abs(slots[:, 0] - x[car, 0]))

@@ -38,9 +38,9 @@ def _pixel(frame: np.ndarray, px: np.ndarray) -> tuple[int, ...]:
     return tuple(int(c) for c in frame[int(round(px[1])), int(round(px[0]))])
 
 
-def _mid_race_env(track: str, steps: int = 30):
+def _mid_race_env(track: str, steps: int = 30, seed: int = 0):
     env = racing_env.parallel_env(track=track, num_agents=2, laps=1)
-    env.reset(seed=0)
+    env.reset(seed=seed)
     for _ in range(steps):
         env.step({a: COAST for a in env.agents})
     return env
@@ -113,7 +113,8 @@ def test_frames_show_the_labels_and_the_inset_map():
 def test_plans_are_drawn_in_the_planning_cars_colour_and_can_be_switched_off():
     """Car 0 predicts car 1 driving 3 m to the left of where it is: the dashes of that
     prediction, clear of both cars, are car 0's colour, and asphalt without plans."""
-    env = _mid_race_env("trefoil")
+    env = _mid_race_env("trefoil", seed=3)  # car 1 starts behind, on the right
+    assert env.state()[1, N_LAT] < -1.0
     x = env.state()
     ahead = np.arange(51)[:, None] * 0.1 * x[None, :, V]
     plan = np.stack([x[None, :, S] + ahead, np.broadcast_to(x[:, N_LAT], ahead.shape).copy()], axis=-1)

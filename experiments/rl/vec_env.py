@@ -23,7 +23,7 @@ seeded the same way: the states agree to a few ulps (XLA vectorises sin and cos 
 races), the opponents' actions being rounded to float32 as the single agents round theirs.
 
 :meth:`RaceVecEnv.get_state` and :meth:`RaceVecEnv.set_state` save and restore everything
-the races' future depends on (race states, start generators, the opponents' per-race
+the races' future depends on (race states, their start keys, the opponents' per-race
 memory, the episodes' returns so far), so that training resumed from a checkpoint goes on
 exactly as if it had not stopped (:mod:`experiments.rl.train`).
 """
@@ -271,7 +271,7 @@ class RaceVecEnv(VecEnv):
 
     def get_state(self) -> dict[str, Any]:
         """Everything the races' future depends on, as picklable NumPy data: each group's
-        race states, start generators and opponents' per-race memory, and the episodes'
+        race states, start keys and opponents' per-race memory, and the episodes'
         returns and lengths so far. Needs :meth:`reset` first."""
         if not self._started:
             raise RuntimeError("call reset() before get_state()")
@@ -344,8 +344,8 @@ def _grouped(races: list[tuple[int, RaceConfig]]) -> list[tuple[tuple[int, RaceC
 
 # --- the state of a RaceVectorEnv ----------------------------------------------------------------
 # RaceVectorEnv has no state API yet: these read and write its attributes of the races in
-# flight (_state, _obs_all, _rngs, _needs_reset, _next_x0, _next_seeds).
-_RACE_ATTRIBUTES = ("_needs_reset", "_next_x0", "_next_seeds")
+# flight (_state, _obs_all, _keys, _needs_reset).
+_RACE_ATTRIBUTES = ("_needs_reset",)
 
 
 def _group_state(env: Any) -> dict[str, Any]:
@@ -353,7 +353,7 @@ def _group_state(env: Any) -> dict[str, Any]:
     return {
         "state": jax.device_get(env._state),
         "obs_all": np.asarray(env._obs_all),
-        "rngs": [copy.deepcopy(rng.bit_generator.state) for rng in env._rngs],
+        "keys": None if env._keys is None else np.asarray(env._keys),
         **{name: copy.deepcopy(getattr(env, name)) for name in _RACE_ATTRIBUTES},
         "opponents": {j: _opponent_state(o) for j, o in env.opponents.items()},
     }
@@ -362,11 +362,7 @@ def _group_state(env: Any) -> dict[str, Any]:
 def _restore_group_state(env: Any, saved: dict[str, Any]) -> None:
     env._state = jax.tree_util.tree_map(jnp.asarray, saved["state"])
     env._obs_all = jnp.asarray(saved["obs_all"])
-    env._rngs = []
-    for bit_state in saved["rngs"]:
-        rng = np.random.default_rng()
-        rng.bit_generator.state = copy.deepcopy(bit_state)
-        env._rngs.append(rng)
+    env._keys = None if saved["keys"] is None else jnp.asarray(saved["keys"])
     for name in _RACE_ATTRIBUTES:
         setattr(env, name, copy.deepcopy(saved[name]))
     for j, opponent in env.opponents.items():
