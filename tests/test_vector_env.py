@@ -11,6 +11,7 @@ from gymnasium.vector import AutoresetMode
 
 import gymnasium
 import racing_env
+from racing_env import race
 from racing_env.vector import GymnaxRace, RaceVectorEnv
 
 # XLA:CPU evaluates sin and cos with a vectorised kernel across races and elementwise for one:
@@ -199,6 +200,16 @@ def test_the_gymnax_face_jits_vmaps_and_resets_a_race_that_ends():
     _, first = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     np.testing.assert_array_equal(np.asarray(first.x), np.asarray(jax.vmap(env.reset, in_axes=(0, None))(keys, params)[1].x))
     assert obs_again.shape == obs.shape
+
+
+def test_the_gymnax_face_draws_every_scenario_as_the_race_core_does():
+    env = GymnaxRace(track="trefoil", scenario="anywhere", race_distance=300.0)
+    params = env.default_params
+    keys = jax.random.split(jax.random.key(5), 4)
+    _, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+    drawn = jax.vmap(race.draw_start, in_axes=(0, None))(keys, params)
+    np.testing.assert_array_equal(np.asarray(state.x), np.asarray(drawn))
+    assert np.ptp(np.asarray(state.x)[:, 0, 0]) > 10.0  # scenes anywhere on the lap, not a grid
 
 
 def test_the_gymnax_face_refuses_what_it_cannot_run():
