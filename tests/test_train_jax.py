@@ -201,6 +201,8 @@ def test_the_jax_learner_refuses_what_it_cannot_do(tmp_path):
         ppo_settings(TrainConfig(learner="jax", envs=8, hyperparameters=(("n_steps", 16), ("batch_size", 100))))
     assert compiled_races(TrainConfig(learner="jax", opponents=("ilqr",))) is None
     assert compiled_races(TrainConfig(learner="jax", opponents=(), start="grid")) is not None
+    assert compiled_races(TrainConfig(learner="jax", opponents=(), start="anywhere")) is not None
+    assert compiled_races(TrainConfig(learner="jax", opponents=(), start="mixed")) is None
 
 
 @pytest.mark.slow

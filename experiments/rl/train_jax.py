@@ -5,11 +5,11 @@ Two ways to run the races, chosen from the configuration:
 * **compiled** (opponents that are JAX functions of the state: ``lane-keeping``,
   ``constant-speed``, ...; planners with a fixed iteration budget re-planning every step,
   ``ilqgame-fb:iterations=2``, whose re-plans compile into the step (:mod:`planners.agents.compiled_planner`); or a time
-  trial; ``start="grid"``; no pool): the races are a
+  trial; ``start`` ``grid`` or ``anywhere``; no pool): the races are a
   :class:`racing_env.vector.GymnaxRace` and a whole update, ``n_steps`` steps of all
   ``envs`` races and PPO's epochs, is one compiled call. The learner drives car 0; the
   grid's order is drawn per episode, so it starts in every slot.
-* **host** (any other opponents: converging planners, ``rl:`` models, pools, ``start`` anywhere or
+* **host** (any other opponents: converging planners, ``rl:`` models, pools, ``start``
   mixed): the races are the SB3 learner's :class:`experiments.rl.vec_env.RaceVecEnv` (the
   same copies, seeds and episodes; the learner drives car ``copy % N``), stepped from Python
   with the planners' batched solves; the policy's steps and PPO's update are compiled.
@@ -76,7 +76,7 @@ def compiled_races(config):
     """The run's races as a :class:`racing_env.vector.GymnaxRace` when they can be compiled
     with the policy (module docstring), else None (the host form). Runs of the same race and
     opponents (seeds of a study) share one, and with it the compiled update."""
-    if config.pool or config.start != "grid":
+    if config.pool or config.start == "mixed":  # one scenario per GymnaxRace; mixed has two
         return None
     return _gymnax_race(tuple(config.opponents), config.race_config(training=True))
 
