@@ -343,12 +343,16 @@ def _local_numbers(problem: GameProblem, x0: Array, xs_hat: Array, us_hat: Array
     return J, g, lo, hi, v, stage_lo, stage_hi
 
 
-@functools.partial(jax.jit, static_argnames=("options",))
+@functools.partial(jax.jit, static_argnames=("structure",))
 def _best_response_costs(problem: GameProblem, x0: Array, xs_hat: Array, us_hat: Array, K: Array,
-                         starts: Array, options) -> Array:
+                         starts: Array, numbers, *, structure) -> Array:
     """Every player's best-response cost ``(N,)``: the lowest final cost of its iLQR solves
-    (:func:`best_response_problem`) from ``starts (N, S, T, m)``; ``inf`` where none is finite."""
+    (:func:`best_response_problem`) from ``starts (N, S, T, m)``; ``inf`` where none is finite.
+    The solves' options are ``structure`` with the traced ``numbers``
+    (:meth:`planners.ilq.SolverOptions.split`)."""
     from planners import ilq
+
+    options = structure.with_numbers(numbers)
 
     def player(i, starts_i):
         problem_i = best_response_problem(problem, xs_hat, us_hat, K, i)
@@ -448,8 +452,9 @@ def certificate_numbers(problem_or_game, x0, solution, mode: str | None = None, 
         own = np.swapaxes(np.asarray(us), 0, 1)  # (N, T, m)
         displaced = own + np.where(negative, escape_step, 0.0)[:, None, None] * v
         starts = np.stack([own, displaced], axis=1)  # (N, 2, T, m)
-        options = best_response_options or ilq.SolverOptions(mode=methods.FEEDBACK)
-        best = np.asarray(_best_response_costs(problem, x0, xs, us, K, jnp.asarray(starts), options))
+        structure, solver_numbers = ilq.jit_arguments(best_response_options or ilq.SolverOptions(mode=methods.FEEDBACK))
+        best = np.asarray(_best_response_costs(problem, x0, xs, us, K, jnp.asarray(starts), solver_numbers,
+                                               structure=structure))
     numbers = CertificateNumbers(J, g, lo, hi, stage_lo, stage_hi, best)
     return numbers, mode
 

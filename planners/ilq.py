@@ -17,8 +17,11 @@ is::
 
 with static ``N, n, m, T`` and optional hooks (Gauss-Newton residuals, a curvature the
 linearised dynamics drop, dynamics Jacobians). :class:`SolverOptions` holds the
-configuration; it is static, so each configuration compiles once per shapes and problem
-functions, and new ``params`` or initial states re-use the compiled solver. Everything
+configuration: its structural fields (mode, iteration cap, step rule, flags) are static, so
+each structure compiles once per shapes and problem functions; its numbers (tolerance,
+trust radius, step sizes, regularisation, :class:`SolverNumbers`) are traced arguments, so
+configurations that differ only in them, new ``params`` and new initial states re-use the
+compiled solver. Everything
 inside :func:`solve` is one jitted function (``lax.while_loop`` over iterations,
 ``lax.scan`` for the recursions and rollouts, ``vmap`` over the horizon for derivatives);
 it can be vmapped over initial states and ``params``. Batches: :mod:`planners.ilq_batch`;
@@ -115,6 +118,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib
+import math
 import time
 from typing import Any, NamedTuple
 
@@ -137,6 +141,7 @@ __all__ = [
     "NON_FINITE",
     "RUNNING",
     "SolverCarry",
+    "SolverNumbers",
     "SolverOptions",
     "SolverResult",
     "as_array",
@@ -147,6 +152,7 @@ __all__ = [
     "initial_carry",
     "iterate",
     "iterate_while_running",
+    "jit_arguments",
     "regularize",
     "resolve_options",
     "result",
@@ -204,9 +210,36 @@ _STEP_CONTROLS = ("trust_region", "residual", "none")
 _CONVEXIFY = ("auto", "gauss_newton", "eig", "diag", "none")
 
 
+class SolverNumbers(NamedTuple):
+    """The numeric fields of :class:`SolverOptions` (see there for their meaning and units),
+    a pytree of scalars: the jitted solvers take them as traced arguments, so that options
+    which differ only in these numbers share one compiled solver. Python scalars in
+    :meth:`SolverOptions.split` of concrete options; weakly typed JAX scalars on their way
+    into a jitted solver (:func:`jit_arguments`; weak, as Python numbers are, so that they
+    take the dtype of the arrays they meet, like the constants they replace); traced
+    scalars inside it."""
+
+    tolerance: Any
+    trust_radius: Any
+    initial_step: Any
+    step_decay: Any
+    max_backtracks: Any
+    damping_memory: Any
+    state_regularization: Any
+    control_regularization: Any
+    regularization_factor: Any
+
+
 @dataclasses.dataclass(frozen=True)
 class SolverOptions:
-    """Configuration of :func:`solve` (static: a new configuration compiles a new solver).
+    """Configuration of :func:`solve`.
+
+    The structural fields (``mode``, ``max_iterations``, which sizes the histories,
+    ``step_control``, ``convexify`` and the flags) are static: a new combination compiles a
+    new solver. The numbers (:class:`SolverNumbers`: ``tolerance``, ``trust_radius``,
+    ``initial_step``, ``step_decay``, ``max_backtracks``, ``damping_memory``, the
+    regularisations and ``regularization_factor``) are traced: options that differ only in
+    them run the same compiled solver (:meth:`split`).
 
     Attributes:
         mode: ``"feedback"`` or ``"open_loop"`` Nash equilibrium of the local LQ games.
@@ -296,6 +329,28 @@ class SolverOptions:
     best_iterate: bool = False
     player_steps: bool = False
 
+    def split(self) -> tuple["SolverOptions", SolverNumbers]:
+        """``(structure, numbers)``: ``structure`` is these options with every numeric field
+        ``None`` (hashable; the static argument of the jitted solvers, equal for options that
+        differ only in numbers), ``numbers`` the numeric fields (:class:`SolverNumbers`;
+        concrete ones as Python ``float``, ``max_backtracks`` as ``int``, so that the
+        compiled solver does not depend on their NumPy types; traced ones as they are).
+        :meth:`with_numbers` puts them back together."""
+        numbers = SolverNumbers(**{name: _plain_number(name, getattr(self, name)) for name in SolverNumbers._fields})
+        return self._with_fields(dict.fromkeys(SolverNumbers._fields)), numbers
+
+    def with_numbers(self, numbers: SolverNumbers) -> "SolverOptions":
+        """These options with their numeric fields from ``numbers``: inside a jitted solver,
+        the options whose numbers are its traced arguments. Not validated again (the numbers
+        come from validated options through :meth:`split`, and traced ones cannot be)."""
+        return self._with_fields(numbers._asdict())
+
+    def _with_fields(self, values: dict) -> "SolverOptions":
+        new = object.__new__(SolverOptions)
+        for field in dataclasses.fields(SolverOptions):
+            object.__setattr__(new, field.name, values.get(field.name, getattr(self, field.name)))
+        return new
+
     @property
     def guaranteed_control_regularization(self) -> float:
         """The ``lambda_u`` that every LQ step adds to ``R^{ii}`` (what
@@ -374,6 +429,43 @@ class SolverOptions:
                 raise ValueError(f"SolverOptions.{name} must be {allowed[name]}, got {value!r}")
 
 
+def _plain_number(name: str, value):
+    """A concrete option number as a Python scalar (traced ones unchanged): ``max_backtracks``
+    rounded down to an ``int`` (the trial counter is compared with it), the others ``float``."""
+    if isinstance(value, jax.core.Tracer):
+        return value
+    return math.floor(value) if name == "max_backtracks" else float(value)
+
+
+def jit_arguments(options: SolverOptions) -> tuple[SolverOptions, SolverNumbers]:
+    """``options.split()`` for a call of a jitted solver: the static structure and the
+    numbers, concrete numbers as weakly typed JAX scalars (what Python numbers become inside
+    ``jit``). Made once per options and kept (a split and nine Python scalars, each a
+    host-to-device transfer, would add tens of microseconds to every solve); options with
+    traced numbers are split as they are."""
+    if any(isinstance(getattr(options, name), jax.core.Tracer) for name in SolverNumbers._fields):
+        return options.split()
+    try:
+        return _kept_jit_arguments(options, bool(jax.config.jax_enable_x64))
+    except TypeError:  # unhashable numbers (JAX arrays): made for this call only
+        return _concrete_jit_arguments(options)
+
+
+def _concrete_jit_arguments(options: SolverOptions) -> tuple[SolverOptions, SolverNumbers]:
+    """:func:`jit_arguments` of concrete options, the scalars made outside any trace."""
+    structure, numbers = options.split()
+    with jax.ensure_compile_time_eval():
+        return structure, SolverNumbers(*(jnp.asarray(value) for value in numbers))
+
+
+@functools.lru_cache(maxsize=256)
+def _kept_jit_arguments(options: SolverOptions, x64: bool) -> tuple[SolverOptions, SolverNumbers]:
+    """:func:`_concrete_jit_arguments`, kept per options and JAX's 64-bit mode ``x64`` (the
+    scalars' width depends on it)."""
+    del x64
+    return _concrete_jit_arguments(options)
+
+
 class SolverResult(NamedTuple):
     """Outcome of :func:`solve` (a pytree; batched along a leading axis by :func:`planners.ilq_batch.solve_batch`).
 
@@ -441,11 +533,12 @@ def regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str,
         diag = jnp.diagonal(Q, axis1=-2, axis2=-1)
         off = jnp.sum(jnp.abs(Q), axis=-1) - jnp.abs(diag)
         Q = Q + jnp.eye(Q.shape[-1], dtype=Q.dtype) * jnp.maximum(off - diag, 0.0)[..., None]
-    if options.state_regularization > 0:
-        Q = Q + options.state_regularization * jnp.eye(Q.shape[-1], dtype=Q.dtype)
+    # Added also where they are 0 (exact: x + 0 = x): the numbers are traced, and options
+    # that differ only in them share one compiled solver.
+    Q = Q + options.state_regularization * jnp.eye(Q.shape[-1], dtype=Q.dtype)
     # feedforward_regularization: lambda_u enters the feedback LQ solve instead (the gains
     # stay those of the local game).
-    if options.control_regularization > 0 and not options.feedforward_regularization:
+    if not options.feedforward_regularization:
         lam = options.control_regularization if control_regularization is None else control_regularization
         Rii = Rii + lam * jnp.eye(Rii.shape[-1], dtype=Rii.dtype)
     return Q, Rii
@@ -853,23 +946,43 @@ def iterate_while_running(problem: GameProblem, c: SolverCarry, options: SolverO
     return c
 
 
-@functools.partial(jax.jit, static_argnames=("options",))
 def solve_arrays(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions) -> SolverResult:
     """The whole solve, jitted, without validation: ``x0`` has ``n`` entries in any shape
     (``xs`` is returned in that shape per stage), ``us0 (T, N, m)`` the initial inputs.
-    Reshapes and casts happen here, so a call from :func:`solve` dispatches a single
-    computation."""
+    Reshapes and casts happen inside, so a call from :func:`solve` dispatches a single
+    computation. The options' structure is static, their numbers are traced
+    (:meth:`SolverOptions.split`): options that differ only in numbers share the compiled
+    solver."""
+    structure, numbers = jit_arguments(options)
+    return _solve_compiled(problem, x0, us0, numbers, structure=structure)
+
+
+@functools.partial(jax.jit, static_argnames=("structure",))
+def _solve_compiled(problem: GameProblem, x0: Array, us0: Array, numbers: SolverNumbers, *,
+                    structure: SolverOptions) -> SolverResult:
+    """The jitted function behind :func:`solve_arrays`: the options as their static
+    ``structure`` and traced ``numbers`` (:meth:`SolverOptions.split`)."""
+    options = structure.with_numbers(numbers)
     c = initial_carry(problem, x0, us0, options)
     return result(problem, finish(problem, iterate_while_running(problem, c, options), options), x0.shape)
 
 
-_start = jax.jit(initial_carry, static_argnames=("options",))
-_iterate_once = jax.jit(iterate, static_argnames=("options",))
+@functools.partial(jax.jit, static_argnames=("structure",))
+def _start(problem: GameProblem, x0: Array, us0: Array, numbers: SolverNumbers, *,
+           structure: SolverOptions) -> SolverCarry:
+    return initial_carry(problem, x0, us0, structure.with_numbers(numbers))
 
 
-@functools.partial(jax.jit, static_argnames=("options", "x_shape"))
-def _finished_result(problem: GameProblem, c: SolverCarry, options: SolverOptions, x_shape) -> SolverResult:
-    return result(problem, finish(problem, c, options), x_shape)
+@functools.partial(jax.jit, static_argnames=("structure",))
+def _iterate_once(problem: GameProblem, c: SolverCarry, numbers: SolverNumbers, *,
+                  structure: SolverOptions) -> SolverCarry:
+    return iterate(problem, c, structure.with_numbers(numbers))
+
+
+@functools.partial(jax.jit, static_argnames=("structure", "x_shape"))
+def _finished_result(problem: GameProblem, c: SolverCarry, numbers: SolverNumbers, *,
+                     structure: SolverOptions, x_shape) -> SolverResult:
+    return result(problem, finish(problem, c, structure.with_numbers(numbers)), x_shape)
 
 
 def solve_within(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions,
@@ -880,15 +993,16 @@ def solve_within(problem: GameProblem, x0: Array, us0: Array, options: SolverOpt
     ``options.best_iterate`` the best iterate is returned (:func:`finish`). Needs concrete
     inputs (it reads the status between iterations)."""
     deadline = time.perf_counter() + budget_s
-    c = _start(problem, x0, us0, options)
+    structure, numbers = jit_arguments(options)
+    c = _start(problem, x0, us0, numbers, structure=structure)
     while True:
-        c = _iterate_once(problem, c, options)
+        c = _iterate_once(problem, c, numbers, structure=structure)
         if int(c.status) != RUNNING:
             break
         if time.perf_counter() >= deadline:
             c = c._replace(status=jnp.asarray(BUDGET_EXHAUSTED, c.status.dtype))
             break
-    return _finished_result(problem, c, options, tuple(x0.shape))
+    return _finished_result(problem, c, numbers, structure=structure, x_shape=tuple(x0.shape))
 
 
 # --------------------------------------------------------------------------------------

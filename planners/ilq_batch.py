@@ -60,8 +60,8 @@ def solve_batch(
     parallel, each part stopping when its own members are done; the default is every
     local device of JAX's default backend. On CPU that is one device
     unless :func:`planners.devices.use_cpu_cores` was called. Every member's result is the
-    same either way. Compiled once per shapes, :class:`~planners.ilq.SolverOptions`, ``params_axes``,
-    devices and ``batching``.
+    same either way. Compiled once per shapes, :class:`~planners.ilq.SolverOptions` structure
+    (its numbers are traced), ``params_axes``, devices and ``batching``.
 
     ``batching``: how a device solves its part. ``"vmap"``: all members at once, in lock
     step (the vectorised form an accelerator wants). ``"map"``: one member after another,
@@ -117,18 +117,24 @@ def solve_batch(
     if us_axis is None:
         us0 = jnp.broadcast_to(us0, (x0s.shape[0],) + shape)
     batch = (x0s.reshape(x0s.shape[0], -1), us0)
+    structure, numbers = ilq.jit_arguments(options)  # numbers traced: they share the compiled solver
     if regroup_every is None or batching == "map":  # mapped members never wait: nothing to regroup
-        result = _map_split("solve", problem, batch, leaf_axes=leaf_axes, options=options, mesh=mesh,
+        result = _map_split("solve", problem, batch, numbers, leaf_axes=leaf_axes, structure=structure, mesh=mesh,
                             batching=batching)
     else:
-        result = _solve_regrouped(problem, batch, leaf_axes, options, mesh, int(regroup_every))
+        result = _solve_regrouped(problem, batch, leaf_axes, structure, numbers, mesh, int(regroup_every))
     return result._replace(xs=result.xs.reshape(result.xs.shape[:2] + x0s.shape[1:]))
 
 
-def _solve_regrouped(problem: GameProblem, batch, leaf_axes, options, mesh, every: int) -> ilq.SolverResult:
+def _solve_regrouped(problem: GameProblem, batch, leaf_axes, structure, numbers, mesh, every: int
+                     ) -> ilq.SolverResult:
     """A vmapped :func:`solve_batch` in blocks of ``every`` iterations, each block on the
-    members still running (see ``regroup_every``)."""
-    run = functools.partial(_map_split, leaf_axes=leaf_axes, options=options, mesh=mesh, batching="vmap")
+    members still running (see ``regroup_every``); the options as ``structure`` and
+    ``numbers`` (:meth:`planners.ilq.SolverOptions.split`)."""
+    def run(kind, problem, batch, **kwargs):
+        return _map_split(kind, problem, batch, numbers, leaf_axes=leaf_axes, structure=structure, mesh=mesh,
+                          batching="vmap", **kwargs)
+
     carry = run("start", problem, batch)
     batch_size = int(carry.status.shape[0])
     while True:
@@ -183,12 +189,14 @@ def _member(kind: str, problem: GameProblem, args, options: ilq.SolverOptions, s
     return ilq.result(problem, ilq.finish(problem, args, options), (args.xs.shape[-1],))
 
 
-@functools.partial(jax.jit, static_argnames=("kind", "leaf_axes", "options", "mesh", "batching", "steps"))
-def _map_split(kind: str, problem: GameProblem, batch, *, leaf_axes, options, mesh, batching, steps=None):
+@functools.partial(jax.jit, static_argnames=("kind", "leaf_axes", "structure", "mesh", "batching", "steps"))
+def _map_split(kind: str, problem: GameProblem, batch, numbers: ilq.SolverNumbers, *, leaf_axes, structure, mesh,
+               batching, steps=None):
     """:func:`_member` over axis 0 of every leaf of ``batch`` (and over the params leaves
     whose ``leaf_axes`` entry is not None), with the batch split evenly across ``mesh``'s
     devices; on each device vmapped (``batching="vmap"``) or one member after another
-    (``"map"``).
+    (``"map"``). The options are ``structure`` (static) with the traced ``numbers``
+    (:meth:`planners.ilq.SolverOptions.split`), shared by the members.
 
     The batch is padded to a multiple of the device count by repeating its last member;
     every device runs its part (``shard_map``: no communication, so each part's while loops
@@ -210,24 +218,29 @@ def _map_split(kind: str, problem: GameProblem, batch, *, leaf_axes, options, me
         return PartitionSpec() if axis is None else PartitionSpec(*([None] * (axis % leaf.ndim)), "batch")
 
     batch_def = jax.tree_util.tree_structure(batch)
+    numbers_def = jax.tree_util.tree_structure(numbers)
 
     def one(*flat):
-        """One member from flat arrays: the params leaves, then the leaves of ``batch``."""
+        """One member from flat arrays: the params leaves, the numbers, then the leaves of ``batch``."""
         p = problem.replace(params=jax.tree_util.tree_unflatten(treedef, flat[: len(leaves)]))
-        return _member(kind, p, jax.tree_util.tree_unflatten(batch_def, flat[len(leaves):]), options, steps)
+        rest = flat[len(leaves):]
+        options = structure.with_numbers(jax.tree_util.tree_unflatten(numbers_def, rest[: numbers_def.num_leaves]))
+        return _member(kind, p, jax.tree_util.tree_unflatten(batch_def, rest[numbers_def.num_leaves:]), options, steps)
 
     # "map": under vmap, one_at_a_time runs the members one after another (a lax.map).
     member = one if batching == "vmap" else one_at_a_time(one)
 
-    def part(leaves, batch):
-        flat = (*leaves, *jax.tree_util.tree_leaves(batch))
-        return jax.vmap(member, in_axes=(*leaf_axes, *[0] * batch_def.num_leaves))(*flat)
+    def part(leaves, numbers, batch):
+        flat = (*leaves, *jax.tree_util.tree_leaves(numbers), *jax.tree_util.tree_leaves(batch))
+        in_axes = (*leaf_axes, *[None] * numbers_def.num_leaves, *[0] * batch_def.num_leaves)
+        return jax.vmap(member, in_axes=in_axes)(*flat)
 
     leaves = [padded(leaf, axis) for leaf, axis in zip(leaves, leaf_axes)]
     batch = jax.tree_util.tree_map(lambda leaf: padded(leaf, 0), batch)
     in_specs = ([spec(leaf, axis) for leaf, axis in zip(leaves, leaf_axes)],
+                jax.tree_util.tree_map(lambda leaf: PartitionSpec(), numbers),
                 jax.tree_util.tree_map(lambda leaf: spec(leaf, 0), batch))
     # check_vma=False: the solver's loop carries start as constants and become per-device.
     result = jax.shard_map(part, mesh=mesh, in_specs=in_specs, out_specs=PartitionSpec("batch"),
-                           check_vma=False)(leaves, batch)
+                           check_vma=False)(leaves, numbers, batch)
     return jax.tree_util.tree_map(lambda leaf: leaf[:size], result) if pad else result

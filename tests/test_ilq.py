@@ -13,6 +13,8 @@ neither iLQGame variant converges within 100 iterations; the step-rule tests use
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -144,6 +146,44 @@ def test_iteration_cap_reports_non_convergence(game):
     assert int(res.status) == ilq.MAX_ITERATIONS and int(res.iterations) == 1
     for leaf in (res.xs, res.us, res.costs, res.K, res.k):
         assert np.all(np.isfinite(np.asarray(leaf)))
+
+
+def _walk_dynamics(p, t, x, u):
+    del p, t
+    return x + u[0]
+
+
+WALK = ilq.GameProblem(_walk_dynamics, _cliff_stage_cost, _cliff_terminal_cost, 1, 1, 1, 5)  # 0 -> 10, no cliff
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _solve_with_constant_numbers(problem, x0, us0, options):
+    """The whole solve compiled with ``options``' numbers as constants of the program."""
+    c = ilq.initial_carry(problem, x0, us0, options)
+    return ilq.result(problem, ilq.finish(problem, ilq.iterate_while_running(problem, c, options), options), x0.shape)
+
+
+def test_options_that_differ_only_in_numbers_share_one_compiled_solver():
+    """The numbers of SolverOptions (here tolerance and trust radius) are traced arguments of
+    the jitted solver: two options that differ only in them compile one solver between them,
+    and each gives the result of a solver compiled with its numbers as constants."""
+    x0 = jnp.zeros(1)
+    wide = ilq.SolverOptions(tolerance=1e-6, trust_radius=20.0)
+    narrow = ilq.SolverOptions(tolerance=1e-3, trust_radius=1.5)
+    assert wide.split()[0] == narrow.split()[0] and wide.split()[1] != narrow.split()[1]
+    compiled = ilq._solve_compiled._cache_size()
+    results = {}
+    for options in (wide, narrow):
+        results[options] = ilq.solve(WALK, x0, options=options)
+        assert ilq._solve_compiled._cache_size() == compiled + 1  # the first solve compiles, the second not
+    # the numbers reach the solver: the narrow trust region cuts the walk to x = 10 into short steps
+    assert int(results[wide].iterations) < int(results[narrow].iterations)
+    assert float(np.nanmax(results[narrow].history * results[narrow].step_history)) <= 1.5
+    for options, shared in results.items():
+        assert bool(shared.converged), ilq.status_message(shared.status)
+        alone = _solve_with_constant_numbers(WALK, x0, jnp.zeros((5, 1, 1)), options)
+        for name, a, b in zip(shared._fields, shared, alone):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=name)
 
 
 # --------------------------------------------------------------------------------------
