@@ -225,9 +225,7 @@ def next_start(key: jax.Array, params: RaceParams) -> tuple[jax.Array, jax.Array
     """The next episode of a race whose key is ``key`` (:mod:`racing_env.starts`): ``(key
     carried on, x0 (N, 6), free, episode seed)``; ``free`` is false when an ``anywhere``
     scene found no start without overlapping cars. Every env's episodes begin here."""
-    carried, episode = starts_lib.next_episode(key)
-    x0, free = starts_lib.draw(episode, params.starts, params.game.track, params.game.vehicles)
-    return carried, x0, free, starts_lib.episode_seed(episode)
+    return starts_lib.next_start(key, params.starts, params.game.track, params.game.vehicles)
 
 
 def reset(key: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array]:

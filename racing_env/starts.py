@@ -37,7 +37,7 @@ from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
 
 __all__ = ["MAX_TRIES", "SEED_BOUND", "Starts", "draw", "draw_episode", "episode_seed", "fresh_key", "key_from_seed",
-           "next_episode"]
+           "next_episode", "next_start"]
 
 #: Draws of an ``anywhere`` scene's positions before :func:`draw` reports that it found no
 #: start without overlapping cars.
@@ -173,15 +173,20 @@ def draw(key: jax.Array, starts: Starts, track: Track, vehicles: VehicleParams) 
     return _grid(key, starts, v_cap), jnp.asarray(True)
 
 
-@jax.jit
-def _draw_episode(key: jax.Array, starts: Starts, track: Track, vehicles: VehicleParams):
+def next_start(key: jax.Array, starts: Starts, track: Track, vehicles: VehicleParams
+               ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """The next episode of a race whose key is ``key``: ``(key carried on, x0 (N, 6), free,
+    episode seed)`` (:func:`next_episode`, :func:`draw`, :func:`episode_seed`). Pure."""
     carried, episode = next_episode(key)
     x0, free = draw(episode, starts, track, vehicles)
-    return carried, x0, free
+    return carried, x0, free, episode_seed(episode)
+
+
+_next_start = jax.jit(next_start)
 
 
 def draw_episode(key: np.ndarray, starts: Starts, track: Track, vehicles: VehicleParams
                  ) -> tuple[np.ndarray, np.ndarray, bool]:
     """One episode on the host: ``(key carried on (2,) uint32, x0 (N, 6), free)`` (jitted)."""
-    carried, x0, free = _draw_episode(jnp.asarray(key), starts, track, vehicles)
+    carried, x0, free, _ = _next_start(jnp.asarray(key), starts, track, vehicles)
     return np.asarray(carried), np.asarray(x0), bool(free)

@@ -253,8 +253,12 @@ class RaceVectorEnv(VectorEnv):
             self._seed_keys(seed)
         keys, state, obs_all, _, ints, floats, seeds, free = self._start(self._keys, mask, x0_given, given,
                                                                          self._constants)
-        if not given and not np.asarray(free)[mask].all():
-            raise ValueError(f"scenario {self.config.scenario!r} found no start without overlapping cars")
+        if not given:
+            if not np.asarray(free)[mask].all():
+                raise ValueError(f"scenario {self.config.scenario!r} found no start without overlapping cars")
+            # as the single env's reset: a jittered grid may reach the finish line
+            race.check_starts_behind(self.race.finish_s, np.asarray(state.x)[mask].reshape(-1, 6),
+                                     self.config.scenario)
         self._keys = keys
         seeds = np.asarray(seeds).astype(np.int64)
         for opponent in self.opponents.values():

@@ -1,11 +1,11 @@
 """Tests of the starts drawn with JAX (racing_env.starts): every scenario's draws lie in its
 distribution's support on built and real circuits; a seed gives the same episodes in the
-PettingZoo env, make_scenario, random_scenes and the vectorised env, through thousands of
-autoresets in both of Gymnasium's modes; a million race-steps through tens of thousands of
-autoresets stay finite."""
+PettingZoo env, make_scenario and random_scenes; a step in which every race restarts draws
+each race's own start; a million race-steps through tens of thousands of autoresets stay
+finite. The vectorised env's agreement with the single env through many autoresets, in both
+of Gymnasium's modes: tests/test_vector_env.py."""
 
 import gymnasium
-from gymnasium.vector import AutoresetMode
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -21,9 +21,6 @@ from racing_env.track import get_track
 from racing_env.vector import restart_batch
 from racing_env.vehicle import VehicleParams
 
-# XLA:CPU evaluates sin and cos with a vectorised kernel across races and elementwise for one:
-# the results differ in the last bit, a few ulps per step (tests/test_race_core.py).
-BATCH_TOLERANCE = 1e-9
 DRAWS = 256
 
 
@@ -129,43 +126,7 @@ def test_make_scenario_and_random_scenes_are_the_starts_a_seeded_env_draws(scena
     assert not np.array_equal(first, second)
 
 
-# --- the single env and the vectorised env, through many autoresets ----------------------------
-SHORT = dict(max_steps=12, on_off_track="terminate")
-
-
-@pytest.mark.parametrize("mode, race_config", [
-    (AutoresetMode.NEXT_STEP, dict(track="trefoil", num_agents=3, **SHORT)),
-    (AutoresetMode.SAME_STEP, dict(track="Monza", scenario="anywhere", **SHORT)),
-])
-def test_the_vectorised_env_runs_the_single_envs_episodes_through_many_autoresets(mode, race_config):
-    """Gymnasium's SyncVectorEnv of the single env and the vectorised env, same seeds and
-    actions, in the same autoreset mode: every race's starts and steps agree."""
-    num = 4
-    vector = gymnasium.make_vec("racing_env/Race-v0", num_envs=num, vectorization_mode="vector_entry_point",
-                                autoreset_mode=mode, **race_config)
-    sync = gymnasium.make_vec("racing_env/Race-v0", num_envs=num, vectorization_mode="sync",
-                              vector_kwargs={"autoreset_mode": mode}, **race_config)
-    obs_v, _ = vector.reset(seed=21)
-    obs_s, _ = sync.reset(seed=21)
-    np.testing.assert_array_equal(obs_v, obs_s)
-    rng = np.random.default_rng(3)
-    ends = 0
-    for _ in range(120):
-        actions = rng.uniform(-1.5, 1.5, (num, 2))
-        obs_v, rew_v, term_v, trunc_v, info_v = vector.step(actions)
-        obs_s, rew_s, term_s, trunc_s, info_s = sync.step(actions)
-        np.testing.assert_allclose(obs_v, obs_s, rtol=0, atol=BATCH_TOLERANCE)
-        np.testing.assert_allclose(rew_v, rew_s, rtol=0, atol=BATCH_TOLERANCE)
-        np.testing.assert_array_equal(term_v, term_s)
-        np.testing.assert_array_equal(trunc_v, trunc_s)
-        if mode == AutoresetMode.SAME_STEP and (term_v | trunc_v).any():
-            done = np.flatnonzero(term_v | trunc_v)
-            np.testing.assert_allclose(np.stack(info_v["final_obs"][done]), np.stack(info_s["final_obs"][done]),
-                                       rtol=0, atol=BATCH_TOLERANCE)
-        ends += int(np.sum(term_v | trunc_v))
-    assert ends >= 8 * num  # every race ended and restarted many times
-
-
+# --- the vectorised env's autoresets (their agreement with the single env: tests/test_vector_env.py) ----
 def test_a_step_in_which_every_race_restarts_draws_each_races_own_next_start():
     """All 4 races end together: they restart in four batches of one (an eighth of the races,
     rounded up), each from its own key."""
