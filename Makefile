@@ -4,9 +4,11 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # Tests run in one worker process per logical CPU, at most 4 (pytest-xdist): most of their
-# time is XLA compilation, which keeps a process on one core most of the time.
+# time is XLA compilation, which keeps a process on one core most of the time. Each test
+# file runs in one worker (--dist loadfile), so its module fixtures and the solvers its tests
+# compile are built once, not once per worker.
 # `make test WORKERS=` runs them in a single process (e.g. under a debugger).
-WORKERS ?= -n logical --maxprocesses 4
+WORKERS ?= -n logical --maxprocesses 4 --dist loadfile
 PYTEST_ARGS ?= -m "not slow" $(WORKERS)
 
 .PHONY: test test-all demo bench install clean
@@ -23,8 +25,10 @@ install: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
+# every test, slow ones included, with XLA's full optimisations (the default run compiles
+# quickly: tests/conftest.py)
 test-all: $(STAMP)
-	$(BIN)/python -m pytest -m "" $(WORKERS)
+	RACING_TEST_OPTIMIZED=1 $(BIN)/python -m pytest -m "" $(WORKERS)
 
 demo: $(STAMP)
 	$(BIN)/racing demo

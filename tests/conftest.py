@@ -1,5 +1,15 @@
-"""Shared test configuration: float64 everywhere, two CPU devices, and one on-disk
-compilation cache per test run.
+"""Shared test configuration: float64 everywhere, two CPU devices, XLA's quick compile in
+the default run, and one on-disk compilation cache per test run.
+
+Quick compile: most of the default run's time is XLA compiling solvers that then run for
+milliseconds, so the default run compiles with XLA's backend optimisations mostly off
+(``jax_disable_most_optimizations``; ``JAX_DISABLE_MOST_OPTIMIZATIONS=1`` for the
+subprocesses tests start). The JAX programs are the same; XLA's code for them is slower
+and may round differently in the last bits, which no tolerance of the math notices. The
+few tests that compare against bits the optimised program wrote, or that race for minutes,
+run their part in a fresh process with the users' settings (``tests/optimized.py``).
+``make test-all`` sets ``RACING_TEST_OPTIMIZED=1``: every test then runs the optimised
+programs users run.
 
 The cache: every test process (the xdist workers and the subprocesses tests start:
 ``racing`` commands, the docs' code blocks) compiles many of the same solvers (the agents'
@@ -19,7 +29,13 @@ import jax
 from planners.compile_cache import ENV_VAR, MAX_BYTES, enable_compile_cache
 from planners.devices import use_cpu_cores
 
+from optimized import QUICK_COMPILE_VAR, optimized_run
+
 jax.config.update("jax_enable_x64", True)
+# Before the first compilation; the value travels to subprocesses through the environment.
+if not optimized_run():
+    os.environ[QUICK_COMPILE_VAR] = "1"
+    jax.config.update("jax_disable_most_optimizations", True)
 # Two CPU devices (before any JAX computation): solve_batch splits its batches across them,
 # so every batched-solve test runs the multi-device path. Everything else uses device 0.
 use_cpu_cores(2)
