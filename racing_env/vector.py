@@ -35,10 +35,12 @@ compiled step, for every scenario, as the single env draws its own. The states a
 few ulps rather than bit for bit: XLA:CPU evaluates sin and cos with a vectorised kernel
 across races (docs/env.md).
 
-:class:`GymnaxRace` is the same race for JAX learners, in gymnax's ``Environment``
-interface (``reset(key, params)``, ``step(key, state, action, params)`` with autoreset,
-pure functions that jit and vmap), with JAX-function opponents inside the step.
-Guide: docs/env.md, "Vectorised races (`racing_env.vector`)".
+:class:`GymnaxRace` is the same race for JAX learners as a gymnax environment (a subclass
+of gymnax's ``Environment`` where gymnax is installed: ``reset(key, params)``, ``step(key,
+state, action, params)`` with autoreset, pure functions that jit and vmap), with
+JAX-function opponents inside the step, float32 at its face and JAX spaces (:class:`Box`).
+Guides: docs/env.md, "Vectorised races (`racing_env.vector`)"; docs/rl.md, "Third-party
+JAX learners".
 """
 
 from __future__ import annotations
