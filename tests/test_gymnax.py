@@ -68,8 +68,9 @@ def test_the_step_is_the_installed_gymnax_step_with_float32_at_the_face(env):
     obs, state = env.reset(jax.random.key(0), params)
     assert obs.dtype == jnp.float32 and obs.shape == env.observation_space(params).shape
     outputs = []
+    step = jax.jit(env.step)
     for k in range(6):  # the sixth step truncates the race, which restarts within the step
-        out = env.step(jax.random.key(k + 1), state, jnp.array([0.5, 0.0], jnp.float32), params)
+        out = step(jax.random.key(k + 1), state, jnp.array([0.5, 0.0], jnp.float32), params)
         state = out[1]
         outputs.append(out)
     obs, state, reward, *flags, info = outputs[-1]
@@ -83,13 +84,13 @@ def test_the_step_is_the_installed_gymnax_step_with_float32_at_the_face(env):
                                                                             params)[0]))
     if SIX_VALUE_STEP:
         assert not bool(flags[0]) and bool(flags[1]) and "final_observation" in info
-    # race_step is the five-value step whatever gymnax is installed
-    five = env.race_step(jax.random.key(1), env.reset(jax.random.key(0), params)[1], jnp.zeros(2), params)
-    assert len(five) == 5 and five[2].dtype == jnp.float32
-    if GYMNAX_INSTALLED:
+    if GYMNAX_INSTALLED:  # race_step is the five-value step whatever gymnax is installed (without: step)
         from gymnax.environments.environment import Environment
 
         assert isinstance(env, Environment)
+        five = jax.jit(env.race_step)(jax.random.key(1), env.reset(jax.random.key(0), params)[1], jnp.zeros(2),
+                                      params)
+        assert len(five) == 5 and five[2].dtype == jnp.float32
 
 
 def test_params_of_another_race_are_refused(env):
@@ -124,34 +125,28 @@ def _run(code: str, *args: str, timeout: int = 600) -> subprocess.CompletedProce
 
 
 def test_the_race_runs_in_float32_with_x64_off():
-    """In a fresh process (the tests' own runs with x64 on): the race core and GymnaxRace with
-    the lane keeper and a coasting car, reset and a jitted lax.scan of steps, all float32."""
+    """In a fresh process (the tests' own runs with x64 on): GymnaxRace with the lane keeper
+    and a coasting car (the race core inside), reset and a jitted lax.scan of steps through
+    a restart, all float32 and finite, and a planner opponent refused."""
     result = _run("""
         import racing_env, warnings
-        import jax, jax.numpy as jnp, numpy as np
+        import jax, jax.numpy as jnp
         jax.config.update("jax_enable_x64", False)
         warnings.filterwarnings("error", message="Explicitly requested dtype")  # no float64 request truncated
-        from racing_env import race
         from racing_env.vector import GymnaxRace
-        env = GymnaxRace(opponents=["lane-keeping", None], track="trefoil", max_steps=40)
+        env = GymnaxRace(opponents=["lane-keeping", None], track="trefoil", max_steps=30)
         params = env.default_params
-        state, obs = race.reset(jax.random.key(0), params)
-        def core(state, key):
-            state, obs, reward, terminated, truncated, info = race.step(key, state, jnp.full((3, 2), 0.5), params)
-            return state, (obs, reward, info.terms)
-        final, (obs, reward, terms) = jax.jit(lambda s: jax.lax.scan(core, s, jax.random.split(jax.random.key(1), 30)))(state)
-        assert final.status.finish_time.dtype == jnp.float32  # NaN until a car finishes
-        out = [final.x, obs, reward, terms]
-        obs0, gstate = env.reset(jax.random.key(2), params)
+        obs0, state = env.reset(jax.random.key(2), params)
         def face(state, key):
             obs, state, reward, done, info = env.race_step(key, state, jnp.array([1.0, 0.0]), params)
-            return state, (obs, reward, info["finish_time"], done)
-        gfinal, (gobs, greward, gtime, done) = jax.jit(lambda s: jax.lax.scan(face, s, jax.random.split(jax.random.key(3), 60)))(gstate)
-        assert gtime.dtype == jnp.float32
-        out += [gfinal.x, gobs, greward, obs0]
+            return state, (obs, reward, info["finish_time"], done, state.x)
+        final, (obs, reward, finish_time, done, x) = jax.jit(
+            lambda s: jax.lax.scan(face, s, jax.random.split(jax.random.key(3), 40)))(state)
+        assert finish_time.dtype == final.status.finish_time.dtype == jnp.float32  # NaN until finished
+        out = [obs0, state.x, obs, reward, x]
         assert all(a.dtype == jnp.float32 for a in out), [a.dtype for a in out]
         assert all(bool(jnp.isfinite(a).all()) for a in out)
-        assert int(done.sum()) >= 1  # the learner's race ended (40 steps) and restarted
+        assert int(done.sum()) == 1 and int(final.steps) == 10  # the race of 30 steps restarted
         try:
             GymnaxRace(opponents=["ilqgame-fb:iterations=1"], track="trefoil")
         except RuntimeError as error:
