@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from planners.methods import CONSTANT_SPEED, LANE_KEEPING
+from racing_env.precision import default_float
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
 
@@ -154,7 +155,7 @@ def jax_curvature(controller: LaneKeeping) -> Callable[[jnp.ndarray], jnp.ndarra
     last = xp.shape[0] - 1
 
     def kappa(s):
-        s = jnp.asarray(s, dtype=jnp.float64)
+        s = jnp.asarray(s, dtype=default_float())
         x_grid, f_grid, slope = jnp.asarray(xp), jnp.asarray(fp), jnp.asarray(slopes)
         if closed:
             s = jnp.mod(jnp.mod(s, period), period)
@@ -167,7 +168,8 @@ def jax_curvature(controller: LaneKeeping) -> Callable[[jnp.ndarray], jnp.ndarra
 
 def jax_policy(controller: LaneKeeping) -> Callable[[jnp.ndarray], jnp.ndarray]:
     """The law of a :class:`LaneKeeping` (or :class:`ConstantSpeed`) controller as a pure JAX
-    function ``policy(x (N, 6)) -> action (2,)``: normalised jerks in ``[-1, 1]``, float64.
+    function ``policy(x (N, 6)) -> action (2,)``: normalised jerks in ``[-1, 1]``, in JAX's widest
+    float (float64; float32 where the user turned ``jax_enable_x64`` off).
 
     The same IEEE operations in the same order as ``controller(observation, x)`` (the
     curvature preview by :func:`jax_curvature`), except that XLA fuses multiply-adds into
@@ -184,11 +186,13 @@ def jax_policy(controller: LaneKeeping) -> Callable[[jnp.ndarray], jnp.ndarray]:
     vehicle = controller.vehicle
     target_speed, target_n = float(controller.target_speed), float(controller.target_n)
     jx_max, jy_max = (float(j) for j in controller._jerk_max)
-    preview_index = jnp.asarray(_PREVIEW_INDEX)
-    brake = jnp.asarray(BRAKE_ACTION, dtype=jnp.float64)
 
     def policy(x):
-        s, v, n, chi, ax, ay = (jnp.asarray(x, dtype=jnp.float64)[index, k] for k in range(6))
+        # JAX's widest float when traced: float64 with jax_enable_x64 on, float32 with it off
+        dtype = default_float()
+        preview_index = jnp.asarray(_PREVIEW_INDEX, dtype)
+        brake = jnp.asarray(BRAKE_ACTION, dtype=dtype)
+        s, v, n, chi, ax, ay = (jnp.asarray(x, dtype=dtype)[index, k] for k in range(6))
         v_pos = jnp.maximum(v, 0.0)
         reach = jnp.maximum(v_pos, 5.0) * PREVIEW_TIME
         offsets = (preview_index * (reach / (PREVIEW_POINTS - 1))).at[-1].set(reach)
@@ -300,17 +304,19 @@ class RacelineDriver:
 
     def jax_law(self) -> Callable[[jnp.ndarray], jnp.ndarray]:
         """The law as a pure JAX function ``policy(x (N, 6)) -> action (2,)``: normalised jerks
-        in ``[-1, 1]``, float64; :data:`BRAKE_ACTION` where the car's own state is not finite.
+        in ``[-1, 1]``, float64 (float32 with ``jax_enable_x64`` off); :data:`BRAKE_ACTION` where the car's own state is not finite.
         Jit it, ``vmap`` it over races."""
         track, index, vehicle = self.track, self.index, self.vehicle
-        tables = {k: jnp.asarray(v) for k, v in
-                  (("n", self._n_ref), ("chi", self._chi_ref), ("kappa", self._kappa), ("v", self._v_ref),
-                   ("ax", self._ax_ref))}
+        arrays = (("n", self._n_ref), ("chi", self._chi_ref), ("kappa", self._kappa), ("v", self._v_ref),
+                  ("ax", self._ax_ref))
         jx_max, jy_max = (float(j) for j in self._jerk_max)
-        brake = jnp.asarray(BRAKE_ACTION, dtype=jnp.float64)
 
         def policy(x):
-            s, v, n, chi, ax, ay = (jnp.asarray(x, dtype=jnp.float64)[index, k] for k in range(6))
+            # JAX's widest float when traced: float64 with jax_enable_x64 on, float32 with it off
+            dtype = default_float()
+            tables = {k: jnp.asarray(v, dtype) for k, v in arrays}
+            brake = jnp.asarray(BRAKE_ACTION, dtype=dtype)
+            s, v, n, chi, ax, ay = (jnp.asarray(x, dtype=dtype)[index, k] for k in range(6))
             v_pos = jnp.maximum(v, 0.0)
             ahead = s + v_pos * RACELINE_PREVIEW
             ahead_v = s + v_pos * RACELINE_SPEED_PREVIEW

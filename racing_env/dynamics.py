@@ -65,6 +65,7 @@ def joint_step(x: jax.Array, u: jax.Array, dt: float, kappa_at: CurvatureFn) -> 
     """Advance all cars by ``dt``: ``x (N, 6)``, ``u (N, 2)`` -> ``(N, 6)``.
 
     The cars do not interact through the dynamics, so the joint RK4 step is the per-car
-    step mapped over cars.
+    step mapped over cars. The result has ``x``'s dtype (a float32 state stays float32 when
+    the track's tables are float64), so a ``lax.scan`` of steps carries one type.
     """
-    return jax.vmap(lambda xi, ui: rk4_step(xi, ui, dt, kappa_at))(x, u)
+    return jax.vmap(lambda xi, ui: rk4_step(xi, ui, dt, kappa_at))(x, u).astype(jnp.result_type(x))

@@ -37,7 +37,8 @@ def enforce_limits(x: jax.Array, vehicles: VehicleParams) -> jax.Array:
     ay_room = jnp.minimum(ay_room, vehicles.ay_turn_max(v))
     ay = jnp.clip(ay, -ay_room, ay_room)
     ax = jnp.where(v <= 0.0, jnp.maximum(ax, 0.0), ax)
-    return x.at[:, V].set(v).at[:, AX].set(ax).at[:, AY].set(ay)
+    dtype = jnp.result_type(x)  # the limits are float64 constants; the state keeps its dtype
+    return x.at[:, V].set(v.astype(dtype)).at[:, AX].set(ax.astype(dtype)).at[:, AY].set(ay.astype(dtype))
 
 
 def saturate_jerk(x: jax.Array, u: jax.Array, vehicles: VehicleParams, dt: float) -> jax.Array:
@@ -68,11 +69,12 @@ def drive(game, x: jax.Array, actions: jax.Array) -> jax.Array:
     car's jerk limits; the jerks are saturated (:func:`saturate_jerk`), the game's RK4 step
     is taken and the limits are enforced (:func:`enforce_limits`). ``game`` is a
     :class:`racing_env.RaceGame` (dynamics, vehicles, ``dt``). The environment's step is
-    this plus the race's bookkeeping (rules, incidents, observations).
+    this plus the race's bookkeeping (rules, incidents, observations). The next state has
+    ``x``'s dtype.
     """
     u = jnp.clip(actions, -1.0, 1.0) * game.vehicles.jerk_max
     u = saturate_jerk(x, u, game.vehicles, game.dt)
-    return enforce_limits(game.step(x, u), game.vehicles)
+    return enforce_limits(game.step(x, u), game.vehicles).astype(jnp.result_type(x))
 
 
 def footprint_overlap(x: jax.Array, vehicles: VehicleParams, track: Track) -> jax.Array:

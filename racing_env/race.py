@@ -70,6 +70,9 @@ class RaceParams(NamedTuple):
         max_steps: steps after which a race is truncated (int32 scalar).
         starts: the scenario's start distribution, which :func:`draw_start` draws from
             (:class:`racing_env.starts.Starts`).
+
+    ``max_steps_in_episode`` (gymnax's name for the step limit) is ``max_steps``, and
+    :meth:`replace` takes either name, as gymnax's params' ``replace`` does.
     """
 
     game: RaceGame
@@ -78,6 +81,22 @@ class RaceParams(NamedTuple):
     rules: RaceRules
     max_steps: jax.Array
     starts: Starts
+
+    @property
+    def max_steps_in_episode(self) -> jax.Array:
+        """The step limit under gymnax's name: ``max_steps`` (int32 scalar)."""
+        return self.max_steps
+
+    def replace(self, **changes) -> "RaceParams":
+        """A copy with ``changes`` (field names, or ``max_steps_in_episode`` for
+        ``max_steps``), as flax's ``struct.dataclass.replace``."""
+        if "max_steps_in_episode" in changes:
+            if "max_steps" in changes:
+                raise ValueError("give max_steps or max_steps_in_episode, not both")
+            changes["max_steps"] = changes.pop("max_steps_in_episode")
+        if "max_steps" in changes:
+            changes["max_steps"] = jnp.asarray(changes["max_steps"], jnp.int32)
+        return self._replace(**changes)
 
 
 class RaceState(NamedTuple):
@@ -189,14 +208,16 @@ def _lap(params: RaceParams, s: jax.Array) -> jax.Array:
 
 def start(x0: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array, RaceInfo]:
     """A race starting from the joint state ``x0 (N, 6)``: its state, the observations
-    ``(N, O)`` float32 and the start's :class:`RaceInfo` (no incidents, no rewards)."""
+    ``(N, O)`` float32 and the start's :class:`RaceInfo` (no incidents, no rewards). The race
+    runs in ``x0``'s dtype (as JAX holds it: float32 with ``jax_enable_x64`` off)."""
+    x0 = jnp.asarray(x0)
     num = x0.shape[0]
     status = RaceStatus(
         active=jnp.ones(num, dtype=bool),
         finished=jnp.zeros(num, dtype=bool),
         out=jnp.zeros(num, dtype=bool),
         place=jnp.zeros(num, dtype=jnp.int32),
-        finish_time=jnp.full(num, jnp.nan, dtype=x0.dtype),
+        finish_time=jnp.full(num, jnp.nan, dtype=jnp.result_type(x0)),
     )
     state = RaceState(x0, status, jnp.zeros((), jnp.int32))
     game = params.game
@@ -209,7 +230,7 @@ def start(x0: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array, Race
         collided=none,
         contact=jnp.zeros((num, num), dtype=bool),
         off_track=none,
-        terms=jnp.zeros((num, len(REWARD_TERMS)), dtype=x0.dtype),
+        terms=jnp.zeros((num, len(REWARD_TERMS)), dtype=jnp.result_type(x0)),
     )
     return state, obs, info
 
@@ -246,10 +267,15 @@ def step(
     info)``: a car terminates when it finishes or retires, and is truncated when it is still
     racing after ``params.max_steps`` steps. A car that was no longer racing before the step
     stays as it was, terminated, with zero reward.
+
+    The race follows the dtype of ``state.x`` (float32 or float64; the params' float64
+    constants do not widen it): the next state, the rewards and the reward terms have that
+    dtype, so a ``lax.scan`` of steps carries one type whatever ``jax_enable_x64`` says.
     """
     del key
     game = params.game
     x, status = state.x, state.status
+    dtype = jnp.result_type(x)
     steps = state.steps + 1
     active = status.active
     x_next = jnp.where(active[:, None], drive(game, x, actions), x)
@@ -259,7 +285,8 @@ def step(
     collided = contact.any(axis=1)
     verdict = judge(x[:, S], x_next[:, S], status, collided, outside, steps, game.dt, params.finish_s,
                     params.rules, speed=x_next[:, V])
-    new_status = verdict.status
+    # the status keeps its dtypes (finish_time is the state's float)
+    new_status = jax.tree_util.tree_map(lambda new, old: new.astype(old.dtype), verdict.status, status)
     # observed with the cars still racing after this step's verdict
     obs = observe(x_next, new_status.active, game.track, params.finish_s, params.preview).astype(jnp.float32)
     info = RaceInfo(
@@ -269,8 +296,8 @@ def step(
         collided=collided,
         contact=contact,
         off_track=outside,
-        terms=verdict.terms,
+        terms=verdict.terms.astype(dtype),
     )
     truncations = new_status.active & (steps >= params.max_steps)
     terminations = ~new_status.active
-    return RaceState(x_next, new_status, steps), obs, verdict.reward, terminations, truncations, info
+    return RaceState(x_next, new_status, steps), obs, verdict.reward.astype(dtype), terminations, truncations, info

@@ -33,6 +33,7 @@ import numpy as np
 
 from racing_env.dynamics import N_LAT, S, STATE_DIM, V
 from racing_env.physics import footprint_overlap
+from racing_env.precision import canonical
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
 
@@ -130,13 +131,13 @@ def _grid(key: jax.Array, starts: Starts, v_cap: jax.Array) -> jax.Array:
     k_order, k_jitter = jax.random.split(key)
     order = jnp.where(starts.shuffle, jax.random.permutation(k_order, num), jnp.arange(num))
     x0 = jnp.zeros_like(starts.slots).at[order].set(starts.slots)  # car order[k] takes slot k
-    noise = jax.random.uniform(k_jitter, (3, num), starts.slots.dtype, -1.0, 1.0) * starts.jitter[:, None]
+    noise = jax.random.uniform(k_jitter, (3, num), canonical(starts.slots.dtype), -1.0, 1.0) * starts.jitter[:, None]
     x0 = x0.at[:, S].add(noise[0]).at[:, N_LAT].add(noise[1]).at[:, V].add(noise[2])
     return x0.at[:, V].set(jnp.where(starts.capped, jnp.clip(x0[:, V], 0.0, v_cap), x0[:, V]))
 
 
 def _scene(key: jax.Array, starts: Starts, track: Track, vehicles: VehicleParams, v_cap: jax.Array):
-    num, dtype = starts.slots.shape[0], starts.slots.dtype
+    num, dtype = starts.slots.shape[0], canonical(starts.slots.dtype)
     lo, hi = starts.s_range[0], starts.s_range[1]
 
     def positions(k: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -167,7 +168,7 @@ def draw(key: jax.Array, starts: Starts, track: Track, vehicles: VehicleParams) 
     cars (always true for a grid; false when an ``anywhere`` scene found no free positions
     in :data:`MAX_TRIES` draws). Pure: jit and vmap it."""
     num = starts.slots.shape[0]
-    v_cap = 0.95 * jnp.broadcast_to(jnp.asarray(vehicles.v_max, starts.slots.dtype), (num,))
+    v_cap = 0.95 * jnp.broadcast_to(jnp.asarray(vehicles.v_max, canonical(starts.slots.dtype)), (num,))
     if starts.anywhere:
         return _scene(key, starts, track, vehicles, v_cap)
     return _grid(key, starts, v_cap), jnp.asarray(True)

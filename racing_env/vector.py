@@ -35,10 +35,12 @@ compiled step, for every scenario, as the single env draws its own. The states a
 few ulps rather than bit for bit: XLA:CPU evaluates sin and cos with a vectorised kernel
 across races (docs/env.md).
 
-:class:`GymnaxRace` is the same race for JAX learners, in gymnax's ``Environment``
-interface (``reset(key, params)``, ``step(key, state, action, params)`` with autoreset,
-pure functions that jit and vmap), with JAX-function opponents inside the step.
-Guide: docs/env.md, "Vectorised races (`racing_env.vector`)".
+:class:`GymnaxRace` is the same race for JAX learners as a gymnax environment (a subclass
+of gymnax's ``Environment`` where gymnax is installed: ``reset(key, params)``, ``step(key,
+state, action, params)`` with autoreset, pure functions that jit and vmap), with
+JAX-function opponents inside the step, float32 at its face and JAX spaces (:class:`Box`).
+Guides: docs/env.md, "Vectorised races (`racing_env.vector`)"; docs/rl.md, "Third-party
+JAX learners".
 """
 
 from __future__ import annotations
@@ -58,11 +60,13 @@ from racing_env import race
 from racing_env.config import RaceConfig
 from racing_env.env import RacingParallelEnv, agent_name
 from racing_env.packing import pack, unpack
+from racing_env.precision import default_float, require_x64
 from racing_env.race import RaceParams, RaceState
 from racing_env.referee import REWARD_TERMS
 from racing_env.starts import fresh_key, key_from_seed
 
-__all__ = ["GymnaxRace", "PlannedRace", "RaceVectorEnv", "coasting", "make_opponent"]
+__all__ = ["Box", "GYMNAX_INSTALLED", "GymnaxRace", "PlannedRace", "RaceVectorEnv", "SIX_VALUE_STEP", "coasting",
+           "make_opponent"]
 
 JaxPolicy = Callable[[jax.Array], jax.Array]
 """A JAX driver: ``policy(x (N, 6)) -> action (2,)``, normalised, for one car of one race."""
@@ -495,26 +499,115 @@ def _compile_step(policies: tuple, cars: tuple[int, ...], learner: int, same_ste
 
 
 # --- the gymnax face ---------------------------------------------------------------------------
+try:  # gymnax is optional: where it is installed, GymnaxRace is one of its environments
+    from gymnax.environments import environment as _gymnax_environment
+    from gymnax.environments import spaces as _gymnax_spaces
+except ImportError:  # pragma: no cover - exercised in an environment without gymnax
+    _gymnax_environment = _gymnax_spaces = None
+
+GYMNAX_INSTALLED = _gymnax_environment is not None
+"""Whether gymnax is importable: :class:`GymnaxRace` then subclasses its ``Environment``."""
+
+SIX_VALUE_STEP = GYMNAX_INSTALLED and hasattr(_gymnax_environment.Environment, "is_truncated")
+"""Whether the installed gymnax's ``step`` returns six values ``(obs, state, reward,
+terminated, truncated, info)`` (gymnax 1.x) rather than five ``(obs, state, reward, done,
+info)`` (gymnax 0.0.x, and :class:`GymnaxRace` without gymnax)."""
+
+_Environment = _gymnax_environment.Environment if GYMNAX_INSTALLED else object
+_BoxBase = _gymnax_spaces.Box if GYMNAX_INSTALLED else object
+
+
+def _check_key(key: Any, what: str) -> None:
+    """Raise ``TypeError`` unless ``key`` is a JAX random key (a typed key, or a raw uint32
+    key array such as ``jax.random.PRNGKey(0)``), eager or traced."""
+    hint = f"{what} needs a JAX random key: pass one, e.g. {what}(jax.random.key(0)) or a split of your key"
+    if key is None:
+        raise TypeError(f"{hint} (got none)")
+    dtype = getattr(key, "dtype", None)
+    if dtype is None or isinstance(key, (bool, int, float, np.generic)):
+        raise TypeError(f"{hint}; got {key!r}")
+    if jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key):
+        return
+    if dtype != jnp.uint32 or np.ndim(key) != 1:
+        raise TypeError(f"{hint}; got an array of {dtype} with shape {np.shape(key)}")
+
+
+class Box(_BoxBase):
+    """A box of arrays for JAX learners: ``sample(key)`` and ``contains(x)`` are JAX functions
+    (eager, under ``jit`` and under ``vmap``).
+
+    Where gymnax is installed this is a ``gymnax.environments.spaces.Box`` (gymnax's wrappers
+    and learners that check for one accept it); without gymnax it stands alone with the same
+    attributes.
+
+    Args:
+        low, high: the bounds, finite, broadcast to ``shape``.
+        shape: the arrays' shape.
+        dtype: the arrays' dtype (float32 for the race's observations and actions).
+    """
+
+    def __init__(self, low: Any, high: Any, shape: Sequence[int], dtype: Any = jnp.float32) -> None:
+        self.shape = tuple(int(d) for d in shape)
+        self.dtype = np.dtype(dtype)
+        self.low = np.broadcast_to(np.asarray(low, self.dtype), self.shape).copy()
+        self.high = np.broadcast_to(np.asarray(high, self.dtype), self.shape).copy()
+        if not (np.all(np.isfinite(self.low)) and np.all(np.isfinite(self.high)) and np.all(self.low <= self.high)):
+            raise ValueError("a Box needs finite bounds with low <= high")
+
+    def __repr__(self) -> str:
+        return f"Box(shape={self.shape}, dtype={self.dtype.name}, low={self.low.min():g}, high={self.high.max():g})"
+
+    def sample(self, key: jax.Array | None = None) -> jax.Array:
+        """An array drawn uniformly from the box with ``key`` (a JAX random key; required)."""
+        _check_key(key, "Box.sample")
+        u = jax.random.uniform(key, self.shape, jnp.float32)
+        # low (1 - u) + high u: finite for bounds near float32's limits, where high - low overflows
+        low, high = jnp.asarray(self.low, jnp.float32), jnp.asarray(self.high, jnp.float32)
+        return jnp.clip(low * (1.0 - u) + high * u, low, high).astype(self.dtype)
+
+    def contains(self, x: jax.Array) -> jax.Array:
+        """Whether ``x`` has the box's shape and lies inside its bounds (a bool scalar)."""
+        if np.shape(x) != self.shape:
+            return jnp.asarray(False)
+        return jnp.all((x >= self.low) & (x <= self.high))
+
+
 def _is_jax_policy(policy: Any, state_shape: tuple[int, ...]) -> bool:
     """Whether ``policy`` traces as a JAX function of the joint state to an action ``(2,)``."""
     if policy is None or not callable(policy):
         return False
     try:
-        out = jax.eval_shape(policy, jax.ShapeDtypeStruct(state_shape, jnp.float64))
+        out = jax.eval_shape(policy, jax.ShapeDtypeStruct(state_shape, default_float()))
     except Exception:  # noqa: BLE001 - anything that does not trace (NumPy code, wrong arguments)
         return False
     return getattr(out, "shape", None) == (2,)
 
 
-class GymnaxRace:
-    """One learner against JAX opponents, in gymnax's ``Environment`` interface.
+class GymnaxRace(_Environment):
+    """One learner against JAX opponents, as a gymnax environment.
 
-    ``reset(key, params) -> (obs (O,), state)`` and ``step(key, state, action (2,), params) ->
-    (obs, state, reward, done, info)`` are pure: jit and vmap them for many races. ``step``
-    resets a race that ends (gymnax's autoreset): ``done`` marks the step that ended it and
-    ``obs`` is then the new race's; ``info`` holds ``terminated``, ``truncated`` and the
-    learner's ``position``, ``finished``, ``out`` (retired) and ``finish_time``. Starts are drawn with
-    :func:`racing_env.race.draw_start` from the race's scenario (any of them).
+    Where gymnax is installed this subclasses ``gymnax.environments.environment.Environment``
+    and implements its ``reset_env``/``step_env``: the installed gymnax supplies ``reset`` and
+    ``step`` (jitted, with its autoreset) and its wrappers (``LogWrapper``,
+    ``FlattenObservationWrapper``) apply. gymnax 0.0.x's ``step(key, state, action, params)``
+    returns ``(obs, state, reward, done, info)``; gymnax 1.x's returns ``(obs, state, reward,
+    terminated, truncated, info)`` and adds ``info["final_observation"]``
+    (:data:`SIX_VALUE_STEP` says which). Without gymnax, ``reset(key, params) -> (obs,
+    state)`` and ``step`` are this class's own, in the five-value form. Whichever:
+
+    * ``done`` (``terminated | truncated``) marks the step that ended the learner's race, and
+      ``obs`` is then the new race's (the race is reset within the step);
+    * ``info`` holds ``terminated``, ``truncated`` and the learner's ``position`` (int32),
+      ``finished``, ``out`` (retired) and ``finish_time`` (float32 [s], NaN until finished);
+    * observations ``(O,)``, rewards and float info fields are float32 whatever
+      ``jax_enable_x64`` says (the race itself runs in JAX's widest float: float64 with x64
+      on, float32 with it off);
+    * the spaces are :class:`Box` (JAX ``sample(key)``), ``default_params`` are the race's
+      :class:`racing_env.race.RaceParams` (``max_steps_in_episode`` is ``max_steps``), and
+      params of another race (other cars, track or shapes) are refused.
+
+    :meth:`race_step` is the five-value step whatever gymnax is installed. Starts are drawn
+    with :func:`racing_env.race.draw_start` from the race's scenario (any of them).
 
     Args:
         opponents: one :data:`JaxPolicy` per opponent car (or one for all); default coasting.
@@ -523,7 +616,8 @@ class GymnaxRace:
             ``ilqr`` with the constant-velocity prediction) race with their compiled step
             (:mod:`planners.agents.compiled_planner`): their plans are then part of the
             state (:class:`PlannedRace`), a race that restarts re-plans cold in its first
-            step, and their actions are the host batched planner's to rounding.
+            step, and their actions are the host batched planner's to rounding. They need
+            ``jax_enable_x64`` on (their solver's tolerances assume float64).
         learner: index of the learner's car.
         **config: :class:`racing_env.RaceConfig` fields.
     """
@@ -538,6 +632,7 @@ class GymnaxRace:
                 opponent = make_opponent(opponent, self.race.game, car, 1)
             planner = getattr(opponent, "jax_planner", None) if getattr(opponent, "jax_policy", None) is None else None
             if planner is not None:
+                require_x64(f"the planner opponent {getattr(opponent, 'spec', opponent)!r} of car {car}")
                 self._planners.append((car, planner))
                 continue
             policy = getattr(opponent, "jax_policy", opponent) if opponent is not None else coasting
@@ -547,9 +642,17 @@ class GymnaxRace:
                                  "constant-velocity prediction)")
             self._policies.append((car, policy))
         self.num_cars = num
+        params = self.race.params
+        self._structure = jax.tree_util.tree_structure(params)
+        self._shapes = tuple(np.shape(leaf) for leaf in jax.tree_util.tree_leaves(params))
+        learner_agent = agent_name(self.learner)
+        observations, actions = self.race.observation_space(learner_agent), self.race.action_space(learner_agent)
+        self._observation_space = Box(observations.low, observations.high, observations.shape, np.float32)
+        self._action_space = Box(actions.low, actions.high, actions.shape, np.float32)
 
     @property
     def default_params(self) -> RaceParams:
+        """The race's params (gymnax's ``max_steps_in_episode`` is their ``max_steps``)."""
         return self.race.params
 
     @property
@@ -560,11 +663,26 @@ class GymnaxRace:
     def num_actions(self) -> int:
         return 2
 
-    def observation_space(self, params: RaceParams | None = None) -> gymnasium.spaces.Box:
-        return self.race.observation_space(agent_name(self.learner))
+    def observation_space(self, params: RaceParams | None = None) -> Box:
+        """The learner's observations: :class:`Box` of shape ``(O,)``, float32."""
+        return self._observation_space
 
-    def action_space(self, params: RaceParams | None = None) -> gymnasium.spaces.Box:
-        return self.race.action_space(agent_name(self.learner))
+    def action_space(self, params: RaceParams | None = None) -> Box:
+        """The learner's actions: normalised jerks, :class:`Box` ``[-1, 1]^2``, float32."""
+        return self._action_space
+
+    def _check_params(self, params: RaceParams) -> None:
+        """Raise ``ValueError`` unless ``params`` are this race's (same structure, static
+        fields and leaf shapes; their values may differ). Checked when traced."""
+        if jax.tree_util.tree_structure(params) != self._structure:
+            raise ValueError("params of another race (another track, scenario kind or structure): "
+                             "pass this env's default_params, or a copy of them with other values")
+        shapes = tuple(np.shape(leaf) for leaf in jax.tree_util.tree_leaves(params))
+        if shapes != self._shapes:
+            raise ValueError(f"params of another race (other shapes: another number of cars, track grid or "
+                             f"preview); this race has {self.num_cars} cars: pass this env's default_params")
+        if self._planners:
+            require_x64("a GymnaxRace with planner opponents")
 
     def _with_plans(self, state: RaceState) -> RaceState | PlannedRace:
         """A race just started: with the planner opponents' plan states (no plan yet)."""
@@ -572,41 +690,77 @@ class GymnaxRace:
             return state
         return PlannedRace(state, tuple(planner.initial(state.x.dtype) for _, planner in self._planners))
 
-    def reset(self, key: jax.Array, params: RaceParams | None = None) -> tuple[jax.Array, RaceState | PlannedRace]:
-        params = self.default_params if params is None else params
+    def reset_env(self, key: jax.Array, params: RaceParams) -> tuple[jax.Array, RaceState | PlannedRace]:
+        """A new race from a start drawn with ``key``: ``(learner's obs (O,) float32, state)``."""
+        self._check_params(params)
         state, obs = race.reset(key, params)
         return obs[self.learner], self._with_plans(state)
 
-    def step(self, key: jax.Array, state: RaceState | PlannedRace, action: jax.Array,
-             params: RaceParams | None = None):
-        params = self.default_params if params is None else params
+    def _transition(self, key: jax.Array, state: RaceState | PlannedRace, action: jax.Array, params: RaceParams):
+        """One step of the race, no reset: ``(obs (O,), state, reward, terminated, truncated,
+        info)``, floats float32."""
+        self._check_params(params)
         race_state, plans = (state.race, state.plans) if self._planners else (state, ())
-        actions = jnp.zeros((self.num_cars, 2), race_state.x.dtype).at[self.learner].set(action)
+        dtype = race_state.x.dtype
+        actions = jnp.zeros((self.num_cars, 2), dtype).at[self.learner].set(jnp.asarray(action).astype(dtype))
         for car, policy in self._policies:
-            actions = actions.at[car].set(policy(race_state.x))
+            actions = actions.at[car].set(policy(race_state.x).astype(dtype))
         planned = []
         for (car, planner), plan in zip(self._planners, plans):
             act, plan = planner.act(plan, race_state.x, race_state.status.active)
             # rounded to float32, as the agents round their actions
-            actions = actions.at[car].set(act.astype(jnp.float32).astype(actions.dtype))
+            actions = actions.at[car].set(act.astype(jnp.float32).astype(dtype))
             planned.append(plan)
-        key_step, key_reset = jax.random.split(key)
-        stepped, obs, rewards, terms, truncs, race_info = race.step(key_step, race_state, actions, params)
-        terminated, truncated = terms[self.learner], truncs[self.learner]
-        done = terminated | truncated
-        restarted, start_obs = race.reset(key_reset, params)
-        carried = PlannedRace(stepped, tuple(planned)) if self._planners else stepped
-        new_state = jax.tree_util.tree_map(lambda a, b: jnp.where(done, a, b), self._with_plans(restarted), carried)
+        stepped, obs, rewards, terms, truncs, race_info = race.step(key, race_state, actions, params)
         info = {
-            "terminated": terminated,
-            "truncated": truncated,
+            "terminated": terms[self.learner],
+            "truncated": truncs[self.learner],
             "position": race_info.position[self.learner],
             "finished": stepped.status.finished[self.learner],
             "out": stepped.status.out[self.learner],
-            "finish_time": stepped.status.finish_time[self.learner],
+            "finish_time": stepped.status.finish_time[self.learner].astype(jnp.float32),
         }
-        return (jnp.where(done, start_obs[self.learner], obs[self.learner]), new_state, rewards[self.learner],
-                done, info)
+        carried = PlannedRace(stepped, tuple(planned)) if self._planners else stepped
+        return (obs[self.learner], carried, rewards[self.learner].astype(jnp.float32), info["terminated"],
+                info["truncated"], info)
+
+    def step_env(self, key: jax.Array, state: RaceState | PlannedRace, action: jax.Array, params: RaceParams):
+        """gymnax's step without the reset: ``(obs, state, reward, flag, info)``; ``flag`` is
+        ``terminated`` for gymnax 1.x (which asks :meth:`is_truncated` for the truncation)
+        and ``done`` (``terminated | truncated``) otherwise."""
+        obs, carried, reward, terminated, truncated, info = self._transition(key, state, action, params)
+        return obs, carried, reward, terminated if SIX_VALUE_STEP else terminated | truncated, info
+
+    def is_truncated(self, state: RaceState | PlannedRace, params: RaceParams) -> jax.Array:
+        """Whether the learner's race in ``state`` (just stepped) was cut at ``max_steps``
+        while the learner was still racing (gymnax 1.x's truncation)."""
+        race_state = state.race if self._planners else state
+        return race_state.status.active[self.learner] & (race_state.steps >= params.max_steps)
+
+    def race_step(self, key: jax.Array, state: RaceState | PlannedRace, action: jax.Array,
+                  params: RaceParams | None = None):
+        """The step with autoreset in the five-value form, whatever gymnax is installed:
+        ``(obs (O,), state, reward, done, info)`` (class docstring). Pure: jit and vmap it.
+        ``key`` is split as gymnax splits it: the step's key, and the next race's."""
+        params = self.default_params if params is None else params
+        key_step, key_reset = jax.random.split(key)
+        obs, stepped, reward, terminated, truncated, info = self._transition(key_step, state, action, params)
+        done = terminated | truncated
+        start_obs, restarted = self.reset_env(key_reset, params)
+        new_state = jax.tree_util.tree_map(lambda a, b: jnp.where(done, a, b), restarted, stepped)
+        return jnp.where(done, start_obs, obs), new_state, reward, done, info
+
+    if not GYMNAX_INSTALLED:
+
+        def reset(self, key: jax.Array, params: RaceParams | None = None
+                  ) -> tuple[jax.Array, RaceState | PlannedRace]:
+            """A new race: ``(learner's obs (O,) float32, state)``. Pure: jit and vmap it."""
+            return self.reset_env(key, self.default_params if params is None else params)
+
+        def step(self, key: jax.Array, state: RaceState | PlannedRace, action: jax.Array,
+                 params: RaceParams | None = None):
+            """:meth:`race_step`: ``(obs, state, reward, done, info)`` with autoreset."""
+            return self.race_step(key, state, action, params)
 
 
 class PlannedRace(NamedTuple):
@@ -615,4 +769,3 @@ class PlannedRace(NamedTuple):
 
     race: RaceState
     plans: tuple
-

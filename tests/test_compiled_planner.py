@@ -69,7 +69,7 @@ def test_planner_opponents_race_inside_the_gymnax_step_and_re_plan_cold_after_a_
     keys = jax.random.split(jax.random.key(0), 2)
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
     assert isinstance(state, PlannedRace) and not np.asarray(state.plans[0].has_plan).any()
-    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+    step = jax.jit(jax.vmap(env.race_step, in_axes=(0, 0, 0, None)))
     start = np.asarray(state.race.x)
     for k in range(2):
         obs, state, reward, done, info = step(jax.random.split(jax.random.key(k + 1), 2), state,

@@ -208,7 +208,7 @@ def test_the_gymnax_face_jits_vmaps_and_resets_a_race_that_ends():
     keys = jax.random.split(jax.random.key(0), 16)
     obs, state = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     assert obs.shape == (16,) + env.observation_space(params).shape
-    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+    step = jax.jit(jax.vmap(env.race_step, in_axes=(0, 0, 0, None)))
     done_seen = np.zeros(16, dtype=bool)
     for k in range(8):
         actions = jnp.full((16, 2), 0.5)

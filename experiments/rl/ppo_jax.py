@@ -276,7 +276,7 @@ def compiled_update(env, settings: PPOSettings):
     (:data:`EPISODE_FIELDS`, ``(T, B)`` each). Pure: ``jax.vmap`` it over stacked learners
     and races to train several seeds as one program."""
     params = env.default_params
-    step_env = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+    step_env = jax.vmap(env.race_step, in_axes=(0, 0, 0, None))
 
     def one_step(carry, _):
         learner, races = carry
