@@ -4,8 +4,9 @@ The default test run compiles with XLA's backend optimisations mostly off
 (``tests/conftest.py``): compiling is most of its time. A test whose claim is about the
 optimised program's bits (a recording it wrote), or whose races run long enough that the
 slower code costs more than the quicker compile saves, runs that part through
-:func:`run_optimized`: a fresh Python process with the users' XLA settings, sharing the
-run's compilation cache. In an optimised run (``RACING_TEST_OPTIMIZED=1``, ``make
+:func:`run_optimized`: a fresh Python process with the ``racing`` commands' JAX settings
+(``configure_for_racing``: float64, loop kernels, inline dispatch), sharing the run's
+compilation cache. In an optimised run (``RACING_TEST_OPTIMIZED=1``, ``make
 test-all``) the child has the same settings as the test process.
 """
 
@@ -33,7 +34,9 @@ def run_optimized(code: str, timeout: float = 600.0) -> Any:
     """Run ``code`` in a fresh process with XLA's full optimisations and return the JSON
     value it leaves in ``result`` (a variable the code sets). ``tests/`` is on its import
     path. Raises ``AssertionError`` with the child's output tail if it fails."""
-    script = f"import json, sys\nsys.path.insert(0, {str(TESTS)!r})\n{code}\nprint({_RESULT_MARK!r} + json.dumps(result))\n"
+    script = (f"import json, sys\nsys.path.insert(0, {str(TESTS)!r})\n"
+              "from racing_env.xla_setup import configure_for_racing\nconfigure_for_racing()\n"
+              f"{code}\nprint({_RESULT_MARK!r} + json.dumps(result))\n")
     env = {k: v for k, v in os.environ.items() if k != QUICK_COMPILE_VAR}
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=timeout,
                           env={**env, OPTIMIZED_VAR: "1"})
