@@ -16,9 +16,6 @@ from racing_env.observation import cars_racing
 from racing_env.render import plot_race, save_gif
 from racing_env.vehicle import VehicleParams
 
-# races that run long: compiled with XLA's full optimisations (tests/conftest.py)
-pytestmark = pytest.mark.optimized
-
 COAST = np.zeros(2)
 
 

@@ -27,9 +27,6 @@ from racing_env.render import (
     follow_view,
 )
 
-# races that run long: compiled with XLA's full optimisations (tests/conftest.py)
-pytestmark = pytest.mark.optimized
-
 COAST = np.zeros(2, dtype=np.float32)
 
 

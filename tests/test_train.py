@@ -20,9 +20,6 @@ from racing_env.config import RewardConfig
 from interrupting import ctrl_c_when, start_racing
 from planners.agents import SB3Agent, make_agent, vecnormalize_path
 
-# races that run long: compiled with XLA's full optimisations (tests/conftest.py)
-pytestmark = pytest.mark.optimized
-
 # A short race and small PPO rollouts: 2 copies x 256 steps = one update per 512 steps. The
 # copies are single Gymnasium envs in a DummyVecEnv (vector=False), which these tests reach
 # into (venv.envs) and compare with worker processes; the vectorised races (the default):
