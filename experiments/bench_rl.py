@@ -3,7 +3,9 @@
 Rows: the PettingZoo env and the vectorised env (:mod:`racing_env.vector`) at B = 1, 64 and
 1,024 races with random actions, in the same run; the vectorised env at 1,024 races on Monza
 against the lane keeper, with endless races and with short episodes that autoreset every few
-dozen steps (the cost of a reset); the vectorised env against each kind of
+dozen steps (the cost of a reset); ``GymnaxRace`` against the lane keeper, 256 races under
+one jitted ``lax.scan``, with ``jax_enable_x64`` on and off, beside the vectorised env at
+the same batch; the vectorised env against each kind of
 opponent at B = 64, re-planning every step and every 5 steps (the learner's car driven by the
 lane keeper, and, for the planners, by random actions); and stable-baselines3 PPO
 training against the lane keeper and against feedback iLQGame, today's path (copies of the
@@ -213,6 +215,82 @@ def short_episode_rows(num_envs: int = 1024, calls: int = 200, repeats: int = 3,
            "repeats": [round(num_envs * calls / t) for t in seconds["short"]]}
 
 
+#: Races of the gymnax rows: one ``lax.scan`` of ``jax.vmap`` over this many races.
+GYMNAX_RACES = 256
+
+
+def _gymnax_scan(num_envs: int, steps: int, track: str):
+    """A jitted run of ``steps`` steps of ``num_envs`` :class:`~racing_env.vector.GymnaxRace`
+    races against the lane keeper under one ``lax.scan``, random learner actions (uniform
+    in ``[-1, 1]^2``, float32), and the races' first state. Built and traced in the x64
+    setting of the caller."""
+    import jax
+    import jax.numpy as jnp
+
+    from racing_env.vector import GymnaxRace
+
+    env = GymnaxRace(opponents=["lane-keeping"], **{**RACE, "track": track})
+    params = env.default_params
+    step = jax.vmap(env.race_step, in_axes=(0, 0, 0, None))
+
+    def body(state, key):
+        k_act, k_step = jax.random.split(key)
+        actions = jax.random.uniform(k_act, (num_envs, 2), jnp.float32, -1.0, 1.0)
+        _, state, reward, done, _ = step(jax.random.split(k_step, num_envs), state, actions, params)
+        return state, (reward.sum(), done.sum())
+
+    run = jax.jit(lambda state, key: jax.lax.scan(body, state, jax.random.split(key, steps)))
+    _, state = jax.vmap(env.reset_env, in_axes=(0, None))(jax.random.split(jax.random.key(0), num_envs), params)
+    return run, state
+
+
+def gymnax_rows(num_envs: int = GYMNAX_RACES, steps: int = 200, repeats: int = 5, track: str = "trefoil"
+                ) -> Iterator[dict[str, Any]]:
+    """:class:`~racing_env.vector.GymnaxRace` against the lane keeper, ``num_envs`` races
+    stepped ``steps`` times inside one jitted ``lax.scan`` (the opponent and the autoreset
+    inside the step), with ``jax_enable_x64`` on and off (scoped with ``jax.enable_x64``: the
+    race runs in float64 or float32), timed in turns ``repeats`` times each after a first
+    call that compiles; then the vectorised env at the same batch (random learner actions
+    from the host, the lane keeper compiled in its step)."""
+    import jax
+
+    settings = (True, False)
+    runs, compile_s, seconds, dtypes = {}, {}, {x64: [] for x64 in settings}, {}
+    for x64 in settings:
+        with jax.enable_x64(x64):
+            run, state = _gymnax_scan(num_envs, steps, track)
+            start = time.perf_counter()
+            jax.block_until_ready(run(state, jax.random.key(1)))
+            compile_s[x64] = time.perf_counter() - start
+            runs[x64], dtypes[x64] = (run, state), str(state.x.dtype)
+    for k in range(repeats):
+        for x64 in settings:
+            with jax.enable_x64(x64):  # a call traced under the other setting would compile again
+                run, state = runs[x64]
+                start = time.perf_counter()
+                jax.block_until_ready(run(state, jax.random.key(2 + k)))
+                seconds[x64].append(time.perf_counter() - start)
+    for x64 in settings:
+        yield {"name": f"gymnax_{track}_lane-keeping_B{num_envs}_x64_{'on' if x64 else 'off'}", "races": num_envs,
+               "track": track, "x64": x64, "race_dtype": dtypes[x64],
+               "steps_per_s": num_envs * steps / float(np.median(seconds[x64])), "compile_s": compile_s[x64],
+               "repeats": [round(num_envs * steps / t) for t in seconds[x64]]}
+    envs = _vector_env_on(num_envs, track, max_steps=RACE["max_steps"], laps=RACE["laps"])
+    envs.reset(seed=0)
+    actions = np.random.default_rng(0).uniform(-1, 1, (steps, num_envs, 2))
+    start = time.perf_counter()
+    envs.step(actions[0])
+    compile_s = time.perf_counter() - start
+
+    def one_step(k: int) -> int:
+        envs.step(actions[k])
+        return num_envs
+
+    rate, rates = _rate(one_step, steps, repeats)
+    yield {"name": f"vector_env_{track}_lane-keeping_B{num_envs}", "races": num_envs, "track": track,
+           "steps_per_s": rate, "compile_s": compile_s, "repeats": [round(r) for r in rates]}
+
+
 #: (opponent spec, target steps/s) of the training rows.
 TRAINING_OPPONENTS = (("lane-keeping", 5_000), ("ilqgame-fb", 1_500), ("ilqgame-fb:replan_every=5", 1_500))
 #: (label, envs, vector) of the training paths: today's copies in a DummyVecEnv and the vectorised race.
@@ -310,6 +388,7 @@ def bench_rl() -> Iterator[dict[str, Any]]:
     yield baseline
     yield from vector_rows(baseline["steps_per_s"])
     yield from short_episode_rows()
+    yield from gymnax_rows()
     yield from opponent_rows()
     yield from opponent_rows(opponents=RANDOM_LEARNER_OPPONENTS, learner_acts="random", replan_every=(1,))
     yield from training_rows()

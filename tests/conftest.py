@@ -8,9 +8,12 @@ Quick compile: most of the default run's time is XLA compiling solvers that then
 milliseconds, so the default run compiles with XLA's backend optimisations mostly off
 (``jax_disable_most_optimizations``; ``JAX_DISABLE_MOST_OPTIMIZATIONS=1`` for the
 subprocesses tests start). The JAX programs are the same; XLA's code for them is slower
-and may round differently in the last bits, which no tolerance of the math notices. The
-few tests that compare against bits the optimised program wrote, or that race for minutes,
-run their part in a fresh process with the users' settings (``tests/optimized.py``).
+and may round differently in the last bits, which no tolerance of the math notices. A test
+module whose races run long enough that the slower code costs more than the quicker compile
+saves is marked ``pytestmark = pytest.mark.optimized``: it compiles with the full
+optimisations (the worker's compiled programs are cleared on the way in and out, so no
+program crosses the setting; ``--dist loadfile`` keeps a module in one worker). The recorded races'
+replay (bits the optimised program wrote) is such a module.
 ``make test-all`` sets ``RACING_TEST_OPTIMIZED=1``: every test then runs the optimised
 programs users run.
 
@@ -28,12 +31,20 @@ import shutil
 import tempfile
 
 import jax
+import pytest
 
 from planners.compile_cache import ENV_VAR, MAX_BYTES, enable_compile_cache
 from planners.devices import use_cpu_cores
 from racing_env.xla_setup import configure_for_racing
 
-from optimized import QUICK_COMPILE_VAR, optimized_run
+QUICK_COMPILE_VAR = "JAX_DISABLE_MOST_OPTIMIZATIONS"  # what tells subprocesses to compile quickly
+OPTIMIZED_VAR = "RACING_TEST_OPTIMIZED"  # 1: the whole run compiles with XLA's full optimisations
+
+
+def optimized_run() -> bool:
+    """Whether this run compiles with XLA's full optimisations (``RACING_TEST_OPTIMIZED``)."""
+    return os.environ.get(OPTIMIZED_VAR, "").strip().lower() in {"1", "true", "yes", "on"}
+
 
 # What the commands run with, before the first JAX computation: float64 (the tests' tolerances
 # assume it), the loop kernels and inline dispatch.
@@ -47,7 +58,7 @@ if not optimized_run():
 use_cpu_cores(2)
 
 _RUN_CACHE = "RACING_TEST_RUN_COMPILE_CACHE"  # the run's directory, set by the controller
-_MIN_COMPILE_SECONDS = 0.5  # store programs that took this long to compile (the solvers)
+_MIN_COMPILE_SECONDS = 0.2  # store programs that took this long to compile (the solvers, quickly compiled)
 
 
 def pytest_configure(config) -> None:
@@ -72,3 +83,22 @@ def pytest_unconfigure(config) -> None:
     directory = getattr(config, "_racing_owns_cache", None)
     if directory is not None:
         shutil.rmtree(directory, ignore_errors=True)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _optimized_module(request):
+    """A module marked ``optimized`` compiles with XLA's full optimisations in a quick run
+    (module docstring); other modules keep the run's setting."""
+    if optimized_run() or request.node.get_closest_marker("optimized") is None:
+        yield
+        return
+    jax.clear_caches()
+    jax.config.update("jax_disable_most_optimizations", False)
+    quick = os.environ.pop(QUICK_COMPILE_VAR, None)
+    try:
+        yield
+    finally:
+        jax.clear_caches()
+        jax.config.update("jax_disable_most_optimizations", True)
+        if quick is not None:
+            os.environ[QUICK_COMPILE_VAR] = quick

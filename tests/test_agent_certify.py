@@ -17,7 +17,7 @@ from planners.agents import agent_options, make_agent, make_batched_opponent, re
 from planners.certificates import LOCAL_NASH, VERDICTS
 from planners.methods import FEEDBACK, OPEN_LOOP
 
-SHORT = dict(track="straight", race_distance=60.0, grids=1, max_steps=80, step_budget_s=30.0)
+SHORT = dict(track="straight", race_distance=40.0, grids=1, max_steps=60, step_budget_s=30.0)
 CERTIFYING = ("ilqgame-ol:certify=1", "ilqgame-fb:certify=true")
 CERTIFICATE_KEYS = ("certified", "verdict", "certify_time")
 

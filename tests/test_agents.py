@@ -26,6 +26,9 @@ from planners.agents import (
 )
 from racing_env.costs import CostWeights
 
+# races that run long: compiled with XLA's full optimisations (tests/conftest.py)
+pytestmark = pytest.mark.optimized
+
 GAME_SPECS = ["ilqr", "ilqgame-ol", "ilqgame-fb"]
 ALL_SPECS = GAME_SPECS + ["lane-keeping", "constant-speed"]
 

@@ -3,6 +3,7 @@
 import json
 import os
 
+import jax
 import numpy as np
 import pytest
 
@@ -276,6 +277,17 @@ def test_the_short_episode_row_counts_resets_and_judges_the_rate_against_endless
     assert short["vs_endless"] == pytest.approx(short["steps_per_s"] / endless["steps_per_s"], rel=1e-12)
     text, _ = bench._target_verdict(short)
     assert "vs_endless" in text and ">= 0.5" in text
+
+
+def test_gymnax_rows_time_the_scanned_races_with_x64_on_and_off_beside_the_vector_env():
+    from experiments import bench_rl
+
+    rows = list(bench_rl.gymnax_rows(num_envs=4, steps=5, repeats=1))
+    assert [row["name"] for row in rows] == ["gymnax_trefoil_lane-keeping_B4_x64_on",
+                                             "gymnax_trefoil_lane-keeping_B4_x64_off", "vector_env_trefoil_lane-keeping_B4"]
+    assert [row.get("race_dtype") for row in rows] == ["float64", "float32", None]  # the race in the scoped precision
+    assert all(row["steps_per_s"] > 0 and row["compile_s"] > 0 for row in rows)
+    assert jax.config.jax_enable_x64  # the scope ended: the process's setting is back
 
 
 @pytest.mark.slow

@@ -11,8 +11,11 @@ import pytest
 
 import racing_env
 from racing_env import race
-from optimized import run_optimized
-from recorded_races import RACES, RECORDING
+from recorded_races import RACES, RECORDING, replay
+
+# replays, bit for bit, races the optimised program recorded: compiled with XLA's full
+# optimisations (tests/conftest.py)
+pytestmark = pytest.mark.optimized
 
 
 @pytest.fixture(scope="module")
@@ -20,19 +23,11 @@ def recording() -> dict:
     return json.loads(RECORDING.read_text())
 
 
-@pytest.fixture(scope="module")
-def replayed() -> dict:
-    """Every recorded race replayed by the optimised program that wrote the recording (a
-    fresh process with the users' XLA settings), through JSON as the recording was written:
-    floats keep every bit (repr round-trips)."""
-    return run_optimized("from recorded_races import RACES, replay\n"
-                         "result = {name: replay(name) for name in RACES}")
-
-
 @pytest.mark.parametrize("name", sorted(RACES))
-def test_the_env_replays_the_recorded_races_bit_for_bit(recording, replayed, name):
+def test_the_env_replays_the_recorded_races_bit_for_bit(recording, name):
     recorded = recording[name]
-    now = replayed[name]
+    # through JSON, as the recording was written: floats keep every bit (repr round-trips)
+    now = json.loads(json.dumps(replay(name)))
     assert len(now) == len(recorded)
     for k, (a, b) in enumerate(zip(now, recorded)):
         assert a == b, f"race {name!r} differs at step {k}"

@@ -7,7 +7,6 @@ import json
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 
 import numpy as np
@@ -19,7 +18,8 @@ from planners import agents as agents_module
 from planners.agents import LaneKeepingAgent
 from racing_env.env import RacingParallelEnv
 
-from optimized import run_optimized
+# races that run long: compiled with XLA's full optimisations (tests/conftest.py)
+pytestmark = pytest.mark.optimized
 
 SHORT = dict(track="straight", race_distance=120.0, grids=1, max_steps=400)
 TIMING_KEYS = ("act_time_mean_s", "act_time_max_s")
@@ -436,14 +436,9 @@ def test_game_agents_beat_the_lane_keeper(tmp_path):
     # This test is about racing, not speed: the default 1 s budget per action once faulted
     # a feedback re-plan that took 1.02 s in a stall of this shared machine (its median
     # re-plan is 6-15 ms). The budget itself is tested with a sleeping agent above.
-    # Six laps of re-planning every step: raced by the optimised program (tests/optimized.py).
-    board = run_optimized(textwrap.dedent(f"""
-        from pathlib import Path
-        from experiments import tournament as tour
-        config = tour.TournamentConfig(agents={(*planners, "lane-keeping")!r}, versus="lane-keeping",
-                                       track="trefoil", grids=1, step_budget_s=30.0)
-        result = tour.run_tournament(config, Path({str(tmp_path)!r}), gif=False, progress=False)
-        """))
+    config = tour.TournamentConfig(agents=(*planners, "lane-keeping"), versus="lane-keeping",
+                                   track="trefoil", grids=1, step_budget_s=30.0)
+    board = tour.run_tournament(config, tmp_path, gif=False, progress=False)
     rows = {row["agent"]: row for row in board["rows"]}
     assert rows["lane-keeping"]["races"] == 2 * len(planners)
     for spec in planners:
