@@ -47,9 +47,13 @@ def run_jobs(function: Callable[[Any], Any], jobs: Iterable[Any], backend: str =
 
 
 def _in_worker(function, compile_cache: str | None, job):
-    """Run one job in a worker: the package's JAX set-up and the caller's compilation
-    cache first."""
-    import racing_env  # noqa: F401 - float64 and the XLA set-up, before any JAX work
+    """Run one job in a worker: the commands' JAX settings
+    (:func:`racing_env.xla_setup.configure_for_racing`: float64, loop kernels, inline
+    dispatch; a spawned process or a Ray worker starts with JAX's defaults) and the
+    caller's compilation cache first."""
+    from racing_env.xla_setup import configure_for_racing
+
+    configure_for_racing()  # before any JAX work; a later job in the same worker finds it set
 
     if compile_cache is not None:
         from planners.compile_cache import enable_compile_cache

@@ -697,8 +697,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the ``racing`` command ``argv`` (default: the process's arguments); returns its
+    exit status.
+
+    A command starts with :func:`racing_env.xla_setup.configure_for_racing` (float64, the
+    solvers' loop kernels, inline dispatch), before any JAX computation: importing the
+    packages sets none of it. ``--help`` and parse errors end before that.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
+    from racing_env.xla_setup import configure_for_racing
+
+    configure_for_racing()
     try:
         if getattr(args, "compile_cache", False):
             from planners.compile_cache import enable_compile_cache

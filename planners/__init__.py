@@ -5,7 +5,9 @@ Python, on the command line (``racing tournament --agents ...``) and in the docs
 
     import racing_env
     from planners import make_agent, reset_agents
+    from racing_env.xla_setup import configure_for_racing
 
+    configure_for_racing()   # float64 (the planners need it) and the commands' XLA settings
     env = racing_env.parallel_env(track="trefoil", num_agents=2)
     agents = [make_agent("ilqgame-fb"), make_agent("ilqr")]   # or FeedbackGameAgent(), ILQRAgent()
     observations, _ = env.reset(seed=0)
@@ -59,9 +61,12 @@ joint start state ``x0 (N, 6)``::
 best responses, :mod:`planners.certificates`); :func:`find_equilibria` solves a scene from many
 starts and certifies every distinct solution (:mod:`planners.landscape`).
 
-Importing ``planners`` imports :mod:`racing_env` first, whose JAX settings (float64, the
-solvers' loops compiled as single XLA:CPU kernels) must be in place before the first
-computation. See docs/solvers.md and docs/agents.md.
+Importing ``planners`` changes nothing in JAX. The solvers, the certificates and the game
+agents need 64-bit floats and refuse to run without them (a ``RuntimeError`` that says how to
+turn them on); :func:`racing_env.xla_setup.configure_for_racing`, at the top of a script and
+before the first JAX computation, sets them with the rest of what the ``racing`` commands use
+(the solvers' loops compiled as single XLA:CPU kernels, inline dispatch). See
+docs/solvers.md and docs/agents.md.
 """
 
 from __future__ import annotations
@@ -69,7 +74,6 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-import racing_env  # noqa: F401  (JAX settings first, see racing_env.xla_setup)
 from planners.agents import (
     AGENTS,
     Agent,

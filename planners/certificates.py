@@ -72,6 +72,7 @@ import numpy as np
 
 from planners import local_game, methods
 from planners.game_problem import GameProblem, as_problem
+from planners.precision import require_x64
 
 Array = jax.Array
 
@@ -422,6 +423,7 @@ def certificate_numbers(problem_or_game, x0, solution, mode: str | None = None, 
     best-response start)."""
     from planners import ilq
 
+    require_x64("planners.certificates.certify")  # eigenvalue and stationarity tolerances of 1e-8..1e-10
     if checks not in ("full", "cheap"):
         raise ValueError(f"checks must be 'full' or 'cheap', got {checks!r}")
     problem, _ = as_problem(problem_or_game)

@@ -128,6 +128,7 @@ import numpy as np
 
 from planners import local_game, lq_game, methods, nash
 from planners.game_problem import GameProblem, as_problem, game_type_of, is_concrete, rollout, total_costs
+from planners.precision import require_x64
 
 Array = jax.Array
 
@@ -991,7 +992,8 @@ def solve_within(problem: GameProblem, x0: Array, us0: Array, options: SolverOpt
     :func:`iterate` per call, until the solve stops by itself or the budget has run out
     (status ``BUDGET_EXHAUSTED``); at least one iteration runs. With
     ``options.best_iterate`` the best iterate is returned (:func:`finish`). Needs concrete
-    inputs (it reads the status between iterations)."""
+    inputs (it reads the status between iterations). Needs 64-bit floats, as :func:`solve`."""
+    require_x64("planners.ilq.solve_within")
     deadline = time.perf_counter() + budget_s
     structure, numbers = jit_arguments(options)
     c = _start(problem, x0, us0, numbers, structure=structure)
@@ -1156,7 +1158,10 @@ def solve(
         :class:`SolverResult`. For a RaceGame, ``xs`` has shape ``(T+1, N, 6)``.
 
     Works under ``jax.vmap``/``jax.jit`` (validation then only happens on concrete inputs).
+    Needs 64-bit floats (``jax_enable_x64``): its tolerances go down to 1e-8..1e-12, and
+    with x64 off it raises ``RuntimeError`` saying how to turn them on.
     """
+    require_x64("planners.ilq.solve")
     options = resolve_options(options, overrides)
     problem, game_type = as_problem(problem_or_game)
     _convexify(problem, options)  # a clear error for an unusable convexification

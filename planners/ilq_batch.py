@@ -20,6 +20,7 @@ import numpy as np
 from planners import ilq
 from planners.batching import one_at_a_time
 from planners.game_problem import GameProblem, as_problem
+from planners.precision import require_x64
 
 Array = jax.Array
 
@@ -80,7 +81,10 @@ def solve_batch(
     same as without regrouping. Worth it when a few members run much longer than the rest
     and the process solves many batches (or the compilation cache is on). With ``"map"``
     no member waits for another, and ``regroup_every`` is ignored.
+
+    Needs 64-bit floats (``jax_enable_x64``), as :func:`planners.ilq.solve`.
     """
+    require_x64("planners.ilq_batch.solve_batch")
     if batching not in _BATCHING:
         raise ValueError(f"batching must be one of {_BATCHING}, got {batching!r}")
     options = ilq.resolve_options(options, overrides)

@@ -25,6 +25,7 @@ import numpy as np
 
 from planners import ilq, methods, race_problem
 from planners.game_problem import GameProblem
+from planners.precision import require_x64
 from racing_env.dynamics import STATE_DIM, rk4_step
 
 Array = jax.Array
@@ -194,7 +195,10 @@ def solve_ilqr(game, x0, ego: int = 0, U0=None, *, predicted=None, options=None,
 
     Returns:
         :class:`ILQRResult`.
+
+    Needs 64-bit floats (``jax_enable_x64``), as :func:`planners.ilq.solve`.
     """
+    require_x64("planners.ilqr.solve_ilqr")
     x0 = jnp.asarray(x0)
     if not jnp.issubdtype(x0.dtype, jnp.floating):
         x0 = x0.astype(jnp.result_type(float))

@@ -1,4 +1,18 @@
-"""XLA:CPU settings the project's jitted loops rely on, applied when ``racing_env`` is imported.
+"""The JAX settings the ``racing`` commands run with, and one call to get them in a script.
+
+Importing the package changes nothing in JAX. :func:`configure_for_racing`, which every
+``racing`` command calls at its start (and its worker processes at theirs), sets three
+things process-wide: 64-bit floats (the game solvers' and certificates' tolerances assume
+float64), the loop kernels below, and inline dispatch. Call it at the top of a script,
+before the first JAX computation, to run exactly as the commands do::
+
+    from racing_env.xla_setup import configure_for_racing
+
+    configure_for_racing()   # {"x64": "set", "loop_kernels": "set", "inline_dispatch": "set"}
+
+Without it, the race, the envs and the JAX learner run in the caller's precision (float32
+with JAX's default), and the solvers refuse to start with a ``RuntimeError`` that says how
+to turn float64 on (:func:`racing_env.precision.require_x64`).
 
 The game solvers are sequential loops (``lax.scan`` over the horizon) of many tiny
 operations: the Riccati recursion of an LQ game, the forward rollouts. XLA:CPU's default
@@ -24,8 +38,9 @@ own code for the dot products).
 
 XLA reads its flags (the ``XLA_FLAGS`` environment variable) once, when JAX's backend
 starts, i.e. at the first JAX computation of the process. :func:`configure_loop_kernels`
-therefore runs on import, and only adds the option if JAX has not started yet and the
-user has not set it. ``RACING_XLA_LOOP_KERNELS=off`` keeps XLA's default.
+only adds the option if JAX has not started yet and the user has not set it: call it
+(through :func:`configure_for_racing`) before the first JAX computation; after, it warns
+and changes nothing. ``RACING_XLA_LOOP_KERNELS=off`` keeps XLA's default.
 
 :func:`configure_inline_dispatch` makes JAX run single-device CPU computations on the
 calling thread instead of handing them to a worker thread (``jax_cpu_enable_async_dispatch
@@ -35,7 +50,7 @@ env step is faster and the solvers, whose results are also used at once, are unc
 (docs/performance.md). Computations over several devices
 (``solve_batch`` split across cores) stay asynchronous. ``RACING_INLINE_DISPATCH=off``
 keeps JAX's default, and so does ``jax.config.update("jax_cpu_enable_async_dispatch", True)``
-after the import and before the first computation.
+after :func:`configure_for_racing` and before the first computation.
 """
 
 from __future__ import annotations
@@ -47,8 +62,10 @@ __all__ = [
     "LOOP_KERNEL_BYTES",
     "LOOP_KERNEL_OPTION",
     "YNN_FUSION_FLAG",
+    "configure_for_racing",
     "configure_inline_dispatch",
     "configure_loop_kernels",
+    "configure_x64",
     "with_loop_kernels",
 ]
 
@@ -127,9 +144,9 @@ def configure_loop_kernels() -> str:
         return "user"
     if _backend_started():
         warnings.warn(
-            "JAX started before racing_env was imported, so XLA:CPU runs the solvers' loops "
-            "as many small kernels (slower iterations). Import racing_env or "
-            f"planners before the first JAX computation, or set XLA_FLAGS='{wanted}' "
+            "JAX started before racing_env.xla_setup.configure_for_racing() was called, so XLA:CPU "
+            "runs the solvers' loops as many small kernels (slower iterations). Call it before "
+            f"the first JAX computation, or set XLA_FLAGS='{wanted}' "
             "(RACING_XLA_LOOP_KERNELS=off silences this).",
             RuntimeWarning,
             stacklevel=3,
@@ -142,15 +159,57 @@ def configure_loop_kernels() -> str:
 def configure_inline_dispatch() -> str:
     """Run single-device CPU computations on the calling thread, if it can still take effect.
 
-    Returns ``"set"``, ``"off"`` (``RACING_INLINE_DISPATCH`` is ``off``/``0``/``false``/``no``)
+    Returns ``"set"``, ``"user"`` (dispatch is inline already: an earlier call, or the
+    user's own setting), ``"off"`` (``RACING_INLINE_DISPATCH`` is ``off``/``0``/``false``/``no``)
     or ``"too late"`` (JAX already started: dispatch stays as it is; results are the same
     either way, only env steps are slower).
     """
     if os.environ.get("RACING_INLINE_DISPATCH", "").strip().lower() in _OFF:
         return "off"
-    if _backend_started():
-        return "too late"
     import jax
 
+    if not jax.config.read("jax_cpu_enable_async_dispatch"):
+        return "user"
+    if _backend_started():
+        return "too late"
     jax.config.update("jax_cpu_enable_async_dispatch", False)
     return "set"
+
+
+def configure_x64() -> str:
+    """Turn on 64-bit floats (``jax_enable_x64``): ``"set"``, or ``"user"`` where they were on.
+
+    JAX reads this setting at every operation, so it works at any time; arrays made before
+    keep their float32.
+    """
+    import jax
+
+    if jax.config.read("jax_enable_x64"):
+        return "user"
+    jax.config.update("jax_enable_x64", True)
+    return "set"
+
+
+def configure_for_racing() -> dict[str, str]:
+    """Set what the ``racing`` commands run with; returns what each setting did.
+
+    The commands (:func:`experiments.cli.main`) and their worker processes call this at
+    their start; call it at the top of a script, before the first JAX computation, for the
+    same settings. Process-wide, and idempotent:
+
+    * ``"x64"``: 64-bit floats (:func:`configure_x64`), which the game solvers and the
+      certificates need (they refuse float32 with a ``RuntimeError``);
+    * ``"loop_kernels"``: each solver loop one XLA:CPU kernel (:func:`configure_loop_kernels`;
+      ``RACING_XLA_LOOP_KERNELS=off`` opts out, ``XLA_FLAGS`` you set win);
+    * ``"inline_dispatch"``: single-device CPU computations on the calling thread
+      (:func:`configure_inline_dispatch`; ``RACING_INLINE_DISPATCH=off`` opts out).
+
+    Each value is ``"set"``, ``"user"`` (already so), ``"off"`` (opted out) or ``"too late"``
+    (JAX had started: XLA flags and dispatch stay as they are, with a ``RuntimeWarning`` for
+    the loops; results are the same, only slower). x64 is ``"set"`` or ``"user"``.
+    """
+    return {
+        "x64": configure_x64(),
+        "loop_kernels": configure_loop_kernels(),
+        "inline_dispatch": configure_inline_dispatch(),
+    }

@@ -1,5 +1,8 @@
-"""Shared test configuration: float64 everywhere, two CPU devices, XLA's quick compile in
-the default run, and one on-disk compilation cache per test run.
+"""Shared test configuration: the ``racing`` commands' JAX settings (float64, the solvers'
+loop kernels, inline dispatch: ``configure_for_racing``, which importing the packages does
+not do), two CPU devices, XLA's quick compile in the default run, and one on-disk
+compilation cache per test run. The loop-kernel flag reaches the subprocesses tests start
+through ``XLA_FLAGS``; x64 and dispatch do not (a fresh process has JAX's defaults).
 
 Quick compile: most of the default run's time is XLA compiling solvers that then run for
 milliseconds, so the default run compiles with XLA's backend optimisations mostly off
@@ -32,6 +35,7 @@ import pytest
 
 from planners.compile_cache import ENV_VAR, MAX_BYTES, enable_compile_cache
 from planners.devices import use_cpu_cores
+from racing_env.xla_setup import configure_for_racing
 
 QUICK_COMPILE_VAR = "JAX_DISABLE_MOST_OPTIMIZATIONS"  # what tells subprocesses to compile quickly
 OPTIMIZED_VAR = "RACING_TEST_OPTIMIZED"  # 1: the whole run compiles with XLA's full optimisations
@@ -42,7 +46,9 @@ def optimized_run() -> bool:
     return os.environ.get(OPTIMIZED_VAR, "").strip().lower() in {"1", "true", "yes", "on"}
 
 
-jax.config.update("jax_enable_x64", True)
+# What the commands run with, before the first JAX computation: float64 (the tests' tolerances
+# assume it), the loop kernels and inline dispatch.
+configure_for_racing()
 # Before the first compilation; the value travels to subprocesses through the environment.
 if not optimized_run():
     os.environ[QUICK_COMPILE_VAR] = "1"

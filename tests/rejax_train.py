@@ -3,8 +3,9 @@
 64-bit floats on).
 
 ``python tests/rejax_train.py {on|off} ALGO[:normalize] ...``: with ``jax_enable_x64`` on or
-off (switched after importing racing_env), trains each learner a few thousand steps against
-the lane keeper on the trefoil and prints one JSON line per run: ``algo``, ``normalize``,
+off (set after importing racing_env, which changes no JAX setting), trains each learner a
+few thousand steps against the lane keeper on the trefoil and prints one JSON line per
+run: ``algo``, ``normalize``,
 ``x64``, ``steps``, ``seconds`` (compiling included), ``eval_returns`` (the evaluations'
 mean returns, one per evaluation) and ``finite`` (every metric finite).
 """
@@ -15,7 +16,7 @@ import json
 import sys
 import time
 
-import racing_env  # noqa: F401 - imported before the switch below, as a user would
+import racing_env  # noqa: F401 - imported before the setting below, as a user would
 import jax
 import numpy as np
 

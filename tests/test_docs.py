@@ -1,8 +1,9 @@
 """The guide cannot rot: its code runs, its links resolve, its command table is the CLI's.
 
 * every ```python block of README.md and docs/**/*.md runs: a file's blocks in order, in a
-  namespace of its own; all files in one fresh subprocess (the package's JAX settings need a
-  fresh process; the files share its compiled solvers). A block
+  namespace of its own; all files in one fresh subprocess (as a script starts: float32 until a
+  page calls ``racing_env.configure_for_racing()``, which every page that plans does; the
+  files share its compiled solvers). A block
   opts out only with the HTML comment ``<!-- no-test: reason -->`` on the line before it, for
   blocks that need a trained model or minutes;
 * README.md stays a guide: at most 400 lines;
@@ -107,8 +108,9 @@ def _script(paths: list[Path]) -> str:
 
 
 def test_python_blocks_run() -> None:
-    """Every file's blocks, run in one fresh subprocess (the package's JAX settings need a
-    fresh process; the files share its compiled solvers, each file has its own namespace).
+    """Every file's blocks, run in one fresh subprocess (JAX's defaults, as a script starts: a
+    page that plans sets float64 itself; the files share its compiled solvers, each file has
+    its own namespace).
     Fails naming every file whose blocks failed, with the failing block's traceback (its
     file name is ``path:line`` of the block)."""
     result = subprocess.run(

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import racing_env  # noqa: F401  (enables float64)
+import racing_env  # noqa: F401  (float64: tests/conftest.py)
 from planners import ilq, ilq_batch, local_game, lq_game, nash, race_problem
 from planners.ilqr import ego_problem, predict_constant_velocity, solve_ilqr
 from racing_env import CostWeights, RaceGame, VehicleParams
@@ -513,6 +513,8 @@ def test_batch_matches_individual_solves(game, mode, where, batching, monkeypatc
 # runs such a call, the process used to hang.
 _EIG_BATCH_CHILD = """
 import json
+from racing_env.xla_setup import configure_for_racing
+configure_for_racing()  # float64 for the solver, as the racing commands run
 from planners.devices import use_cpu_cores
 devices = use_cpu_cores()
 import numpy as np

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import racing_env  # noqa: F401  (float64)
+import racing_env  # noqa: F401  (float64: tests/conftest.py)
 from racing_env.packing import pack, unpack
 
 

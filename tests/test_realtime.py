@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import racing_env  # noqa: F401  (enables float64)
+import racing_env  # noqa: F401  (float64: tests/conftest.py)
 from planners import ilq
 from planners.agents import make_agent, reset_agents
 from planners.agents.batched_planners import unbatchable

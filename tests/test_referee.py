@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import racing_env  # noqa: F401  (float64)
+import racing_env  # noqa: F401  (float64: tests/conftest.py)
 from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
 
 DT = 0.1

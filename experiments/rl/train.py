@@ -163,6 +163,9 @@ class _RaceCopy:
 
         if self.in_worker:  # Ctrl-C reaches the whole process group: the parent stops the workers itself
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+            from racing_env.xla_setup import configure_for_racing
+
+            configure_for_racing()  # a spawned process starts with JAX's defaults: the parent's settings
         if self.compile_cache is not None:
             from planners.compile_cache import enable_compile_cache
 

@@ -40,6 +40,7 @@ from planners import ilq, ilqr
 from planners.agents.receding_horizon import RECOVERED_SPEED, STOPPED_SPEED
 from planners.agents.warm_start import restore_accelerations
 from planners.game_problem import as_problem
+from planners.precision import require_x64
 from racing_env.costs import CostWeights
 from racing_env.dynamics import AX, AY, CHI, N_LAT, S, STATE_DIM, V
 
@@ -76,6 +77,7 @@ class CompiledPlanner:
     weight variants and solver options it shares."""
 
     def __init__(self, planner: Any) -> None:
+        require_x64(f"the compiled planner {planner.spec!r}")
         agent = planner.agent
         self.index = planner.index
         self.game = planner.game
