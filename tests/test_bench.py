@@ -279,6 +279,7 @@ def test_the_short_episode_row_counts_resets_and_judges_the_rate_against_endless
     assert "vs_endless" in text and ">= 0.5" in text
 
 
+@pytest.mark.slow  # three compiled race loops (about 19 s); `racing bench --only rl` runs the rows
 def test_gymnax_rows_time_the_scanned_races_with_x64_on_and_off_beside_the_vector_env():
     from experiments import bench_rl
 
