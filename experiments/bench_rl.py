@@ -45,6 +45,23 @@ def _rate(step, count: int, repeats: int) -> tuple[float, list[float]]:
     return float(np.median(rates)), rates
 
 
+def _random_action_rate(envs, num_envs: int, calls: int, repeats: int) -> tuple[float, list[float], float]:
+    """The vectorised env ``envs`` (``num_envs`` races) reset with seed 0 and stepped with
+    uniform random learner actions: its median race-steps per second over ``repeats`` runs of
+    ``calls`` steps (:func:`_rate`), the runs' rates, and the first step's time (its compile) [s]."""
+    actions = np.random.default_rng(0).uniform(-1, 1, (calls, num_envs, 2))
+    envs.reset(seed=0)
+    start = time.perf_counter()
+    envs.step(actions[0])
+    compile_s = time.perf_counter() - start
+
+    def step(k: int) -> int:
+        envs.step(actions[k])
+        return num_envs
+
+    rate, rates = _rate(step, calls, repeats)
+    return rate, rates, compile_s
+
 def _vector_env(num_envs: int, opponents: list | None = None):
     import gymnasium
 
@@ -89,18 +106,7 @@ def vector_rows(baseline: float, calls: int = 300, repeats: int = 3, batches: tu
     """The vectorised env at each of :data:`BATCHES`, random learner actions against a coasting
     car; ``vs_pettingzoo`` is the ratio to ``baseline`` (the PettingZoo row of this run)."""
     for num_envs in batches:
-        envs = _vector_env(num_envs)
-        actions = np.random.default_rng(0).uniform(-1, 1, (calls, num_envs, 2))
-        envs.reset(seed=0)
-        start = time.perf_counter()
-        envs.step(actions[0])
-        compile_s = time.perf_counter() - start
-
-        def step(k: int) -> int:
-            envs.step(actions[k])
-            return num_envs
-
-        rate, rates = _rate(step, calls, repeats)
+        rate, rates, compile_s = _random_action_rate(_vector_env(num_envs), num_envs, calls, repeats)
         yield {"name": f"vector_env_B{num_envs}", "races": num_envs, "steps_per_s": rate,
                "vs_pettingzoo": rate / baseline, "compile_s": compile_s, "repeats": [round(r) for r in rates],
                "target_steps_per_s": 1_000_000 if num_envs == 1024 else None}
@@ -276,17 +282,7 @@ def gymnax_rows(num_envs: int = GYMNAX_RACES, steps: int = 200, repeats: int = 5
                "steps_per_s": num_envs * steps / float(np.median(seconds[x64])), "compile_s": compile_s[x64],
                "repeats": [round(num_envs * steps / t) for t in seconds[x64]]}
     envs = _vector_env_on(num_envs, track, max_steps=RACE["max_steps"], laps=RACE["laps"])
-    envs.reset(seed=0)
-    actions = np.random.default_rng(0).uniform(-1, 1, (steps, num_envs, 2))
-    start = time.perf_counter()
-    envs.step(actions[0])
-    compile_s = time.perf_counter() - start
-
-    def one_step(k: int) -> int:
-        envs.step(actions[k])
-        return num_envs
-
-    rate, rates = _rate(one_step, steps, repeats)
+    rate, rates, compile_s = _random_action_rate(envs, num_envs, steps, repeats)
     yield {"name": f"vector_env_{track}_lane-keeping_B{num_envs}", "races": num_envs, "track": track,
            "steps_per_s": rate, "compile_s": compile_s, "repeats": [round(r) for r in rates]}
 
