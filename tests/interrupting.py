@@ -13,10 +13,24 @@ from typing import Callable
 import pytest
 
 
+#: ``python -c`` code that runs the ``racing`` command line with Python's own SIGINT handler
+#: installed first, as an interactive ``racing`` has it. A test run started as a shell's
+#: background job has SIGINT ignored, and a child would inherit that and never see Ctrl-C.
+RACING_WITH_CTRL_C = (
+    "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "from experiments.cli import console_main; console_main()"
+)
+
+
+def racing_command(args: list[str]) -> list[str]:
+    """The argv of a ``racing ARGS`` process that Ctrl-C reaches (:data:`RACING_WITH_CTRL_C`)."""
+    return [sys.executable, "-c", RACING_WITH_CTRL_C, *args]
+
+
 def start_racing(args: list[str]) -> subprocess.Popen:
-    """``python -m experiments.cli ARGS`` in a process group of its own; stderr captured."""
-    return subprocess.Popen([sys.executable, "-m", "experiments.cli", *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    """``racing ARGS`` in a process group of its own, SIGINT handled; stderr captured."""
+    return subprocess.Popen(racing_command(args), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
 
 
 def ctrl_c_when(process: subprocess.Popen, ready: Callable[[], bool], timeout: float = 180.0) -> str:

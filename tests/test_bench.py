@@ -83,17 +83,12 @@ def test_ctrl_c_on_a_real_run_keeps_the_measured_rows(tmp_path):
     JSON file holds that row, marked interrupted."""
     import signal
     import subprocess
-    import sys
+
+    from interrupting import racing_command
 
     out = tmp_path / "bench.json"
-    # A shell's background job starts with SIGINT ignored, and the child would inherit
-    # that: it installs Python's own handler first, as an interactive `racing` has.
-    launcher = (
-        "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
-        "from experiments.cli import console_main; console_main()"
-    )
     proc = subprocess.Popen(
-        [sys.executable, "-c", launcher, "bench", "--only", "env", "--json", str(out)],
+        racing_command(["bench", "--only", "env", "--json", str(out)]),
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     for line in proc.stderr:  # rows are printed as they are measured
