@@ -235,7 +235,8 @@ def _gymnax_scan(num_envs: int, steps: int, track: str):
 
     from racing_env.vector import GymnaxRace
 
-    env = GymnaxRace(opponents=["lane-keeping"], **{**RACE, "track": track})
+    # the vector env's rules (a penalty off the track, no retiring), so the rows race the same races
+    env = GymnaxRace(opponents=["lane-keeping"], **{**RACE, "track": track, "on_off_track": "penalty"})
     params = env.default_params
     step = jax.vmap(env.race_step, in_axes=(0, 0, 0, None))
 

@@ -65,7 +65,7 @@ from racing_env.race import RaceParams, RaceState
 from racing_env.referee import REWARD_TERMS
 from racing_env.starts import fresh_key, key_from_seed
 
-__all__ = ["Box", "GYMNAX_INSTALLED", "GymnaxRace", "PlannedRace", "RaceVectorEnv", "SIX_VALUE_STEP", "coasting",
+__all__ = ["Box", "GYMNAX_INSTALLED", "GymnaxRace", "LEARNER_OFF_TRACK", "PlannedRace", "RaceVectorEnv", "SIX_VALUE_STEP", "coasting",
            "make_opponent"]
 
 JaxPolicy = Callable[[jax.Array], jax.Array]
@@ -583,6 +583,11 @@ def _is_jax_policy(policy: Any, state_shape: tuple[int, ...]) -> bool:
     return getattr(out, "shape", None) == (2,)
 
 
+#: What leaving the track does in a :class:`GymnaxRace` unless its config says otherwise: the
+#: learner's car is out (the rule ``racing train`` trains with).
+LEARNER_OFF_TRACK = "terminate"
+
+
 class GymnaxRace(_Environment):
     """One learner against JAX opponents, as a gymnax environment.
 
@@ -598,7 +603,8 @@ class GymnaxRace(_Environment):
     * ``done`` (``terminated | truncated``) marks the step that ended the learner's race, and
       ``obs`` is then the new race's (the race is reset within the step);
     * ``info`` holds ``terminated``, ``truncated`` and the learner's ``position`` (int32),
-      ``finished``, ``out`` (retired) and ``finish_time`` (float32 [s], NaN until finished);
+      ``finished``, ``out`` (retired), ``finish_time`` (float32 [s], NaN until finished),
+      and whether it ``collided`` or was ``off_track`` in the step;
     * observations ``(O,)``, rewards and float info fields are float32 whatever
       ``jax_enable_x64`` says (the race itself runs in JAX's widest float: float64 with x64
       on, float32 with it off);
@@ -619,11 +625,18 @@ class GymnaxRace(_Environment):
             step, and their actions are the host batched planner's to rounding. They need
             ``jax_enable_x64`` on (their solver's tolerances assume float64).
         learner: index of the learner's car.
-        **config: :class:`racing_env.RaceConfig` fields.
+        **config: :class:`racing_env.RaceConfig` fields. One default differs from
+            ``RaceConfig``'s: ``on_off_track`` is :data:`LEARNER_OFF_TRACK` (``terminate``: a car
+            that leaves the track is out of its race), the rule ``racing train`` trains with.
+            Under ``RaceConfig``'s ``penalty`` a learner that leaves the track is charged
+            every step until ``max_steps``, and a standard learner never learns to stay on
+            (docs/experiments/rl-third-party.md); pass ``on_off_track="penalty"`` for the
+            tournaments' rule.
     """
 
     def __init__(self, opponents: Sequence[Any] | None = None, learner: int = 0, **config: Any) -> None:
         num, drivers = _opponent_cars(opponents, learner, config)
+        config.setdefault("on_off_track", LEARNER_OFF_TRACK)
         self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
         self.learner = int(learner)
         self._policies, self._planners = [], []
@@ -719,6 +732,8 @@ class GymnaxRace(_Environment):
             "finished": stepped.status.finished[self.learner],
             "out": stepped.status.out[self.learner],
             "finish_time": stepped.status.finish_time[self.learner].astype(jnp.float32),
+            "collided": race_info.collided[self.learner],
+            "off_track": race_info.off_track[self.learner],
         }
         carried = PlannedRace(stepped, tuple(planned)) if self._planners else stepped
         return (obs[self.learner], carried, rewards[self.learner].astype(jnp.float32), info["terminated"],
