@@ -74,7 +74,8 @@ def test_certified_race_records_carry_the_share_of_the_verdicts(monkeypatch):
 
     monkeypatch.setattr(agents_module, "make_agent", recording_make)
     monkeypatch.setattr(receding_horizon, "certificate_record", recording_certificate)
-    config = tour.TournamentConfig(agents=CERTIFYING, **SHORT)
+    # 15 steps: every step re-plans, so each agent certifies 15 re-plans (> 10 below)
+    config = tour.TournamentConfig(agents=CERTIFYING, **{**SHORT, "max_steps": 15})
     record, _ = tour.race_lineup(tour.race_config(config), list(CERTIFYING), seed=0)
     assert [agent.mode for agent in made] == [OPEN_LOOP, FEEDBACK]
     for agent, car, spec in zip(made, record["cars"], CERTIFYING):
