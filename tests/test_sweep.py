@@ -45,10 +45,19 @@ def tiny(tmp_path):
 OTHER_BACKENDS = {"two processes": dict(backend="local", workers=2), "ray": dict(backend="ray", workers=2)}
 
 
-# a real local Ray instance is started by the default tournament tests; here it is the slow leg
-@pytest.mark.parametrize("backend", [pytest.param("two processes"), pytest.param("ray", marks=pytest.mark.slow)])
+# The default run checks the in-process sweep's records and summary; the other backends are
+# the slow legs. A real local Ray instance and a pool of two worker processes run the same
+# races with the same records and leaderboard in the default tournament tests
+# (tests/test_tournament.py::test_races_on_workers_give_the_same_records_and_leaderboard: the
+# same experiments.backends.run_jobs), and a real `racing sweep --workers 2` runs its races in
+# two worker processes in test_ctrl_c_stops_the_worker_processes_and_the_sweep_resumes below.
+@pytest.mark.parametrize("backend", [pytest.param(None, id="in-process only"),
+                                     pytest.param("two processes", marks=pytest.mark.slow),
+                                     pytest.param("ray", marks=pytest.mark.slow)])
 def test_every_backend_gives_the_same_records_and_summary(tiny, tmp_path, backend):
-    runs = {"in-process": dict(backend="local", workers=1), backend: OTHER_BACKENDS[backend]}
+    runs = {"in-process": dict(backend="local", workers=1)}
+    if backend is not None:
+        runs[backend] = OTHER_BACKENDS[backend]
     results = {}
     for name, options in runs.items():
         report = run_sweep(tiny, tmp_path / name, progress=False, **options)
@@ -66,7 +75,7 @@ def test_every_backend_gives_the_same_records_and_summary(tiny, tmp_path, backen
     assert all(row["wins"] == (4 if row["agent"] == 0 else 0) for row in finished)
     assert all(row["mean_margin_s"] > 0 if row["agent"] == 0 else row["mean_margin_s"] < 0 for row in finished)
     for name in ("summary.csv", "summary.json", "sweep.png"):
-        assert (tmp_path / backend / name).stat().st_size > 0
+        assert all((tmp_path / run / name).stat().st_size > 0 for run in runs)
 
 
 def test_a_sweep_resumes_without_rerunning_finished_races(tiny, tmp_path):
