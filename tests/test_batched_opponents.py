@@ -123,10 +123,13 @@ def _compare_step(opponent, singles, races) -> tuple[np.ndarray, dict, list[dict
 # --------------------------------------------------------------------------------------
 
 
-# Every method re-planning every step, and feedback iLQGame following its plans in between
-# (the path the three share); the other two between re-plans run with the slow tests.
+# iLQR and feedback iLQGame re-planning every step, and feedback iLQGame following its plans
+# in between (the path the three share); the rest run with the slow tests. The open-loop game
+# is the feedback game's agent with the solver's other mode (planners/agents/receding_horizon.py:
+# the mode enters only the solver options); the batched open-loop solve is each single solve in
+# tests/test_ilq.py::test_batch_matches_individual_solves[open_loop-all devices-auto].
 @pytest.mark.parametrize("method, replan_every", [
-    ("ilqgame-fb", 1), ("ilqgame-ol", 1), ("ilqr", 1), ("ilqgame-fb", 3),
+    ("ilqgame-fb", 1), pytest.param("ilqgame-ol", 1, marks=pytest.mark.slow), ("ilqr", 1), ("ilqgame-fb", 3),
     pytest.param("ilqgame-ol", 3, marks=pytest.mark.slow), pytest.param("ilqr", 3, marks=pytest.mark.slow),
 ])
 def test_a_batched_planner_takes_the_single_agents_actions(method, replan_every):
