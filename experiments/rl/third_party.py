@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from racing_env.config import INCIDENT_MODES
 from racing_env.vector import LEARNER_OFF_TRACK, GymnaxRace
 
 
@@ -52,14 +53,14 @@ def race_policy(env: GymnaxRace, act, key: jax.Array, races: int = 32) -> dict[s
         obs, state = env.reset_env(key_start, params)
 
         def step(carry, key):
+            # after the learner's race ends (``done``) the race_step has restarted it; nothing
+            # of the new race is counted
             obs, state, done, ret, length, contacts, finished, finish_time, place, out = carry
             key_act, key_step = jax.random.split(key)
-            obs, stepped, reward, terminated, truncated, info = env._transition(key_step, state, act(obs, key_act),
-                                                                                params)
+            obs, state, reward, ends, info = env.race_step(key_step, state, act(obs, key_act), params)
             live = ~done
-            ends_here = live & (terminated | truncated)
-            carry = (obs, jax.tree_util.tree_map(lambda a, b: jnp.where(live, a, b), stepped, state),
-                     done | terminated | truncated, ret + jnp.where(live, reward, 0.0), length + live,
+            ends_here = live & ends
+            carry = (obs, state, done | ends, ret + jnp.where(live, reward, 0.0), length + live,
                      contacts + (live & info["collided"]),
                      jnp.where(ends_here, info["finished"], finished),
                      jnp.where(ends_here, info["finish_time"], finish_time),
@@ -67,8 +68,7 @@ def race_policy(env: GymnaxRace, act, key: jax.Array, races: int = 32) -> dict[s
             return carry, None
 
         init = (obs, state, jnp.array(False), jnp.float32(0.0), jnp.int32(0), jnp.int32(0), jnp.array(False),
-                jnp.float32(jnp.nan),
-                jnp.int32(0), jnp.array(False))
+                jnp.float32(jnp.nan), jnp.int32(0), jnp.array(False))
         carry, _ = jax.lax.scan(step, init, jax.random.split(key_steps, int(params.max_steps)))
         return carry[3:]
 
@@ -113,7 +113,7 @@ def train_and_race(env: GymnaxRace, seed: int = 0, timesteps: int = 2_000_000, e
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m experiments.rl.third_party", description=__doc__.split("\n\n")[0])
     parser.add_argument("--opponents", nargs="*", default=[], help="JAX opponents (agent specs); none: a time trial")
-    parser.add_argument("--off-track", default=LEARNER_OFF_TRACK, choices=["penalty", "terminate", "both", "ignore"],
+    parser.add_argument("--off-track", default=LEARNER_OFF_TRACK, choices=INCIDENT_MODES,
                         help="what leaving the track does (default: %(default)s, GymnaxRace's)")
     parser.add_argument("--track", default="trefoil")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
