@@ -681,6 +681,13 @@ def bench_rl() -> Iterator[dict[str, Any]]:
     return rl.bench_rl()
 
 
+def bench_field() -> Iterator[dict[str, Any]]:
+    """Fields of game planners and the vectorised env with a field (:mod:`experiments.bench_field`)."""
+    from experiments import bench_field as field
+
+    return field.bench_field()
+
+
 def bench_certificates(rounds: int = 7, cars: tuple[int, ...] = (2, 3)) -> Iterator[dict[str, Any]]:
     """The cost of a certificate (:func:`planners.certificates.certify`) beside the cost of a solve.
 
@@ -791,10 +798,10 @@ def bench_render(rounds: int = 30, tracks: tuple[str, ...] = ("trefoil", "random
 
 SECTIONS: dict[str, Callable[[], Iterator[dict[str, Any]]]] = {
     "env": bench_env, "solvers": bench_solvers, "agents": bench_agents, "rl": bench_rl,
-    "certificates": bench_certificates, "render": bench_render}
+    "certificates": bench_certificates, "render": bench_render, "field": bench_field}
 
 
-_FIGURE_KEYS = ("ms_per_frame", "steps_per_s", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95",
+_FIGURE_KEYS = ("ms_per_frame", "steps_per_s", "exponent", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95",
                 "us_per_step", "ns_per_lane_step", "gflop_per_s", "converged_fraction")
 
 
@@ -816,6 +823,7 @@ _TARGETS = {
     "target_ratio": ("throughput_ratio", True),
     "target_vs_endless": ("vs_endless", True),
     "target_ms_p95": ("ms_p95", False),
+    "target_exponent": ("exponent", False),
     "target_ms": (("ms_per_iter", "ms_per_solve", "ms_per_frame"), False),
 }
 

@@ -78,6 +78,21 @@ def plan_of(policy: Policy) -> np.ndarray | None:
     return np.asarray(plan)[:, :, [S, N_LAT]].astype(np.float32)
 
 
+def _solve_field(policies: Sequence[Policy], observations: Sequence[Any], state: np.ndarray,
+                 catch_errors: bool) -> dict[int, float]:
+    """The field's batched re-plans of this step (:func:`planners.agents.field.solve_field`);
+    the seconds charged to each policy by its position. A policy whose set-up for the batch
+    raises is left to fail in its own action."""
+    from planners.agents.field import solve_field
+
+    try:
+        return solve_field(policies, observations, state)["charged"]
+    except Exception:  # noqa: BLE001 - each policy then solves (and fails) in its own act
+        if not catch_errors:
+            raise
+        return {}
+
+
 def run_race(
     env: RacingParallelEnv,
     policies: Sequence[Policy],
@@ -88,6 +103,7 @@ def run_race(
     catch_errors: bool = False,
     plans: bool = False,
     labels: Sequence[str] | None = None,
+    batch_field: bool = True,
 ) -> RaceRecord:
     """Race ``policies`` (one per car, ``policy(observation, joint_state) -> action``).
 
@@ -98,6 +114,9 @@ def run_race(
     With ``catch_errors`` a policy that raises is recorded in ``faults`` instead of raising;
     with ``step_budget_s`` an action slower than that (the first action exempt) is a fault.
     Either fault ends the race after the step in which it happened.
+    With ``batch_field`` the re-plans of the game planners that play local games (a field
+    larger than their rivals) are solved as one batch per step
+    (:func:`planners.agents.field.solve_field`), each car's action time charged its share.
     """
     if len(policies) != env.num_cars:
         raise ValueError(f"need {env.num_cars} policies, got {len(policies)}")
@@ -130,9 +149,11 @@ def run_race(
     while env.agents and not faults:
         state = env.state()
         actions = {}
-        for agent in env.agents:
+        charged = _solve_field([policies[index[a]] for a in env.agents], [observations[a] for a in env.agents],
+                               state, catch_errors) if batch_field else {}
+        for slot, agent in enumerate(env.agents):
             i = index[agent]
-            start = time.perf_counter()
+            start = time.perf_counter() - charged.get(slot, 0.0)
             try:
                 actions[agent] = policies[i](observations[agent], state)
             except Exception as err:

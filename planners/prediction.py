@@ -33,7 +33,7 @@ from typing import Any, Callable, Mapping
 import jax
 import numpy as np
 
-from planners import ilq, ilqr
+from planners import ilq, ilqr, rival_game
 from planners.methods import (
     CONSTANT_VELOCITY,
     FEEDBACK,
@@ -140,6 +140,10 @@ class PlannerPrediction:
         ego: the predicting car (its row of the prediction is not a prediction: for
             ``"ilqr"`` its constant-velocity motion or its own plan of the level below, for
             the games its equilibrium plan).
+        rivals: for the games, the rivals ``k`` of the predicting car in the game solved: in a
+            race of more than ``k + 1`` cars its local game with its ``k`` nearest rivals
+            (:mod:`planners.rival_game`), whose equilibrium predicts those rivals; every
+            other car is predicted at constant speed and lateral offset.
         levels: for ``"ilqr"``, the levels of reasoning (level-k thinking). Level 0 is the
             constant-velocity prediction of every car; a car's level-``k`` plan is its iLQR
             best response to the level-``k - 1`` plans of all the others. The prediction is
@@ -158,10 +162,11 @@ class PlannerPrediction:
     The cost is that of the solves: ``levels * N - 1`` iLQR solves, or one game solve.
     """
 
-    def __init__(self, planner: str, ego: int, levels: int = 1, **solver_options: Any) -> None:
+    def __init__(self, planner: str, ego: int, levels: int = 1, rivals: int = 2, **solver_options: Any) -> None:
         if planner not in PLANNERS:
             raise ValueError(f"planner must be one of {list(PLANNERS)}, got {planner!r}")
         check_levels(planner, levels)
+        self.rivals = rival_game.check_rivals(rivals)
         check_solver_options(planner, **solver_options)  # now, not at the first solve
         self.planner = planner
         self.ego = int(ego)
@@ -171,8 +176,15 @@ class PlannerPrediction:
     def __call__(self, game, x0, U0=None) -> tuple[np.ndarray, np.ndarray]:
         x0 = np.asarray(x0, dtype=np.float64)
         if self.planner in GAME_MODES:
-            res = ilq.solve(game, x0, init=U0, **{**self.solver_options, "mode": GAME_MODES[self.planner]})
-            return np.asarray(res.xs), np.asarray(res.us)
+            options = {**self.solver_options, "mode": GAME_MODES[self.planner]}
+            if self.rivals >= game.num_players - 1:
+                res = ilq.solve(game, x0, init=U0, **options)
+                return np.asarray(res.xs), np.asarray(res.us)
+            local = rival_game.local_game(game, x0, self.ego, self.rivals, U0)
+            ilq.validate_problem(game)
+            res = jax.device_get(ilq.solve(local.problem, local.x0, init=local.init, validate=False, **options))
+            xs, us, _ = rival_game.to_field(local, res.xs, res.us, None, U0)
+            return xs, us
         xs = np.array(ilqr.predict_constant_velocity(game, x0))  # level 0
         us = np.zeros((game.horizon, game.num_players, game.input_dim)) if U0 is None else np.array(U0)
         for level in range(1, self.levels + 1):
@@ -191,7 +203,8 @@ def _lane_keeper(game, car: int) -> Driver:
     return lambda x: controller(None, x)
 
 
-def make_predictor(name: str, game, ego: int, levels: int = 1, **solver_options: Any) -> Predictor | None:
+def make_predictor(name: str, game, ego: int, levels: int = 1, rivals: int = 2,
+                   **solver_options: Any) -> Predictor | None:
     """The prediction ``name`` (one of :data:`PREDICTIONS`) for car ``ego`` in ``game``.
 
     ``"constant-velocity"``: ``None`` (the planner's own default, the paper's prediction).
@@ -200,7 +213,7 @@ def make_predictor(name: str, game, ego: int, levels: int = 1, **solver_options:
     line at the car's ``v_max``, slowing for the curves ahead); it drives in ``game``
     whatever game it is called with, and predicts no jerks. ``"ilqr"``, ``"ilqgame-fb"``,
     ``"ilqgame-ol"``: a :class:`PlannerPrediction` with ``solver_options`` (and ``levels``
-    of reasoning for ``"ilqr"``); it plans in the game it is called with (the predicting
+    of reasoning for ``"ilqr"``, ``rivals`` in the game for the games); it plans in the game it is called with (the predicting
     agent's beliefs of the others' weights).
     """
     check_prediction(name)
@@ -208,7 +221,7 @@ def make_predictor(name: str, game, ego: int, levels: int = 1, **solver_options:
     if name == CONSTANT_VELOCITY:
         return None
     if name in PLANNERS:
-        return PlannerPrediction(name, ego, levels=levels, **solver_options)
+        return PlannerPrediction(name, ego, levels=levels, rivals=rivals, **solver_options)
     others = [j for j in range(game.num_players) if j != ego]
     rollout = PolicyRollout(game, {j: _lane_keeper(game, j) for j in others})
     return lambda _game, x0, U0=None: (rollout(x0), None)

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from planners import ilq, ilqr
+from planners import ilq, ilqr, rival_game
 from planners.agents.batched_protocol import BatchedOpponent, DIAGNOSTIC_FIELDS, empty_diagnostics
 from planners.agents.protocol import BaseAgent
 from planners.agents.compiled_planner import CompiledPlanner
@@ -169,6 +169,8 @@ class BatchedPlanner(BatchedOpponent):
         self._weights, self._place_count, self._recovery_count = self._weight_variants()
         self._solve_game = agent.planning_game.replace(racing=None)
         self._game_axes = self._solve_game.replace(track=None, vehicles=None, weights=0, racing=0)
+        # a game agent in a field larger than its game: local games (planners.rival_game)
+        self.rivals = None if self.is_ilqr or agent.rivals >= self.game.num_players - 1 else agent.rivals
         if self.is_ilqr:
             self._ego_template = ilqr.ego_problem(self._solve_game, np.zeros((self.game.num_players, STATE_DIM)),
                                                   self.index)
@@ -317,11 +319,11 @@ class BatchedPlanner(BatchedOpponent):
         return variant
 
     def _store(self, rows: np.ndarray, us: np.ndarray, xs: np.ndarray, K: np.ndarray | None) -> None:
-        """New plans of the races ``rows``: ``us (R, T, N, 2)``, ``xs (R, T+1, N, 6)``, the
-        gains ``K (R, T, N, 2, 6N)`` (feedback game; this car's rows are kept), age 0."""
+        """New plans of the races ``rows``: ``us (R, T, N, 2)``, ``xs (R, T+1, N, 6)``, this
+        car's gains ``K (R, T, 2, 6N)`` (feedback game), age 0."""
         self._us[rows], self._xs[rows] = us, xs
         if self._K is not None:
-            self._K[rows] = K[:, :, self.index]
+            self._K[rows] = K
         self._has_plan[rows] = True
         self._age[rows] = 0
 
@@ -357,22 +359,40 @@ class BatchedPlanner(BatchedOpponent):
 
     def _solve(self, x, racing, variant, init):
         """One batched solve of the races' games from ``x (R, N, 6)``; returns the plans
-        ``us (R, T, N, 2)``, ``xs (R, T+1, N, 6)``, ``K (R, T, N, 2, 6N)`` or None, and the
-        ``iterations``, ``converged`` ``(R,)``."""
+        ``us (R, T, N, 2)``, ``xs (R, T+1, N, 6)``, this car's gains ``K (R, T, 2, 6N)`` or None,
+        and the ``iterations``, ``converged`` ``(R,)``."""
         size, slots = self._layout(x.shape[0])
         x0s = self._padded(x, size, slots, inert=np.nan)
         init, racing, variant = (self._padded(a, size, slots) for a in (init, racing, variant))
         weights = CostWeights(**{name: column[variant] for name, column in self._weights.items()})
         game = self._solve_game.replace(weights=weights, racing=racing)
+        K = None
         if self.is_ilqr:
             us, xs, res = self._solve_ilqr(game, x0s, init)
-            K = None
+        elif self.rivals is not None:
+            us, xs, K, res = self._solve_local(game, x0s, init)
         else:
             res = solve_batch(game, x0s, init, params_axes=self._game_axes, devices=self.devices,
                               batching=self.batching, options=self.options, validate=False)
             us, xs = np.asarray(res.us), np.asarray(res.xs)
-            K = np.asarray(res.K)[slots] if self.feedback else None
+            K = np.asarray(res.K)[:, :, self.index] if self.feedback else None
+        K = None if K is None else K[slots]
         return us[slots], xs[slots], K, np.asarray(res.iterations)[slots], np.asarray(res.converged)[slots]
+
+    def _solve_local(self, game, x0s, init):
+        """Each member's local game (this car and its ``rivals`` nearest, the other cars
+        predicted at constant velocity: the single agent's re-plan) in one batched solve;
+        the plans in the field's shapes, this car's gains on the field's state, the result."""
+        predicted = predict_constant_velocity_batch(x0s, self.game.horizon, self.game.dt)
+        egos = np.full(x0s.shape[0], self.index)
+        problem, x0, local_init, orders = rival_game.local_games(game, x0s, egos, self.rivals, init, predicted)
+        axes = rival_game.RivalParams(game=self._game_axes, order=0, predicted=0)
+        res = solve_batch(problem, x0, local_init, params_axes=axes, devices=self.devices, batching=self.batching,
+                          options=self.options, validate=False)
+        res = jax.device_get(res)
+        xs, us, K = rival_game.to_field_batch(orders, res.xs, res.us, res.K if self.feedback else None, init,
+                                              problem.params.predicted)
+        return us, xs, K, res
 
     def _padded(self, values: np.ndarray, size: int, slots: np.ndarray, inert: float | None = None) -> np.ndarray:
         """``values (R, ...)`` at ``slots`` of a batch of ``size``; the other members copy the

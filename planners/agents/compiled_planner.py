@@ -36,7 +36,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from planners import ilq, ilqr
+from planners import ilq, ilqr, rival_game
 from planners.agents.receding_horizon import RECOVERED_SPEED, STOPPED_SPEED
 from planners.agents.warm_start import restore_accelerations
 from planners.game_problem import as_problem
@@ -96,6 +96,7 @@ class CompiledPlanner:
         self.place_count, self.recovery_count = planner._place_count, planner._recovery_count
         self.solve_game = planner._solve_game
         self.ego_template = planner._ego_template if self.is_ilqr else None
+        self.rivals = planner.rivals  # local games (planners.rival_game), or None: the whole game
         self.vehicle = planner._brake_law.vehicle
 
     # --- the interface --------------------------------------------------------------------
@@ -172,10 +173,26 @@ class CompiledPlanner:
             xs = predicted.at[:, self.index].set(res.xs)
             us = jnp.zeros_like(init).at[:, self.index].set(res.us[:, 0])
             return us, xs, jnp.zeros((self.horizon, 2, self.num_cars * STATE_DIM), xs.dtype), res.converged
+        if self.rivals is not None:
+            return self._solve_local(game, x, init)
         problem, _ = as_problem(game)
         res = ilq.solve_arrays(problem, x, init, self.options)
         K = res.K[:, self.index] if self.feedback else jnp.zeros((self.horizon, 2, x.size), x.dtype)
         return res.us, res.xs, K, res.converged
+
+    def _solve_local(self, game, x: jax.Array, init: jax.Array):
+        """:meth:`_solve` of a local game: this car and its ``rivals`` nearest, the others
+        predicted at constant velocity (:mod:`planners.rival_game`, traced)."""
+        k, P = self.rivals, self.rivals + 1
+        order = rival_game.field_orders(game.track, x[None], jnp.asarray([self.index]), k, game.racing[None])[0]
+        predicted = ilqr.predict_constant_velocity(game, x)
+        params = rival_game.RivalParams(game=game, order=order, predicted=predicted[:, order[P:]])
+        problem = rival_game.local_problem(P, STATE_DIM, game.input_dim, self.horizon, params)
+        res = ilq.solve_arrays(problem, x[order[:P]].reshape(-1), init[:, order[:P]], self.options)
+        xs, us, K = rival_game.to_field_batch(order[None], res.xs[None], res.us[None],
+                                              res.K[None] if self.feedback else None, init[None], params.predicted[None])
+        K = K[0] if self.feedback else jnp.zeros((self.horizon, 2, x.size), x.dtype)
+        return us[0], xs[0], K, res.converged
 
     def _replan(self, plan: PlanState, x: jax.Array, racing: jax.Array, due: jax.Array
                 ) -> tuple[jax.Array, PlanState]:

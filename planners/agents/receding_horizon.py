@@ -23,9 +23,10 @@ import time
 import traceback
 from typing import Any
 
+import jax
 import numpy as np
 
-from planners import ilq, ilqr, prediction as prediction_models
+from planners import ilq, ilqr, prediction as prediction_models, rival_game
 from planners.certificates import LOCAL_NASH, certify as certify_solution
 from planners.agents.protocol import BaseAgent, empty_record
 from planners.agents.warm_start import restore_accelerations
@@ -46,6 +47,7 @@ __all__ = [
     "FeedbackGameAgent",
     "ILQRAgent",
     "OpenLoopGameAgent",
+    "DEFAULT_RIVALS",
     "RECOVERED_SPEED",
     "REPLAN_TOLERANCE",
     "RecedingHorizonAgent",
@@ -56,6 +58,9 @@ __all__ = [
 
 STOPPED_SPEED = 0.5  # [m/s] a car this slow at a re-plan is stuck: it plans in recovery (below)
 RECOVERED_SPEED = 5.0  # [m/s] and it plans normally again once this fast
+DEFAULT_RIVALS = 2
+"""The rivals a game planner plays its game with in a field (``rivals``): the nearest car
+ahead and behind, typically, and every car of a race of three."""
 REPLAN_TOLERANCE = 1e-3
 """Convergence tolerance of a re-plan [state units: m, m/s, ...]: a millimetre is plenty for
 a plan that is re-solved 0.1 s later, and more re-plans converge within their iteration cap
@@ -259,7 +264,8 @@ class RecedingHorizonAgent(BaseAgent):
                 True: self.game.replace(weights=with_player_weights(weights, self.index, self.leading_weights)),
                 False: self.game.replace(weights=with_player_weights(weights, self.index, self.trailing_weights)),
             }
-        self._plan: dict | None = None  # {"us": (T,N,2), "xs": (T+1,N,6), "K": (T,N,2,6N) | None}
+        self._plan: dict | None = None  # {"us": (T,N,2), "xs": (T+1,N,6), "K": the ego's gains (T,2,6N) | None}
+        self._prepared: dict | None = None  # a re-plan set up for a solve elsewhere (prepare_replan)
         self._age = 0  # steps since the stored plan was made
         self._recovering = False  # from a standstill until RECOVERED_SPEED (recovery_track_scale)
 
@@ -270,7 +276,7 @@ class RecedingHorizonAgent(BaseAgent):
         rivals = [j for j in range(x.shape[0]) if j != self.index and (racing is None or racing[j])]
         return bool(np.all(x[self.index, 0] > x[rivals, 0]))
 
-    # the solve itself (subclasses) -> (us, xs, K or None, result)
+    # the solve itself (subclasses) -> (us (T,N,2), xs (T+1,N,6), the ego's gains K (T,2,6N) or None, result)
     def _solve(self, game, x0: np.ndarray, init: np.ndarray | None):
         raise NotImplementedError
 
@@ -313,7 +319,7 @@ class RecedingHorizonAgent(BaseAgent):
         if self.feedback and plan["K"] is not None:
             dx = (x - plan["xs"][t]).reshape(-1)
             if np.all(np.isfinite(dx)):
-                u = u - plan["K"][t, self.index] @ dx
+                u = u - plan["K"][t] @ dx
         return u
 
     def current_plan(self) -> np.ndarray | None:
@@ -331,30 +337,100 @@ class RecedingHorizonAgent(BaseAgent):
         history, so a race's diagnostics do not hold every plan)."""
         return {**super().diagnostics(), "plan": self.current_plan()}
 
+    def _replan_due(self) -> bool:
+        """Whether the next action re-plans (no plan, ``replan_every`` reached, or the plan used up)."""
+        return self._plan is None or self._age + 1 >= self.replan_every or self._age + 1 >= self._plan["us"].shape[0]
+
+    def _warm_start_now(self, x: np.ndarray) -> np.ndarray | None:
+        """The next re-plan's warm start ``(T, N, 2)`` from joint state ``x``: the stored plan
+        shifted by the steps elapsed (its accelerations restored), or None."""
+        if not self.warm_start or self._plan is None:
+            return None
+        init = self._shifted(self._plan["us"], self._age + 1)
+        if self.restore_accelerations and self._age + 1 < self._plan["xs"].shape[0]:
+            init = restore_accelerations(init, self._plan["xs"][self._age + 1], x, self.game.dt)
+        return init
+
+    def _game_now(self, observation: np.ndarray | None, x: np.ndarray, record: dict) -> Any:
+        """The game of a re-plan from ``x (N, 6)``: the planning game for the car's place and
+        speed, with the cars the observation flags as out of the race as ghosts."""
+        if x.shape != (self.game.num_players, 6):
+            raise ValueError(f"joint state must have shape ({self.game.num_players}, 6), got {x.shape}")
+        racing = cars_racing(observation, self.index, self.game.num_players)
+        if self._games_by_place is not None:
+            record["leading"] = self._is_leading(x, racing)
+            self.planning_game = self._games_by_place[record["leading"]]
+        # cars that finished or retired are ghosts in the plan, as in the env
+        return self._game_at_speed(x, record).with_racing(racing)
+
+    def prepare_replan(self, observation: np.ndarray | None, joint_state: np.ndarray,
+                       predicted: np.ndarray | None = None) -> Any:
+        """Set up the re-plan the next :meth:`act` makes with these arguments, for a solve made
+        elsewhere (:mod:`planners.agents.field`: the field's re-plans solved as one batch).
+
+        Returns what :meth:`_batchable` makes of it (a :class:`planners.rival_game.LocalGame`
+        for a game agent playing a local game), or None when the next action does not
+        re-plan, or the re-plan cannot be solved elsewhere; then :meth:`act` solves as usual.
+        Otherwise the solution must be handed over with :meth:`take_solution` before the
+        :meth:`act` of this step.
+        """
+        self._require_reset()
+        self._prepared = None
+        if not self._replan_due():
+            return None
+        x = np.asarray(joint_state, dtype=np.float64)
+        record: dict[str, Any] = {}
+        try:
+            game = self._game_now(observation, x, record)
+        except Exception:  # noqa: BLE001 - act() makes the same call and turns it into a fallback
+            return None
+        init = self._warm_start_now(x)
+        request = self._batchable(game, x, init, predicted)
+        if request is not None:
+            self._prepared = {"step": self._steps, "game": game, "record": record, "request": request,
+                              "init": init, "solution": None}
+        return request
+
+    def take_solution(self, result: Any, solve_time: float) -> None:
+        """Hand over the solver result of the request :meth:`prepare_replan` returned (a
+        single :class:`planners.ilq.SolverResult` in NumPy, or the exception the solve raised)
+        and the seconds [s] of the solve charged to this car."""
+        if self._prepared is None:
+            raise RuntimeError("take_solution without a prepared re-plan (prepare_replan returned None)")
+        self._prepared["solution"] = result
+        self._prepared["solve_time"] = float(solve_time)
+
+    def _batchable(self, game: Any, x0: np.ndarray, init: np.ndarray | None, predicted: np.ndarray | None) -> Any:
+        """The re-plan as a problem another solve can take (None: this agent solves it)."""
+        return None
+
+    def _from_result(self, request: Any, result: Any, init: np.ndarray | None):
+        """``(us, xs, K, result)`` of a solution of :meth:`_batchable`'s ``request``."""
+        raise NotImplementedError
+
     def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
         self._require_reset()
         x = np.asarray(joint_state, dtype=np.float64)
         record = empty_record()
         record["step"] = self._steps
-        if self._plan is None or self._age + 1 >= self.replan_every or self._age + 1 >= self._plan["us"].shape[0]:
+        prepared, self._prepared = getattr(self, "_prepared", None), None
+        if prepared is not None and (prepared["step"] != self._steps or prepared["solution"] is None):
+            prepared = None  # set up for another step, or never solved: solve here
+        if self._replan_due():
             record["replanned"] = True
-            init = None
-            if self.warm_start and self._plan is not None:
-                init = self._shifted(self._plan["us"], self._age + 1)
-                if self.restore_accelerations and self._age + 1 < self._plan["xs"].shape[0]:
-                    init = restore_accelerations(init, self._plan["xs"][self._age + 1], x, self.game.dt)
             error = None
             t0 = time.perf_counter()
             try:
-                if x.shape != (self.game.num_players, 6):
-                    raise ValueError(f"joint state must have shape ({self.game.num_players}, 6), got {x.shape}")
-                racing = cars_racing(observation, self.index, self.game.num_players)
-                if self._games_by_place is not None:
-                    record["leading"] = self._is_leading(x, racing)
-                    self.planning_game = self._games_by_place[record["leading"]]
-                # cars that finished or retired are ghosts in the plan, as in the env
-                game = self._game_at_speed(x, record).with_racing(racing)
-                solution = self._solve(game, x, init)
+                if prepared is not None:
+                    record.update(prepared["record"])
+                    game, init = prepared["game"], prepared["init"]
+                    if isinstance(prepared["solution"], BaseException):
+                        raise prepared["solution"]
+                    solution = self._from_result(prepared["request"], prepared["solution"], init)
+                else:
+                    init = self._warm_start_now(x)
+                    game = self._game_now(observation, x, record)
+                    solution = self._solve(game, x, init)
                 us, xs, K, res = solution
                 record["iterations"] = int(res.iterations)
                 record["converged"] = bool(res.converged)
@@ -366,7 +442,7 @@ class RecedingHorizonAgent(BaseAgent):
             except Exception as exc:  # noqa: BLE001 - any solver failure becomes a fallback
                 error = f"{type(exc).__name__}: {exc}"
                 record["traceback"] = traceback.format_exc(limit=3)
-            record["solve_time"] = time.perf_counter() - t0
+            record["solve_time"] = time.perf_counter() - t0 + (prepared["solve_time"] if prepared else 0.0)
             if error is None:
                 self._adopted(game, x, res, record)
                 self._plan = {"us": us, "xs": xs, "K": K}
@@ -411,47 +487,84 @@ def certificate_record(game: Any, x0: np.ndarray, result: Any, mode: str) -> dic
 
 
 class _GameAgent(RecedingHorizonAgent):
-    """A game method: the whole game solved by :func:`planners.ilq.solve` in the solver
-    mode that the method's name stands for (:data:`planners.methods.GAME_MODES`).
+    """A game method: the game solved by :func:`planners.ilq.solve` in the solver mode that
+    the method's name stands for (:data:`planners.methods.GAME_MODES`).
 
     Args:
+        rivals: the rivals ``k`` it plays its game with: in a race of more than ``k + 1``
+            cars it solves its local game (:mod:`planners.rival_game`) with the ``k`` cars
+            nearest by track distance, chosen afresh at every re-plan, every other car
+            predicted at constant speed and lateral offset and avoided as a moving obstacle;
+            with ``k + 1`` cars or fewer, the whole game (bit for bit the solve without this
+            option). A rival's warm start is its row of the stored plan, kept while it is not
+            among the nearest.
         certify: certify every adopted re-plan in the cheap form (:func:`certificate_record`,
-            about 17 ms for two cars at T = 50 on one CPU core): its diagnostics carry
-            ``certified``, ``verdict`` and ``certify_time``, and :meth:`summary` the
-            ``certified_share`` of the certified re-plans. Off: none of these.
+            about 17 ms for two cars at T = 50 on one CPU core; of the local game when it
+            plays one): its diagnostics carry ``certified``, ``verdict`` and
+            ``certify_time``, and :meth:`summary` the ``certified_share`` of the certified
+            re-plans. Off: none of these.
         kwargs: as :class:`RecedingHorizonAgent`.
     """
 
     planned_players = 2  # at least: every car of the race
 
-    def __init__(self, certify: bool = False, **kwargs: Any) -> None:
+    def __init__(self, rivals: int = DEFAULT_RIVALS, certify: bool = False, **kwargs: Any) -> None:
+        self.rivals = rival_game.check_rivals(rivals)  # before the solver options are checked
         super().__init__(**kwargs)
         self.certify = bool(certify)
 
     @classmethod
     def spec_options(cls) -> dict[str, type]:
-        return {**super().spec_options(), "certify": bool}
+        return {**super().spec_options(), "rivals": int, "certify": bool}
 
     @classmethod
     def spec_defaults(cls) -> dict[str, Any]:
-        return {**super().spec_defaults(), "certify": False}
+        return {**super().spec_defaults(), "rivals": DEFAULT_RIVALS, "certify": False}
 
     def _adopted(self, game, x0, result, record):
         if self.certify:
-            record.update(certificate_record(game, x0, result, self.mode))
+            solved, start = getattr(self, "_solved", None) or (game, x0)
+            record.update(certificate_record(solved, start, result, self.mode))
+
+    def _plays_local_game(self, game) -> bool:
+        return self.rivals < game.num_players - 1
+
+    def _batchable(self, game, x0, init, predicted):
+        if not self._plays_local_game(game) or self.budget_ms is not None:
+            return None  # the whole game (today's solve), or a wall-clock budget: solved by act()
+        self._validate(game)
+        return rival_game.local_game(game, x0, self.index, self.rivals, init, predicted)
+
+    def _validate(self, game) -> None:
+        """Refuse input weights that make a player's LQ game undefined (NumPy; the local
+        problem's own check would evaluate its costs). Weights checked once are not checked
+        again (the planning games of a race share a few weight objects)."""
+        if getattr(self, "_validated_weights", None) is game.weights:
+            return
+        ilq.validate_problem(game, control_regularization=self.batch_options().guaranteed_control_regularization)
+        self._validated_weights = game.weights
+
+    def batch_options(self) -> ilq.SolverOptions:
+        """The solver options of its re-plans (those of a batch solved for it)."""
+        return ilq.SolverOptions(mode=self.mode, max_iterations=self.max_iterations, **self.solver_options)
+
+    def _from_result(self, local, result, init):
+        self._solved = (local.problem, local.x0)
+        xs, us, K = rival_game.to_field(local, result.xs, result.us, result.K if self.feedback else None, init)
+        return us, xs, K, result
 
     def _solve(self, game, x0, init):
-        res = ilq.solve(
-            game,
-            x0,
-            init=init,
-            mode=self.mode,
-            max_iterations=self.max_iterations,
-            budget_ms=self.budget_ms,
-            **self.solver_options,
-        )
-        us, xs, K = (np.asarray(a) for a in (res.us, res.xs, res.K))
-        return us, xs, (K if self.feedback else None), res
+        self._solved = None
+        options = dict(mode=self.mode, max_iterations=self.max_iterations, budget_ms=self.budget_ms,
+                       **self.solver_options)
+        if not self._plays_local_game(game):
+            res = ilq.solve(game, x0, init=init, **options)
+            us, xs, K = (np.asarray(a) for a in (res.us, res.xs, res.K))
+            return us, xs, (K[:, self.index] if self.feedback else None), res
+        local = rival_game.local_game(game, x0, self.index, self.rivals, init)
+        self._validate(game)
+        res = ilq.solve(local.problem, local.x0, init=local.init, validate=False, **options)
+        return self._from_result(local, jax.device_get(res), init)
 
 
 class FeedbackGameAgent(_GameAgent):
@@ -488,6 +601,10 @@ class ILQRAgent(RecedingHorizonAgent):
             / open-loop Nash equilibrium). The planned predictions use this agent's solver
             options and beliefs of the opponents' weights, are warm-started from the last
             prediction, and count in its ``solve_time``.
+        rivals: for the game predictions (``"ilqgame-fb"``, ``"ilqgame-ol"``), the rivals in
+            the game solved: in a race of more than ``rivals + 1`` cars the local game of this
+            car and its nearest rivals (:mod:`planners.rival_game`); the cars left out are
+            predicted at constant velocity. Ignored by the other predictions.
         levels: levels of reasoning of the ``"ilqr"`` prediction (see
             :class:`planners.prediction.PlannerPrediction`): ``1`` predicts each opponent's
             plan against constant velocity, ``k`` its plan against everyone's level-``k - 1``
@@ -498,9 +615,10 @@ class ILQRAgent(RecedingHorizonAgent):
     spec = name = ILQR
     feedback = False
 
-    def __init__(self, prediction: str = CONSTANT_VELOCITY, levels: int = 1,
+    def __init__(self, prediction: str = CONSTANT_VELOCITY, levels: int = 1, rivals: int = DEFAULT_RIVALS,
                  **kwargs: Any) -> None:
         prediction_models.check_prediction(prediction)  # when the agent is made, not at its reset
+        self.rivals = rival_game.check_rivals(rivals)
         prediction_models.check_levels(prediction, levels)
         if kwargs.get("budget_ms") is not None and prediction not in _ONE_SOLVE_PREDICTIONS:
             raise ValueError(f"budget_ms bounds one solve: iLQR takes it with prediction in "
@@ -512,11 +630,11 @@ class ILQRAgent(RecedingHorizonAgent):
 
     @classmethod
     def spec_options(cls) -> dict[str, type]:
-        return {**super().spec_options(), "prediction": str, "levels": int}
+        return {**super().spec_options(), "prediction": str, "levels": int, "rivals": int}
 
     @classmethod
     def spec_defaults(cls) -> dict[str, Any]:
-        return {**super().spec_defaults(), "prediction": CONSTANT_VELOCITY, "levels": 1}
+        return {**super().spec_defaults(), "prediction": CONSTANT_VELOCITY, "levels": 1, "rivals": DEFAULT_RIVALS}
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
@@ -525,7 +643,8 @@ class ILQRAgent(RecedingHorizonAgent):
         made_for = getattr(self, "_predictor_for", None)
         if made_for is None or made_for[0] is not self.game or made_for[1] != self.index:
             self._predict = prediction_models.make_predictor(
-                self.prediction, self.game, self.index, levels=self.levels, max_iterations=self.max_iterations,
+                self.prediction, self.game, self.index, levels=self.levels, rivals=self.rivals,
+                max_iterations=self.max_iterations,
                 **self.solver_options)
             self._predictor_for = (self.game, self.index)
 

@@ -166,6 +166,9 @@ _LOOP_HELP = {
 }
 
 _GAME_HELP = {
+    "rivals": ("in a field, the game is this car's with its nearest rivals (by track distance, chosen at "
+               "every re-plan), the others predicted at constant velocity; rivals >= cars - 1: the whole game "
+               f"({ILQR}: the game of prediction={FEEDBACK_GAME} or {OPEN_LOOP_GAME})"),
     "certify": ("certify every adopted re-plan as a local Nash equilibrium or not (cheap form, ~17 ms for "
                 "2 cars at T=50): diagnostics' certified and verdict, the race record's certified_share"),
 }

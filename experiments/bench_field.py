@@ -1,0 +1,103 @@
+"""`racing bench --only field`: races of fields of game planners, and the vectorised env with a field.
+
+:func:`field_rows`: a race of N feedback iLQGame planners on the trefoil's grid, every car
+re-planning every step in its real-time setting (``iterations=2,trust_radius=10``, the one
+that races as well as converged re-plans: docs/experiments/cheap-replans.md) and playing
+its local game with its ``rivals=2`` nearest rivals (:mod:`planners.rival_game`), the
+field's re-plans solved as one batch per step (:func:`planners.agents.field.solve_field`),
+as ``racing tournament`` races them. Race-steps per second for each N, the first step
+(which compiles) reported apart, and the exponent of the cost of a step in N fitted over
+the fields (:func:`cost_exponent`).
+
+:func:`vector_field_row`: the vectorised env with a field, beside two cars, when the env
+provides :func:`experiments.bench_rl.vector_field_rows`.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Iterator
+
+import numpy as np
+
+FIELD_SPEC = "ilqgame-fb:iterations=2,trust_radius=10"
+FIELDS = (2, 4, 10, 20)
+TARGET_STEPS_PER_S = 50.0  # a 10-car field of game planners, every car re-planning every step
+TARGET_EXPONENT = 1.2  # the cost of a step in N: linear, at most this exponent
+
+
+def cost_exponent(cars: list[int], seconds_per_step: list[float]) -> float:
+    """The exponent ``p`` of the least-squares fit ``seconds = a N^p`` (in logs)."""
+    if len(cars) < 2:
+        raise ValueError("the exponent needs at least two fields")
+    return float(np.polyfit(np.log(cars), np.log(seconds_per_step), 1)[0])
+
+
+def field_race_rate(cars: int, spec: str = FIELD_SPEC, steps: int = 40, warmup: int = 3,
+                    track: str = "trefoil", seed: int = 0) -> dict[str, Any]:
+    """One field's race: ``cars`` agents ``spec`` on ``track``'s seeded grid, ``warmup`` steps
+    (the first compiles), then ``steps`` timed steps of the whole loop (the field's batched
+    re-plans, every car's action, the env step)."""
+    from planners.agents import make_agent
+    from planners.agents.field import solve_field
+    from racing_env import RaceConfig
+    from racing_env.env import RacingParallelEnv
+
+    env = RacingParallelEnv(RaceConfig(track=track, num_agents=cars, max_steps=warmup + steps + 1))
+    observations, _ = env.reset(seed=seed)
+    agents = [make_agent(spec) for _ in range(cars)]
+    for i, agent in enumerate(agents):
+        agent.reset(seed, i, env)
+    index = {name: i for i, name in enumerate(env.possible_agents)}
+    times, fallbacks, iterations = [], 0, []
+    for _ in range(warmup + steps):
+        if not env.agents:
+            break
+        start = time.perf_counter()
+        state = env.state()
+        racing = [agents[index[a]] for a in env.agents]
+        solve_field(racing, [observations[a] for a in env.agents], state)
+        actions = {a: agents[index[a]].act(observations[a], state) for a in env.agents}
+        observations, *_ = env.step(actions)
+        times.append(time.perf_counter() - start)
+        for agent in racing:
+            record = agent.diagnostics()
+            fallbacks += bool(record["fallback"])
+            if record["iterations"] is not None:
+                iterations.append(record["iterations"])
+    timed = np.array(times[warmup:])
+    return {"name": f"field_{cars}_cars", "cars": cars, "spec": spec, "track": track,
+            "steps_per_s": float(len(timed) / timed.sum()), "ms_per_step": 1e3 * float(np.median(timed)),
+            "ms_per_step_p95": 1e3 * float(np.percentile(timed, 95)), "compile_s": float(times[0]),
+            "steps_timed": int(len(timed)), "fallbacks": fallbacks,
+            "iterations_median": float(np.median(iterations)) if iterations else None,
+            "target_steps_per_s": TARGET_STEPS_PER_S if cars == 10 else None}
+
+
+def field_rows(fields: tuple[int, ...] = FIELDS, steps: int = 40) -> Iterator[dict[str, Any]]:
+    """A row per field (:func:`field_race_rate`), then the fitted exponent of a step's cost in
+    N over every field and over the fields of local games (more than ``rivals + 1 = 3`` cars,
+    whose re-plans are all games of three players)."""
+    rows = []
+    for cars in fields:
+        row = field_race_rate(cars, steps=steps)
+        rows.append(row)
+        yield row
+    if len(rows) >= 2:
+        cars = [row["cars"] for row in rows]
+        seconds = [1.0 / row["steps_per_s"] for row in rows]
+        local = [(n, s) for n, s in zip(cars, seconds) if n > 3]
+        exponent = {"name": "field_cost_exponent", "exponent": cost_exponent(cars, seconds),
+                    "cars": cars, "target_exponent": TARGET_EXPONENT}
+        if len(local) >= 2:
+            exponent["exponent_local_games"] = cost_exponent(*map(list, zip(*local)))
+        yield exponent
+
+
+def bench_field() -> Iterator[dict[str, Any]]:
+    """`racing bench --only field`: :func:`field_rows`, then the vectorised env's field row."""
+    yield from field_rows()
+    from experiments import bench_rl
+
+    if hasattr(bench_rl, "vector_field_rows"):
+        yield from bench_rl.vector_field_rows()

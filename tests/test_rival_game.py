@@ -1,0 +1,194 @@
+"""Local games of a field (planners.rival_game) and the field's batched re-plans
+(planners.agents.field)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from planners import ilq, rival_game
+from planners.agents import make_agent
+from planners.agents.field import batch_size, solve_field
+from racing_env import RaceConfig, RaceGame, VehicleParams
+from racing_env.costs import racing_weights
+from racing_env.env import RacingParallelEnv
+from racing_env.track import get_track
+
+
+def _field(s, n=None):
+    x = np.zeros((len(s), 6))
+    x[:, 0] = s
+    x[:, 1] = 15.0
+    if n is not None:
+        x[:, 2] = n
+    return x
+
+
+def test_nearest_rivals_by_wrapped_track_distance_racing_cars_first():
+    track = get_track("trefoil")
+    L = float(track.length)
+    # car 0 at the line; car 3 just behind it across the line (wrapped gap 2 m), car 1 5 m ahead,
+    # car 2 5 m behind (a tie with car 1: the lower index first), car 4 far away
+    x = _field([1.0, 6.0, -4.0, L - 1.0, 300.0])
+    assert list(rival_game.nearest_rivals(track, x, 0, 4)) == [3, 1, 2, 4]
+    assert list(rival_game.nearest_rivals(track, x, 0, 2)) == [3, 1]
+    # a ghost (out of the race) comes after every racing car, however near
+    racing = np.array([True, True, True, False, True])
+    assert list(rival_game.nearest_rivals(track, x, 0, 4, racing)) == [1, 2, 4, 3]
+    assert list(rival_game.nearest_rivals(track, x, 4, 1)) == [1]  # 294 m to car 1, 296 to car 0
+    with pytest.raises(ValueError, match="1 <= k <= N - 1"):
+        rival_game.nearest_rivals(track, x, 0, 5)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+def test_rivals_below_one_or_not_an_integer_is_refused(bad):
+    with pytest.raises(ValueError, match="rivals must be an integer >= 1"):
+        make_agent("ilqgame-fb").__class__(rivals=bad)
+
+
+def test_a_local_game_leaves_a_car_out_or_is_refused():
+    game = RaceGame.create(get_track("straight"), [VehicleParams()] * 3, racing_weights(), horizon=5)
+    with pytest.raises(ValueError, match="rivals must be <= N - 2 = 1"):
+        rival_game.local_game(game, _field([30.0, 20.0, 10.0]), 0, 2)
+
+
+def _contraction_bound(result) -> float:
+    """How far the last iterate of a converged solve can be from the solution it converges
+    to, in the solver's convergence measure (the largest state change of a full step): the
+    steps left form a geometric series with the ratio ``q`` of the last steps, so at most
+    ``h q / (1 - q)`` after the last step ``h``."""
+    steps = np.asarray(result.history)[: int(result.iterations)]
+    q = float(np.max(steps[-3:] / steps[-4:-1]))
+    assert q < 0.5, f"the iteration is not contracting near the solution (ratio {q})"
+    return float(steps[-1] * q / (1.0 - q))
+
+
+@pytest.mark.parametrize("mode", ["feedback", pytest.param("open_loop", marks=pytest.mark.slow)])
+def test_the_local_game_is_the_whole_game_when_the_other_cars_are_far(mode):
+    """Two cars side by side and two more 80 m ahead (4 cars on the straight): car 0's local
+    game with its nearest rival (the two far cars predicted at constant velocity) has the
+    whole game's solution for the two near cars.
+
+    The far cars reach the near cars' costs only through the collision terms
+    ``c_c exp(2 (1 - a))`` with ``a >= (gap / l)^2`` (their progress enters linearly and
+    does not depend on the near cars' inputs): at the smallest gap in either solution that
+    is below the rounding of ``c_c`` itself, so the two games' conditions for the near cars
+    agree in float64, and the solutions differ by no more than each solve's distance to its own
+    solution (:func:`_contraction_bound`)."""
+    game = RaceGame.create(get_track("straight"), [VehicleParams()] * 4, racing_weights(), horizon=50)
+    x0 = _field([50.0, 44.0, 130.0, 138.0], [1.0, -1.0, 1.0, -1.0])
+    options = dict(mode=mode, max_iterations=200, tolerance=1e-9)
+    whole = ilq.solve(game, x0, **options)
+    local = rival_game.local_game(game, x0, 0, 1)
+    assert list(local.order) == [0, 1, 2, 3]
+    res = ilq.solve(local.problem, local.x0, init=local.init, validate=False, **options)
+    assert bool(whole.converged) and bool(res.converged)
+    xs, us, _ = rival_game.to_field(local, res.xs, res.us, None)
+
+    whole_xs = np.asarray(whole.xs)
+    gaps = [np.min(np.min(sol[:, 2:, 0], axis=1) - np.max(sol[:, :2, 0], axis=1)) for sol in (whole_xs, xs)]
+    lengths = np.asarray(game.vehicles.length)
+    c = float(np.asarray(game.weights.c_collision)[0])
+    # below the rounding of the weight itself: invisible in float64
+    assert c * np.exp(2.0 * (1.0 - (min(gaps) / lengths.max()) ** 2)) < np.finfo(float).eps * c
+    bound = _contraction_bound(whole) + _contraction_bound(res)
+    assert np.max(np.abs(whole_xs[:, :2] - xs[:, :2])) <= bound
+    # the far cars are the prediction in the local solution
+    np.testing.assert_array_equal(xs[:, 2:, 0], x0[2:, 0] + 15.0 * game.dt * np.arange(51)[:, None])
+
+
+def test_with_rivals_at_least_the_field_the_agent_solves_the_whole_game():
+    """Bit for bit the solve of the whole game: ``rivals`` >= N - 1 is today's re-plan."""
+    env = RacingParallelEnv(RaceConfig(track="trefoil", num_agents=2, max_steps=3))
+    observations, _ = env.reset(seed=0)
+    state = env.state()
+    agent = make_agent("ilqgame-fb:rivals=3,iterations=2,trust_radius=10")
+    agent.reset(0, 0, env)
+    agent.act(observations["car_0"], state)
+    assert agent.prepare_replan(observations["car_0"], state) is None  # nothing to batch: the whole game
+    expected = ilq.solve(agent.planning_game.with_racing(np.ones(2, bool)), state, mode="feedback",
+                         max_iterations=2, **agent.solver_options)
+    np.testing.assert_array_equal(agent._plan["us"], np.asarray(expected.us))
+    np.testing.assert_array_equal(agent._plan["K"], np.asarray(expected.K)[:, 0])
+
+
+def test_batch_size_pads_to_the_field_or_a_power_of_two():
+    assert [batch_size(m, 10) for m in (10, 9, 6, 5, 3, 1)] == [10, 10, 10, 8, 4, 1]
+
+
+def test_a_fields_batched_replans_are_each_cars_own():
+    """Four game planners with one rival each: the field's one batched solve gives every car
+    the plan its own solve makes (the same iterations; a batch member is compiled in another
+    program, so equal to rounding: 1e-9 of the plans' size), and the cars race on it."""
+    env = RacingParallelEnv(RaceConfig(track="trefoil", num_agents=4, max_steps=3))
+    observations, _ = env.reset(seed=1)
+    state = env.state()
+    spec = "ilqgame-fb:rivals=1,iterations=2,trust_radius=10"
+    batched, alone = [make_agent(spec) for _ in range(4)], [make_agent(spec) for _ in range(4)]
+    for i in range(4):
+        batched[i].reset(1, i, env)
+        alone[i].reset(1, i, env)
+    names = env.possible_agents
+    stats = solve_field(batched, [observations[a] for a in names], state)
+    assert (stats["batches"], stats["members"]) == (1, 4)
+    for i, name in enumerate(names):
+        u_batched = batched[i].act(observations[name], state)
+        u_alone = alone[i].act(observations[name], state)
+        for key in ("us", "xs", "K"):
+            a, b = batched[i]._plan[key], alone[i]._plan[key]
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * max(1.0, np.abs(b).max()))
+        np.testing.assert_allclose(u_batched, u_alone, rtol=0, atol=1e-9)
+        record = batched[i].diagnostics()
+        assert record["replanned"] and not record["fallback"] and record["iterations"] == 2
+        # car i's local game: itself and its nearest rival
+        nearest = rival_game.nearest_rivals(env.track, state, i, 1)[0]
+        moved = np.any(batched[i]._plan["us"][:, [i, nearest]] != 0.0, axis=(0, 2))
+        assert moved.all()
+
+
+def _field_races(seeds, cars=4):
+    envs = [RacingParallelEnv(RaceConfig(track="trefoil", num_agents=cars, max_steps=20)) for _ in seeds]
+    observations = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds)]
+    return envs, observations
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_a_batched_planner_plays_each_races_local_game_as_the_single_agent(compiled):
+    """Car 1 of three 4-car races (the others coasting) driven by one batched planner with
+    one rival (every race's local game in one batched solve; ``compiled``: its pure-JAX step,
+    vmapped over the races, as compiled races use it) takes the single agents' actions, to
+    the rounding of batched solves (tests/test_batched_opponents.py's tolerance)."""
+    from planners.agents.batched import make_batched_opponent
+    from racing_env.observation import cars_racing
+
+    seeds = [0, 1, 2]
+    spec = "ilqgame-fb:rivals=1,iterations=2,trust_radius=10"
+    envs, observations = _field_races(seeds)
+    opponent = make_batched_opponent(spec, envs[0].game, 1, len(seeds))
+    opponent.reset(np.ones(len(seeds), dtype=bool), np.asarray(seeds, dtype=np.int64))
+    assert opponent.rivals == 1
+    singles = [make_agent(spec) for _ in seeds]
+    for agent, env, seed in zip(singles, envs, seeds):
+        agent.reset(seed, 1, env)
+    if compiled:
+        import jax
+
+        planner = opponent.jax_planner
+        plans = jax.tree_util.tree_map(lambda leaf: np.stack([leaf] * len(seeds)), planner.initial())
+        step = jax.jit(jax.vmap(planner.act))
+    for _ in range(3):
+        x = np.array([env.state() for env in envs])
+        obs = np.array([o["car_1"] for o in observations])
+        racing = np.array([cars_racing(o, 1, 4) for o in obs])
+        if compiled:
+            actions, plans = step(plans, x, racing)
+            actions = np.asarray(actions)
+        else:
+            actions, diagnostics = opponent.act(obs, x, racing)
+            assert diagnostics["replanned"].all() and (diagnostics["iterations"] == 2).all()
+        expected = np.array([agent.act(o, xb) for agent, o, xb in zip(singles, obs, x)])
+        np.testing.assert_allclose(actions, expected, rtol=0, atol=1e-6)  # the single agent's are float32
+        for b, env in enumerate(envs):
+            moves = {name: np.zeros(2) for name in env.agents}
+            moves["car_1"] = actions[b]
+            observations[b], *_ = env.step(moves)
