@@ -303,6 +303,23 @@ class RaceVectorEnv(VectorEnv):
             raise ValueError(f"actions must be finite; races {bad[:10]} have NaN or inf")
         return array
 
+    def _host_actions(self, obs_all: np.ndarray, x: np.ndarray, racing: np.ndarray) -> list[tuple[int, tuple]]:
+        """``(car, (actions, diagnostics))`` of every host-side opponent, in car order. Opponents
+        of one class with ``act_together`` (the batched planners: a field's re-plans in one
+        solve) act in one call of it; the others one by one."""
+        by_class: dict[type, list[int]] = {}
+        for j in self._host_cars:
+            by_class.setdefault(type(self.opponents[j]), []).append(j)
+        out = {}
+        for cls, cars in by_class.items():
+            together = getattr(cls, "act_together", None)
+            if together is None or len(cars) == 1:
+                out.update({j: self.opponents[j].act(obs_all[:, j], x, racing) for j in cars})
+            else:
+                results = together([self.opponents[j] for j in cars], [obs_all[:, j] for j in cars], x, racing)
+                out.update(zip(cars, results))
+        return [(j, out[j]) for j in self._host_cars]
+
     def step(self, actions: Any):
         learner_actions = self._checked_actions(actions)
         resetting = self._needs_reset.copy()
@@ -314,8 +331,7 @@ class RaceVectorEnv(VectorEnv):
             # a car no longer racing in a race gets no action there (the core ignores it)
             racing = np.asarray(self._state.status.active)
             obs_all = np.asarray(self._obs_all)
-            for j in self._host_cars:
-                act, diag = self.opponents[j].act(obs_all[:, j], x, racing)
+            for j, (act, diag) in self._host_actions(obs_all, x, racing):
                 # an agent's actions are float32 (planners.agents.BaseAgent), a plain callable's as given
                 all_actions[:, j] = act if isinstance(self.opponents[j], _LoopedCallable) else np.float32(act)
                 diagnostics[agent_name(j)] = {k: np.asarray(v) for k, v in diag.items()}

@@ -192,3 +192,50 @@ def test_a_batched_planner_plays_each_races_local_game_as_the_single_agent(compi
             moves = {name: np.zeros(2) for name in env.agents}
             moves["car_1"] = actions[b]
             observations[b], *_ = env.step(moves)
+
+
+def test_the_batched_planners_of_a_field_solve_their_races_in_one_batch(monkeypatch):
+    """Cars 1-3 of three 4-car races, each a batched feedback planner with one rival: acting
+    together they make one batched solve per step (of all 9 local games) and take the
+    actions each takes alone, to the rounding of batched solves (1e-9); the vectorised env
+    steps such a field through the same call."""
+    from planners.agents import batched_planners
+    from planners.agents.batched import make_batched_opponent
+    from planners.agents.batched_planners import BatchedPlanner
+    from racing_env.observation import cars_racing
+    from racing_env.vector import RaceVectorEnv
+
+    seeds = [0, 1, 2]
+    spec = "ilqgame-fb:rivals=1,iterations=2,trust_radius=10"
+    envs, observations = _field_races(seeds)
+
+    def opponents():
+        made = [make_batched_opponent(spec, envs[0].game, j, len(seeds)) for j in (1, 2, 3)]
+        for opponent in made:
+            opponent.reset(np.ones(len(seeds), dtype=bool), np.asarray(seeds, dtype=np.int64))
+        return made
+
+    together, alone = opponents(), opponents()
+    calls = []
+    real_solve_batch = batched_planners.solve_batch
+    monkeypatch.setattr(batched_planners, "solve_batch", lambda *a, **k: calls.append(1) or real_solve_batch(*a, **k))
+    for _ in range(2):
+        x = np.array([env.state() for env in envs])
+        obs = [np.array([o[f"car_{j}"] for o in observations]) for j in (1, 2, 3)]
+        racing = np.array([cars_racing(o["car_1"], 1, 4) for o in observations])
+        calls.clear()
+        joined = BatchedPlanner.act_together(together, obs, x, racing)
+        assert len(calls) == 1  # the field's one batch
+        for (actions, diagnostics), opponent, o in zip(joined, alone, obs):
+            expected, _ = opponent.act(o, x, racing)
+            np.testing.assert_allclose(actions, expected, rtol=0, atol=1e-9)
+            assert diagnostics["replanned"].all() and not diagnostics["fallback"].any()
+        for b, env in enumerate(envs):
+            moves = {"car_0": np.zeros(2), **{f"car_{j}": joined[j - 1][0][b] for j in (1, 2, 3)}}
+            observations[b], *_ = env.step(moves)
+
+    vector = RaceVectorEnv(num_envs=2, opponents=[spec], num_agents=4, track="trefoil", max_steps=20)
+    vector.reset(seed=0)
+    calls.clear()
+    vector.step(np.zeros((2, 2)))
+    assert len(calls) == 1

@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from planners import ilq, ilqr, rival_game
-from planners.agents.batched_protocol import BatchedOpponent, DIAGNOSTIC_FIELDS, empty_diagnostics
+from planners.agents.batched_protocol import BatchedOpponent, DIAGNOSTIC_FIELDS, empty_diagnostics, run_steps
 from planners.agents.protocol import BaseAgent
 from planners.agents.compiled_planner import CompiledPlanner
 from planners.agents.warm_start import restore_accelerations
@@ -107,6 +107,60 @@ def _shifted(us: np.ndarray, by: np.ndarray, pad: str) -> np.ndarray:
     out = us[np.arange(us.shape[0])[:, None], np.minimum(steps, horizon - 1)]
     if pad == "zeros":
         out[steps >= horizon] = 0.0
+    return out
+
+
+def _solve_local_games(planner: "BatchedPlanner", game, x0s: np.ndarray, egos: np.ndarray, init: np.ndarray):
+    """The local games of the cars ``egos (R,)`` in the fields ``x0s (R, N, 6)`` (with
+    ``game``'s per-member weights and racing flags, warm starts ``init (R, T, N, 2)``) in one
+    batched solve with ``planner``'s solver: ``(us, xs, K or None, result)`` in the field's
+    shapes (:func:`planners.rival_game.to_field_batch`)."""
+    predicted = predict_constant_velocity_batch(x0s, planner.game.horizon, planner.game.dt)
+    problem, x0, local_init, orders = rival_game.local_games(game, x0s, egos, planner.rivals, init, predicted)
+    axes = rival_game.RivalParams(game=planner._game_axes, order=0, predicted=0)
+    res = solve_batch(problem, x0, local_init, params_axes=axes, devices=planner.devices, batching=planner.batching,
+                      options=planner.options, validate=False)
+    res = jax.device_get(res)
+    xs, us, K = rival_game.to_field_batch(orders, res.xs, res.us, res.K if planner.feedback else None, init,
+                                          problem.params.predicted)
+    return us, xs, K, res
+
+
+def _solve_joined(planners: list["BatchedPlanner"], requests: list[tuple]) -> list[tuple]:
+    """The solve requests ``(x, racing, variant, init)`` of several cars' planners
+    (:meth:`BatchedPlanner._replan`; the same :meth:`BatchedPlanner._field_key`) as one
+    batched solve of all their local games; each planner's solution as its own
+    :meth:`BatchedPlanner._solve` returns it."""
+    first = planners[0]
+    counts = [request[0].shape[0] for request in requests]
+    total = sum(counts)
+    sizes = default_solve_sizes(total, len(first.devices))
+    size = next(s for s in sizes if s >= total)
+    per_device = size // len(first.devices)
+    k = np.arange(total)
+    slots = (k % len(first.devices)) * per_device + k // len(first.devices)  # spread over the devices' parts
+
+    def joined(parts, inert=None):
+        values = np.concatenate(parts)
+        out = np.empty((size,) + values.shape[1:], dtype=values.dtype)
+        out[...] = values[0] if inert is None or first.batching == "vmap" else inert  # as BatchedPlanner._padded
+        out[slots] = values
+        return out
+
+    x0s = joined([request[0] for request in requests], inert=np.nan)
+    racing = joined([request[1] for request in requests])
+    init = joined([request[3] for request in requests])
+    egos = joined([np.full(count, planner.index) for planner, count in zip(planners, counts)])
+    weights = {name: joined([planner._weights[name][request[2]] for planner, request in zip(planners, requests)])
+               for name in first._weights}
+    game = first._solve_game.replace(weights=CostWeights(**weights), racing=racing)
+    us, xs, K, res = _solve_local_games(first, game, x0s, egos, init)
+    iterations, converged = np.asarray(res.iterations), np.asarray(res.converged)
+    out, start = [], 0
+    for count in counts:
+        part = slots[start:start + count]
+        start += count
+        out.append((us[part], xs[part], None if K is None else K[part], iterations[part], converged[part]))
     return out
 
 
@@ -232,6 +286,9 @@ class BatchedPlanner(BatchedOpponent):
 
     # --- a step ---------------------------------------------------------------------------
     def _act_rows(self, rows, observations, x, racing):
+        return run_steps(self._act_rows_steps(rows, observations, x, racing), self._solve_request)
+
+    def _act_rows_steps(self, rows, observations, x, racing):
         horizon = self.game.horizon
         diagnostics = empty_diagnostics(self.diagnostic_fields, rows.size)
         age = self._age[rows]
@@ -243,7 +300,7 @@ class BatchedPlanner(BatchedOpponent):
             u[follow] = self._follow(rows[follow], x[follow], self._age[rows[follow]])
         replan = np.flatnonzero(due)
         if replan.size:
-            u[replan] = self._replan(rows[replan], x[replan], racing[replan], diagnostics, replan)
+            u[replan] = yield from self._replan(rows[replan], x[replan], racing[replan], diagnostics, replan)
         return self._finish(u / self.agent.jerk_max, x, diagnostics), diagnostics
 
     def _follow(self, rows: np.ndarray, x: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -257,16 +314,19 @@ class BatchedPlanner(BatchedOpponent):
         correction = np.einsum("rij,rj->ri", self._K[rows, t], np.where(finite[:, None], dx, 0.0))
         return np.where(finite[:, None], u - correction, u)
 
-    def _replan(self, rows: np.ndarray, x: np.ndarray, racing: np.ndarray, diagnostics: dict,
-                at: np.ndarray) -> np.ndarray:
-        """Re-plan the races ``rows``; their jerks ``(R, 2)`` (NaN: brake). Fills the
-        diagnostics' entries ``at``."""
+    def _replan(self, rows: np.ndarray, x: np.ndarray, racing: np.ndarray, diagnostics: dict, at: np.ndarray):
+        """Re-plan the races ``rows`` (a generator: it yields the solve request
+        ``(x, racing, variant, init)`` of :meth:`_solve` and receives its solution); returns
+        their jerks ``(R, 2)`` (NaN: brake). Fills the diagnostics' entries ``at``."""
         racing = racing.copy()
         racing[:, self.index] = True  # as the observation's flags say of the car itself
         variant = self._variants(rows, x, racing, diagnostics, at)
         diagnostics["replanned"][at] = True
+        solution = yield (x, racing, variant, self._warm_starts(rows, x))
         try:
-            us, xs, K, iterations, converged = self._solve(x, racing, variant, self._warm_starts(rows, x))
+            if isinstance(solution, BaseException):
+                raise solution
+            us, xs, K, iterations, converged = solution
             diagnostics["iterations"][at] = iterations
             diagnostics["converged"][at] = converged
             ok = _all_finite(us) & _all_finite(xs) & (_all_finite(K) if K is not None else True)
@@ -283,6 +343,53 @@ class BatchedPlanner(BatchedOpponent):
             diagnostics["fallback"][at[bad]] = True
             u[bad] = self._previous_plan(rows[bad], x[bad])
         return u
+
+    def _solve_request(self, request):
+        return self._solve(*request)
+
+    def _field_key(self) -> tuple | None:
+        """What planners of one field must share to solve their re-plans in one batch (local
+        games of the same shapes, solver, game and devices); None: this one solves alone."""
+        if self.rivals is None:
+            return None
+        game = self.game
+        return (type(self), self.options, self.rivals, self.feedback, self.num_races, game.num_players, game.horizon,
+                id(game.track), id(game.vehicles), self.devices, self.batching)
+
+    @classmethod
+    def act_together(cls, opponents, observations, x, racing):
+        """:meth:`act` of several cars of the same races: the planners that play local games of
+        the same shapes with the same solver (:meth:`_field_key`) solve the re-plans due of all
+        their cars and races in one batched solve; each then acts as it would alone."""
+        results: list[Any] = [None] * len(opponents)
+        groups: dict[Any, list[int]] = {}
+        for m, opponent in enumerate(opponents):
+            key = opponent._field_key()
+            groups.setdefault(("alone", m) if key is None else key, []).append(m)
+        for members in groups.values():
+            if len(members) == 1:
+                m = members[0]
+                results[m] = opponents[m].act(observations[m], x, racing)
+                continue
+            steps = {m: opponents[m].act_steps(observations[m], x, racing) for m in members}
+            requests = {}
+            for m in members:
+                try:
+                    requests[m] = next(steps[m])
+                except StopIteration as done:  # nothing to re-plan in any race
+                    results[m] = done.value
+            if not requests:
+                continue
+            try:
+                solutions = _solve_joined([opponents[m] for m in requests], list(requests.values()))
+            except Exception as exc:  # noqa: BLE001 - each car falls back as after its own failed solve
+                solutions = [exc] * len(requests)
+            for m, solution in zip(requests, solutions):
+                try:
+                    steps[m].send(solution)
+                except StopIteration as done:
+                    results[m] = done.value
+        return results
 
     def _warm_starts(self, rows: np.ndarray, x: np.ndarray) -> np.ndarray:
         """The initial inputs ``(R, T, N, 2)`` of the races' re-plans from the joint states
@@ -383,16 +490,7 @@ class BatchedPlanner(BatchedOpponent):
         """Each member's local game (this car and its ``rivals`` nearest, the other cars
         predicted at constant velocity: the single agent's re-plan) in one batched solve;
         the plans in the field's shapes, this car's gains on the field's state, the result."""
-        predicted = predict_constant_velocity_batch(x0s, self.game.horizon, self.game.dt)
-        egos = np.full(x0s.shape[0], self.index)
-        problem, x0, local_init, orders = rival_game.local_games(game, x0s, egos, self.rivals, init, predicted)
-        axes = rival_game.RivalParams(game=self._game_axes, order=0, predicted=0)
-        res = solve_batch(problem, x0, local_init, params_axes=axes, devices=self.devices, batching=self.batching,
-                          options=self.options, validate=False)
-        res = jax.device_get(res)
-        xs, us, K = rival_game.to_field_batch(orders, res.xs, res.us, res.K if self.feedback else None, init,
-                                              problem.params.predicted)
-        return us, xs, K, res
+        return _solve_local_games(self, game, x0s, np.full(x0s.shape[0], self.index), init)
 
     def _padded(self, values: np.ndarray, size: int, slots: np.ndarray, inert: float | None = None) -> np.ndarray:
         """``values (R, ...)`` at ``slots`` of a batch of ``size``; the other members copy the

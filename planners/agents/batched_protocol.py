@@ -96,6 +96,21 @@ class BatchedOpponent:
             ``actions (B, 2)`` float64 in ``[-1, 1]`` (normalised jerks, never NaN) and
             ``{name: (B,)}`` diagnostics (:attr:`diagnostic_fields`).
         """
+        return run_steps(self.act_steps(observations, x, racing), self._solve_request)
+
+    @classmethod
+    def act_together(cls, opponents: list["BatchedOpponent"], observations: list[np.ndarray], x: np.ndarray,
+                     racing: np.ndarray) -> list[tuple[np.ndarray, dict[str, np.ndarray]]]:
+        """:meth:`act` of several cars of the same races (``opponents`` of this class, each
+        with its ``observations``), in car order. The base class acts for each in turn; a
+        subclass may share work between them (the planners solve their re-plans together)."""
+        return [opponent.act(obs, x, racing) for opponent, obs in zip(opponents, observations)]
+
+    def act_steps(self, observations: np.ndarray, x: np.ndarray, racing: np.ndarray):
+        """:meth:`act` as a generator: it may yield one solve request (what
+        :meth:`_solve_request` takes), receives its solution (or the exception the solve
+        raised), and returns ``(actions, diagnostics)``. Lets a caller solve the requests
+        of several cars together (:meth:`act_together`)."""
         observations, x, racing = self._checked_step(observations, x, racing)
         if not self._started.all():
             missing = np.flatnonzero(~self._started)[:5].tolist()
@@ -105,9 +120,9 @@ class BatchedOpponent:
         diagnostics = empty_diagnostics(self.diagnostic_fields, self.num_races)
         rows = np.flatnonzero(racing[:, self.index])
         if rows.size == self.num_races:  # the usual case: no copies
-            return self._act_rows(rows, observations, x, racing)
+            return (yield from self._act_rows_steps(rows, observations, x, racing))
         if rows.size:
-            part, part_diagnostics = self._act_rows(rows, observations[rows], x[rows], racing[rows])
+            part, part_diagnostics = yield from self._act_rows_steps(rows, observations[rows], x[rows], racing[rows])
             actions[rows] = part
             for name, values in part_diagnostics.items():
                 diagnostics[name][rows] = values
@@ -121,6 +136,15 @@ class BatchedOpponent:
                   racing: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """Actions ``(R, 2)`` and diagnostics ``{name: (R,)}`` of the races ``rows (R,)``,
         whose observations, states and racing flags are given (``(R, ...)``)."""
+        raise NotImplementedError
+
+    def _act_rows_steps(self, rows: np.ndarray, observations: np.ndarray, x: np.ndarray, racing: np.ndarray):
+        """:meth:`_act_rows` as a generator (:meth:`act_steps`); by default it asks for no solve."""
+        return self._act_rows(rows, observations, x, racing)
+        yield  # noqa: unreachable - makes this a generator that yields nothing
+
+    def _solve_request(self, request: Any) -> Any:
+        """The solution of a request :meth:`_act_rows_steps` yielded (subclasses that yield)."""
         raise NotImplementedError
 
     def _finish(self, actions: np.ndarray, x: np.ndarray, diagnostics: dict[str, np.ndarray]) -> np.ndarray:
@@ -154,6 +178,25 @@ class BatchedOpponent:
         x = self._checked(x, "x", (b, n, 6), np.float64)
         racing = self._checked(racing, "racing", (b, n), bool)
         return observations, x, racing
+
+
+def run_steps(steps, solve: Callable[[Any], Any]) -> Any:
+    """Run a generator of :meth:`BatchedOpponent.act_steps` to its end, solving the request it
+    yields (if any) with ``solve``; an exception of the solve is sent in, for the generator to
+    treat as a failed solve. Returns the generator's return value."""
+    try:
+        request = next(steps)
+    except StopIteration as done:
+        return done.value
+    try:
+        solution = solve(request)
+    except Exception as exc:  # noqa: BLE001 - the opponent falls back as after its own failed solve
+        solution = exc
+    try:
+        steps.send(solution)
+    except StopIteration as done:
+        return done.value
+    raise RuntimeError("an opponent's act_steps asked for more than one solve")
 
 
 def empty_diagnostics(fields: dict[str, type], count: int) -> dict[str, np.ndarray]:
