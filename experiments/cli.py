@@ -396,7 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
         "tournament", parents=[cache, backends, recording],
         help="round robin of agents over seeded start grids (resumable; leaderboard, report.html, replays)",
         description="Every combination of --cars agents races on --grids start grids, once per rotation of "
-        "the starting slots. Results are appended to OUT/results.jsonl as races end, every race's replay to "
+        "the starting slots (with more --cars than agents: one field of all of them per grid). Results are appended to OUT/results.jsonl as races end, every race's replay to "
         "OUT/replays; rerunning the same command resumes. Races run here, on --workers local processes, or on "
         "Ray (--backend ray); the leaderboard is the same. Prints the leaderboard; writes OUT/summary.csv, "
         "leaderboard.json, head_to_head.png, race.gif (the first race, with the planners' plans) and "
@@ -412,8 +412,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="race every other agent against this one only (a gauntlet), not a full round robin; "
                            "one of --agents (name in any case, options in any order)")
     tour.add_argument("--cars", type=int, default=2,
-                      help="cars per race (default: 2); 1: a time trial, each agent alone on every grid, ranked by "
-                      "mean finish time")
+                      help="cars per race (default: 2; at most 20); 1: a time trial, each agent alone on every grid, "
+                      "ranked by mean finish time; more than the agents: one field per grid, every agent a fair "
+                      "share of the cars, shuffled over the slots, rated by its cars' places")
     tour.add_argument("--seed", type=int, default=0, help="tournament seed: it seeds the start grids (default: 0)")
     tour.add_argument("--max-steps", type=int, default=3000,
                       help="truncate races after this many steps of 0.1 s (default: 3000)")

@@ -391,6 +391,16 @@ def _value(header: str, key: str, form: str) -> _Column:
     return _Column(header, lambda row: _num(row[key], form), kind="num")
 
 
+def _share_text(row: dict[str, Any]) -> str:
+    """A leaderboard row's ``beaten_share`` with its interval, e.g. ``62% [51-72%]`` (a dash
+    for none, e.g. rows from records before the count)."""
+    share = row.get("beaten_share")
+    if share is None:
+        return "-"
+    lo, hi = row["beaten_share_ci95"]
+    return f"{share:.0%} [{lo:.0%}-{hi:.0%}]"
+
+
 def _ci_columns(header: str) -> list[_Column]:
     """The rate with its 95% interval, and its bar, of rows with ``"ci"`` (:func:`_ci_cells`)."""
     return [_Column(header, lambda row: row["ci"][0], kind="num"), _Column("", lambda row: row["ci"][1])]
@@ -454,8 +464,11 @@ def write_tournament_report(out: Path, config: RaceSpec, board: dict[str, Any], 
     run = _run_facts(out, config, [
         ("agents", "; ".join(config.agents)),
         ("format", "time trial: each agent alone" if time_trial else f"{config.cars} cars per race, "
-         + (f"every agent against {config.versus}" if config.versus else "round robin")),
-        ("start", f"{config.scenario}, {config.grids} grid(s), seed {config.seed}, every rotation of the slots"),
+         + (f"every agent against {config.versus}" if config.versus else
+            "a field of all agents per grid" if config.cars > len(config.agents) else "round robin")),
+        ("start", f"{config.scenario}, {config.grids} grid(s), seed {config.seed}, "
+         + ("the field shuffled over the slots per grid" if config.cars > len(config.agents)
+            else "every rotation of the slots")),
     ], len(records), len(planned), TOURNAMENT_FILES)
     rows = [{**row, "rank": k, "ci": _ci_cells(row["win_rate"], *row["win_rate_ci95"])}
             for k, row in enumerate(board["rows"], 1)]
@@ -474,6 +487,16 @@ def write_tournament_report(out: Path, config: RaceSpec, board: dict[str, Any], 
                    _value("margin [s]", "mean_margin_s", "{:+.2f}"), _LIMIT, _ERRORS]
         note = ("Ranked by rating (Plackett-Luce mu - 3 sigma); win rates with 95% Wilson intervals; "
                 + _MARGIN_NOTE + _LIMIT_NOTE)
+        if config.cars > 2:  # places say more than wins in a field
+            columns[4:4] = [_value("mean place", "mean_place", "{:.2f}"),
+                            _Column("rivals beaten [95% CI]", lambda row: _share_text(row), kind="num"),
+                            _Column("passes made/suffered", lambda row: f"{row.get('overtakes', 0)}/{row.get('overtaken', 0)}",
+                                    kind="num"),
+                            _value("contact steps", "collision_steps", "{:d}")]
+            note += (" With more than two cars per race: each agent's mean place, the share of the other agents' "
+                     "cars its cars beat (with a 95% Wilson interval over those pairs), its passes made and "
+                     "suffered, and its cars' steps in contact; the rating ranks each agent in a race by its "
+                     "cars' mean place.")
         names, wins = board["head_to_head"]["agents"], board["head_to_head"]["wins"]
         matrix = [_Column("row ahead of column", lambda i: names[i], kind="name"),
                   *(_Column(name, lambda i, j=j: "-" if i == j else str(wins[i][j]), kind="num")

@@ -35,13 +35,30 @@ def won_race(car: dict[str, Any], num_cars: int) -> bool:
     return car["place"] == 1 and (num_cars > 1 or car["finish_time"] is not None)
 
 
+def rating_ranks(order: Sequence[str]) -> tuple[list[str], list[float]]:
+    """The agents of a race with finishing ``order`` (specs, first first; an agent may drive
+    several cars) and their ranks for the Plackett-Luce update: each agent once, ranked by the
+    mean place of its cars (equal means are a tie). With one car per agent, the order itself
+    and the ranks 1, 2, ..."""
+    places: dict[str, list[int]] = {}
+    for place, spec in enumerate(order, 1):
+        places.setdefault(spec, []).append(place)
+    specs = sorted(places, key=lambda spec: (np.mean(places[spec]), places[spec][0]))
+    return specs, [float(np.mean(places[spec])) if len(places[spec]) > 1 else places[spec][0] for spec in specs]
+
+
 def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_trial: bool) -> dict[str, Any]:
     """The leaderboard of agents ``names`` over race ``records`` taken in the order given
     (the ratings are updated race by race, so the order is part of the result).
 
     Returns ``{"rows": [...], "head_to_head": {"agents": names, "wins": matrix}}``: per agent
-    its races, wins, win rate with its 95% Wilson interval, Plackett-Luce rating (openskill;
-    ``rating`` is mu - 3 sigma), races finished, retired and faulted, contact steps, mean
+    its races (a car in a race: an agent with several cars in a field counts each), wins, win
+    rate with its 95% Wilson interval, mean place, the share of the other agents' cars its
+    cars beat (``beaten_share``, with a Wilson interval over those pairs: the place-based
+    figure of a field, where a win rate says little), passes made and suffered
+    (``overtakes``, ``overtaken``), Plackett-Luce rating (openskill, updated once per race
+    with each agent ranked by its cars' mean place, :func:`rating_ranks`; ``rating`` is
+    mu - 3 sigma), races finished, retired and faulted, contact steps, mean
     finish-time margin over the other cars (races all finished), mean and best finish
     time, time off track (seconds, steps and races with any), mean action time, and for planners the mean shares of converged
     and of certified re-plans (None without any). Rows are ranked by rating, or in a time
@@ -56,19 +73,28 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
     h2h = np.zeros((len(names), len(names)), dtype=int)
     stats = {n: {"races": 0, "wins": 0, "finished": 0, "retired": 0, "errors": 0, "collision_steps": 0, "act_times": [],
                  "margins": [], "finish_times": [], "limit_ratios": [], "off_track_s": 0.0, "off_track_steps": 0,
-                 "off_track_races": 0, "converged": [], "certified": []} for n in names}
+                 "off_track_races": 0, "converged": [], "certified": [], "places": [], "beaten": 0, "faced": 0,
+                 "overtakes": 0, "overtaken": 0} for n in names}
     for record in records:
         order = record["order"]
         if len(order) > 1:  # a time trial has no one to be rated against
-            teams = [[ratings[n]] for n in order]
-            for n, [new] in zip(order, model.rate(teams, ranks=list(range(1, len(order) + 1)))):
+            specs, ranks = rating_ranks(order)
+            teams = [[ratings[n]] for n in specs]
+            for n, [new] in zip(specs, model.rate(teams, ranks=ranks)):
                 ratings[n] = new
         for a, b in itertools.combinations(order, 2):  # a finished ahead of b
-            h2h[names.index(a), names.index(b)] += 1
+            if a != b:
+                h2h[names.index(a), names.index(b)] += 1
         for car in record["cars"]:
             st = stats[car["agent"]]
             st["races"] += 1
             st["wins"] += won_race(car, len(order))
+            st["places"].append(car["place"])
+            rivals = [other for other in record["cars"] if other["agent"] != car["agent"]]
+            st["faced"] += len(rivals)
+            st["beaten"] += sum(other["place"] > car["place"] for other in rivals)
+            st["overtakes"] += car.get("overtakes", 0)  # records from before the count: none
+            st["overtaken"] += car.get("overtaken", 0)
             st["finished"] += car["finish_time"] is not None
             if car["finish_time"] is not None:
                 st["finish_times"].append(car["finish_time"])
@@ -97,10 +123,18 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
     for n in names:
         st = stats[n]
         lo, hi = wilson_interval(st["wins"], st["races"])
+        beaten_lo, beaten_hi = wilson_interval(st["beaten"], st["faced"])
         r = ratings[n]
         rows.append({"agent": n, "races": st["races"], "wins": st["wins"],
                      "win_rate": st["wins"] / st["races"] if st["races"] else float("nan"),
-                     "win_rate_ci95": [lo, hi], "rating_mu": r.mu, "rating_sigma": r.sigma,
+                     "win_rate_ci95": [lo, hi],
+                     # place (1 = first) over its cars' races; the share of the other agents' cars
+                     # that finished behind its cars, with a Wilson interval over those pairs
+                     "mean_place": float(np.mean(st["places"])) if st["places"] else None,
+                     "beaten": st["beaten"], "faced": st["faced"],
+                     "beaten_share": st["beaten"] / st["faced"] if st["faced"] else None,
+                     "beaten_share_ci95": [beaten_lo, beaten_hi],
+                     "overtakes": st["overtakes"], "overtaken": st["overtaken"], "rating_mu": r.mu, "rating_sigma": r.sigma,
                      "rating": r.mu - 3 * r.sigma, "finished": st["finished"], "retired": st["retired"], "errors": st["errors"], "collision_steps": st["collision_steps"],
                      # finish-time lead over the mean of the other cars, in races where all finished
                      "mean_margin_s": float(np.mean(st["margins"])) if st["margins"] else None,

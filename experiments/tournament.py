@@ -7,7 +7,10 @@ stopped; the leaderboard is recomputed from that file in schedule order, which m
 identical for the same configuration whether or not the run was interrupted.
 
 With ``cars = 1`` it is a time trial: each agent laps alone on every grid, and the
-leaderboard ranks them by mean finish time.
+leaderboard ranks them by mean finish time. With more cars than agents it races fields
+(:func:`field_lineup`): one race per grid whose cars are the agents, each a fair share of
+the field, in an order shuffled per grid; the leaderboard then rates the agents by their
+cars' places (:func:`experiments.standings.standings`).
 
 An agent that raises, or whose action takes longer than ``step_budget_s`` (the first
 action of a race is exempt: it may compile), loses that race: it is placed last, the error
@@ -22,7 +25,7 @@ import functools
 import itertools
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -34,7 +37,7 @@ from experiments.race_spec import RaceSpec
 from experiments.runner import JobLog
 # wilson_interval and won_race live in experiments.standings; imported from here they still work
 from experiments.standings import standings, wilson_interval, won_race  # noqa: F401
-from racing_env.config import RETIRING_MODES, RaceConfig
+from racing_env.config import MAX_CARS, RETIRING_MODES, RaceConfig
 from racing_env.env import RacingParallelEnv
 from racing_env.scenarios import FIXED_STARTS, SCENARIOS
 
@@ -52,6 +55,10 @@ class TournamentConfig(RaceSpec):
 
     ``versus`` (one of ``agents``) races every other agent against that one only (a gauntlet)
     instead of the full round robin.
+
+    ``cars`` above the number of agents (up to :data:`racing_env.config.MAX_CARS`) races a
+    field on every grid (:func:`field_lineup`): every agent drives ``cars // len(agents)`` or
+    one more of the cars.
 
     ``jerk_weight`` is the planners' jerk weight r (R = r I) in the race's game; the default
     is :data:`racing_env.costs.RACING_JERK_WEIGHT`, the env's own racing default.
@@ -90,8 +97,12 @@ class TournamentConfig(RaceSpec):
         if len({normal_spec(spec) for spec in self.agents}) != len(self.agents):
             raise ValueError(f"agent specs must be distinct (names ignore case, options their order), "
                              f"got {list(self.agents)}")
-        if not 1 <= self.cars <= len(self.agents):
-            raise ValueError(f"cars per race must be in [1, {len(self.agents)}] (1: a time trial), got {self.cars}")
+        if isinstance(self.cars, bool) or not isinstance(self.cars, (int, np.integer)) or not 1 <= self.cars <= MAX_CARS:
+            raise ValueError(f"cars per race must be an integer in [1, {MAX_CARS}] (1: a time trial; more than the "
+                             f"{len(self.agents)} agents: a field of them), got {self.cars!r}")
+        if self.cars > len(self.agents) and self.versus is not None:
+            raise ValueError(f"a field of {self.cars} cars from {len(self.agents)} agents races them all together: "
+                             "versus (a gauntlet) needs cars <= the number of agents")
         if self.cars == 1 and self.versus is not None:
             raise ValueError("a time trial (cars=1) races every agent alone: versus has no one to race")
         if self.grids < 1:
@@ -124,9 +135,30 @@ def normal_spec(spec: str) -> tuple[str, frozenset[tuple[str, str]]]:
     return name, frozenset(options.items())
 
 
+def field_lineup(agents: Sequence[str], cars: int, grid: int, seed: int) -> list[str]:
+    """The specs by starting slot of grid ``grid``'s field of ``cars`` cars from ``agents``.
+
+    Every agent gets ``cars // len(agents)`` cars; the ``cars % len(agents)`` left over go to
+    the agents ``grid, grid + 1, ...`` (cyclically), so over the grids every agent gets as
+    many extra cars as any other, within one. The cars are then shuffled over the slots by a
+    permutation drawn from ``numpy.random.default_rng([seed, grid])``: no agent always starts
+    in front. Deterministic in ``(agents, cars, grid, seed)``."""
+    count = len(agents)
+    extra = {(grid + r) % count for r in range(cars % count)}
+    field = [spec for k, spec in enumerate(agents) for _ in range(cars // count + (k in extra))]
+    order = np.random.default_rng([seed, grid]).permutation(cars)
+    return [field[k] for k in order]
+
+
 def schedule(config: TournamentConfig) -> list[dict[str, Any]]:
     """All races in a fixed order: ``id``, the specs by starting slot, the grid seed."""
     races = []
+    if config.cars > len(config.agents):  # a field per grid
+        for grid in range(config.grids):
+            lineup = field_lineup(config.agents, config.cars, grid, config.seed)
+            seed = config.seed * 10_000 + grid
+            races.append({"id": f"field{config.cars}@grid{grid}", "lineup": lineup, "seed": seed, "grid": grid})
+        return races
     for group in itertools.combinations(config.agents, config.cars):
         if config.versus is not None and config.versus not in group:
             continue
@@ -140,12 +172,25 @@ def schedule(config: TournamentConfig) -> list[dict[str, Any]]:
 
 def count_overtakes(s: np.ndarray) -> int:
     """Position swaps between any two cars along ``s (T, N)`` (sign changes of the gaps)."""
-    total = 0
+    return int(overtakes_by_car(s)[0].sum())
+
+
+def overtakes_by_car(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each car's passes along ``s (T, N)`` (race distance [m]): ``made (N,)``, the times it
+    went from behind another car to ahead of it, and ``lost (N,)``, the times another car did
+    so to it (sign changes of the pairwise gaps, a step level with a car not counted as a
+    change)."""
+    made = np.zeros(s.shape[1], dtype=int)
+    lost = np.zeros(s.shape[1], dtype=int)
     for i, j in itertools.combinations(range(s.shape[1]), 2):
         sign = np.sign(s[:, i] - s[:, j])
         sign = sign[sign != 0]
-        total += int(np.sum(sign[1:] != sign[:-1]))
-    return total
+        changes = sign[1:][sign[1:] != sign[:-1]]  # the sign after each change: +1 i passed j
+        made[i] += int(np.sum(changes > 0))
+        lost[j] += int(np.sum(changes > 0))
+        made[j] += int(np.sum(changes < 0))
+        lost[i] += int(np.sum(changes < 0))
+    return made, lost
 
 
 def _failed_setup(message: str):
@@ -172,7 +217,7 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     The record holds the finishing ``order`` (specs), the ``gap`` to the second car (None
     for a lone car, a time trial), the ``overtakes`` and, per car, its place on the grid
     (``start_place``, 1 = in front), place, finish time, distance, mean speed, contact
-    steps, time off track and its steps (``off_track_steps``), whether an incident rule ``retired`` it, action times, solver
+    steps, time off track and its steps (``off_track_steps``), its passes made and suffered (``overtakes``, ``overtaken``), whether an incident rule ``retired`` it, action times, solver
     failures, its re-plans' iterations (mean, median, 95th percentile), the shares of its re-plans that converged and (a game agent with ``certify``
     on; else None) that were certified local Nash equilibria (``certified_share``), and the
     ``error`` of a car that faulted.
@@ -219,6 +264,7 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
         gap = {"seconds": finish[second] - finish[winner]}
     else:
         gap = {"metres": float(final_s[winner] - final_s[second])}
+    made, lost = overtakes_by_car(xs[:, :, 0])
     cars = []
     for i, (spec, car) in enumerate(zip(lineup, result.summary)):
         agent = agents[i]
@@ -233,7 +279,7 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             "limit_time": limit[0] if limit is not None else None, "limit_line": limit[1] if limit is not None else None,
             "distance": car["distance"], "mean_speed": car["mean_speed"],
             "collision_steps": car["collision_steps"], "time_off_track": car["time_off_track"],
-            "off_track_steps": car["off_track_steps"],
+            "off_track_steps": car["off_track_steps"], "overtakes": int(made[i]), "overtaken": int(lost[i]),
             "retired": car["retired"],
             "act_time_mean_s": float(np.mean(times)) if times else float("nan"),
             "act_time_max_s": float(np.max(times)) if times else float("nan"),

@@ -77,6 +77,10 @@ class RewardConfig:
     time: float = 0.0
 
 
+MAX_CARS = 20
+"""The largest field a race takes: the cars the start grids and the renderer are made for."""
+
+
 @dataclasses.dataclass(frozen=True)
 class RaceConfig:
     """Everything that defines a race (guide: docs/env.md).
@@ -84,7 +88,7 @@ class RaceConfig:
     Attributes:
         track: a ``Track``, a built-in track name (``straight``, ``trefoil``, ...) or a path to
             a TUMFTM-format CSV file.
-        num_agents: number of cars N (>= 1).
+        num_agents: number of cars N, 1 to :data:`MAX_CARS` (20).
         scenario: start configuration, one of ``racing_env.scenarios.SCENARIOS``.
         vehicles: one ``VehicleParams`` for all cars, one per car, or None for the scenario's.
         weights: cost weights of the game the env builds (``env.game``), which the planners
@@ -131,8 +135,8 @@ class RaceConfig:
     camera: str = "auto"
 
     def __post_init__(self) -> None:
-        if not isinstance(self.num_agents, (int, np.integer)) or self.num_agents < 1:
-            raise ValueError(f"num_agents must be an integer >= 1, got {self.num_agents!r}")
+        if not isinstance(self.num_agents, (int, np.integer)) or not 1 <= self.num_agents <= MAX_CARS:
+            raise ValueError(f"num_agents must be an integer in [1, {MAX_CARS}], got {self.num_agents!r}")
         if self.scenario not in SCENARIOS:
             raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {sorted(SCENARIOS)}")
         check_race_length(self.laps, self.race_distance, self.max_steps)

@@ -471,3 +471,75 @@ def test_records_give_each_finish_time_as_a_ratio_to_the_lap_time_limit(tmp_path
     record, _ = tour.race_lineup(tour.race_config(dataclasses.replace(config, laps=1, race_distance=100.0)),
                                  ["lane-keeping"], seed=0, replay=False)
     assert record["cars"][0]["limit_ratio"] is None and record["cars"][0]["limit_line"] is None
+
+
+def test_a_field_gives_every_agent_a_fair_share_of_the_cars_in_a_shuffled_order():
+    agents = ("a", "b", "c")
+    lineups = [tour.field_lineup(agents, 10, grid, seed=0) for grid in range(3)]
+    counts = [{spec: lineup.count(spec) for spec in agents} for lineup in lineups]
+    assert counts == [{"a": 4, "b": 3, "c": 3}, {"a": 3, "b": 4, "c": 3}, {"a": 3, "b": 3, "c": 4}]
+    assert lineups[0] != sorted(lineups[0]) and len({tuple(lineup) for lineup in lineups}) == 3
+    assert tour.field_lineup(agents, 10, 1, seed=0) == lineups[1]  # deterministic
+    config = tour.TournamentConfig(agents=agents, cars=10, grids=3)
+    assert [race["id"] for race in config.schedule()] == ["field10@grid0", "field10@grid1", "field10@grid2"]
+    assert [race["lineup"] for race in config.schedule()] == lineups
+    with pytest.raises(ValueError, match=r"in \[1, 20\]"):
+        tour.TournamentConfig(agents=agents, cars=21)
+    with pytest.raises(ValueError, match="versus"):
+        tour.TournamentConfig(agents=agents, cars=6, versus="a")
+
+
+def test_passes_are_counted_per_car():
+    """Car 0 passes car 2 and car 1 (then loses to car 1 again); car 1 passes car 2."""
+    s = np.array([[0.0, 1.0, 2.0], [2.5, 1.0, 0.0], [3.0, 4.0, 1.0]])
+    made, lost = tour.overtakes_by_car(s)
+    assert made.tolist() == [2, 2, 0] and lost.tolist() == [1, 1, 2]
+    assert tour.count_overtakes(s) == made.sum() == lost.sum() == 4
+
+
+def test_a_fields_leaderboard_rates_agents_by_their_cars_places():
+    """Two agents with two cars each, by hand: in race 1 ``a`` takes places 1 and 4 (mean 2.5)
+    and ``b`` 2 and 3 (mean 2.5: a tie); in race 2 ``a`` takes 1 and 2. ``a``'s cars beat 2 + 4
+    of the 4 + 4 pairs with ``b``'s cars."""
+    from experiments.standings import rating_ranks, standings
+
+    assert rating_ranks(["a", "b", "b", "a"]) == (["a", "b"], [2.5, 2.5])
+    assert rating_ranks(["a", "a", "b", "b"]) == (["a", "b"], [1.5, 3.5])
+
+    def car(agent, place):
+        return {"agent": agent, "place": place, "finish_time": 60.0 + place, "error": None, "collision_steps": place,
+                "time_off_track": 0.0, "act_time_mean_s": 0.01, "overtakes": 1, "overtaken": 0}
+
+    records = [{"order": ["a", "b", "b", "a"], "cars": [car("a", 1), car("b", 2), car("b", 3), car("a", 4)]},
+               {"order": ["a", "a", "b", "b"], "cars": [car("a", 1), car("a", 2), car("b", 3), car("b", 4)]}]
+    rows = {row["agent"]: row for row in standings(["a", "b"], records, time_trial=False)["rows"]}
+    assert rows["a"]["races"] == 4 and rows["a"]["mean_place"] == 2.0 and rows["b"]["mean_place"] == 3.0
+    assert (rows["a"]["beaten"], rows["a"]["faced"]) == (6, 8) and (rows["b"]["beaten"], rows["b"]["faced"]) == (2, 8)
+    assert rows["a"]["beaten_share_ci95"] == list(tour.wilson_interval(6, 8))
+    assert rows["a"]["overtakes"] == 4 and rows["a"]["collision_steps"] == 1 + 4 + 1 + 2
+    assert rows["a"]["rating"] > rows["b"]["rating"]  # a tie, then a win
+
+
+def test_a_tournament_of_fields_races_every_agent_in_one_race_per_grid(tmp_path):
+    """Six scripted cars from three agents on two grids: every record has six cars of the
+    lineup scheduled, each car's passes add up to the race's, and the leaderboard's place
+    figures are those of the records."""
+    agents = ["lane-keeping", "lane-keeping:target_speed=20", "lane-keeping:target_speed=12"]
+    code = main(["tournament", "--agents", *agents, "--cars", "6", "--track", "straight", "--race-distance", "120",
+                 "--grids", "2", "--max-steps", "400", "--no-gif", "--out", str(tmp_path)])
+    assert code == 0
+    records = tour.load_results(tmp_path)
+    config = tour.TournamentConfig(agents=tuple(agents), cars=6, grids=2, track="straight", race_distance=120.0,
+                                   max_steps=400)
+    assert [r["id"] for r in records] == [race["id"] for race in config.schedule()]
+    for record, race in zip(records, config.schedule()):
+        assert [car["agent"] for car in record["cars"]] == race["lineup"]
+        assert sorted(car["place"] for car in record["cars"]) == list(range(1, 7))
+        assert sum(car["overtakes"] for car in record["cars"]) == record["overtakes"]
+        assert sum(car["overtaken"] for car in record["cars"]) == record["overtakes"]
+    board = json.loads((tmp_path / "leaderboard.json").read_text())
+    for row in board["rows"]:
+        places = [car["place"] for r in records for car in r["cars"] if car["agent"] == row["agent"]]
+        assert row["races"] == len(places) == 4 and row["mean_place"] == pytest.approx(np.mean(places), rel=1e-15)
+    report = (tmp_path / "report.html").read_text()
+    assert "rivals beaten" in report and "a field of all agents per grid" in report

@@ -5,8 +5,9 @@ and :class:`~planners.agents.receding_horizon.OpenLoopGameAgent` with ``rivals <
 every car solves its local game (:mod:`planners.rival_game`) at every re-plan. Those games
 have the same shapes, and the cars with the same solver options the same compiled solver:
 :func:`solve_field` solves them as one :func:`planners.ilq_batch.solve_batch` per group of
-such cars (on CPU one member after another inside one compiled call; on an accelerator in
-lock step), instead of N solves, each with its own dispatch. Each agent then adopts its
+such cars (in lock step for real-time re-plans and on accelerators, else one member after
+another inside one compiled call: :func:`field_batching`), split over the local devices,
+instead of N solves, each with its own dispatch. Each agent then adopts its
 member in its own :meth:`act`, which does everything else as it would alone (fallbacks,
 diagnostics, following the plan between re-plans): the plans are those of the agents' own
 solves, to the last few bits (a batch member is compiled in a program of its own).
@@ -27,7 +28,7 @@ import numpy as np
 from planners import ilq_batch, rival_game
 from planners.ilqr import predict_constant_velocity
 
-__all__ = ["batch_size", "solve_field"]
+__all__ = ["batch_size", "field_batching", "solve_field"]
 
 
 def batch_size(members: int, field: int) -> int:
@@ -37,6 +38,18 @@ def batch_size(members: int, field: int) -> int:
     if members > field // 2:
         return max(field, members)
     return 1 << max(0, (members - 1).bit_length())
+
+
+def field_batching(agent: Any, devices) -> str:
+    """How a field's batch is solved (:func:`planners.ilq_batch.solve_batch`'s ``batching``):
+    in lock step (``"vmap"``) for real-time re-plans (``iterations``), whose members all stop
+    at the same iteration cap, so that none waits for another, and which XLA:CPU then runs
+    faster than one after another (docs/performance.md, "Fields"); otherwise the solver's
+    default for the devices (on CPU one after another, each member stopping at its own
+    convergence)."""
+    if getattr(agent, "iterations", None) is not None:
+        return "vmap"
+    return ilq_batch.resolve_batching("auto", devices)
 
 
 def _group_key(agent: Any, local: rival_game.LocalGame) -> tuple:
@@ -116,7 +129,8 @@ def _solve_group(members: list[tuple[int, Any, rival_game.LocalGame]], field: in
     for slot, local in zip(slots, locals_):
         padded[slot] = local
     x0s = np.stack([local.x0 for local in padded])
-    if ilq_batch.resolve_batching("auto", devices) == "map":
+    batching = field_batching(members[0][1], devices)
+    if batching == "map":
         # members solved one after another: a NaN start stops a padding member before its
         # first iteration (in lock step it would keep every step search going: repeat instead)
         x0s[np.setdiff1d(np.arange(size), slots)] = np.nan
@@ -124,6 +138,6 @@ def _solve_group(members: list[tuple[int, Any, rival_game.LocalGame]], field: in
     options = members[0][1].batch_options()
     result = ilq_batch.solve_batch(problem, x0s, init=np.stack([local.init for local in padded]),
                                    params_axes=rival_game.batch_axes(locals_[0]), options=options, devices=devices,
-                                   validate=False)
+                                   batching=batching, validate=False)
     result = jax.device_get(result)
     return [jax.tree_util.tree_map(lambda leaf, b=b: leaf[b], result) for b in slots]
