@@ -114,6 +114,11 @@ class RaceConfig:
         render_mode: None, ``rgb_array`` or ``human``.
         render_size: side of the rendered square frame [px].
         camera: ``track`` (whole track), ``follow`` (window around the cars) or ``auto``.
+        follow_car: the car the follow camera centres its window on, with the pack around
+            it; None (the default): the leader, and for up to four cars every car racing.
+        observed_rivals: the observation's rival blocks: None (the default) every other car
+            in index order; K (1 to ``MAX_CARS - 1``) the K nearest rivals by track distance,
+            nearest first, a fixed size whatever N (:mod:`racing_env.observation`).
     """
 
     track: Track | str = "trefoil"
@@ -133,6 +138,8 @@ class RaceConfig:
     render_mode: str | None = None
     render_size: int = 512
     camera: str = "auto"
+    follow_car: int | None = None
+    observed_rivals: int | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.num_agents, (int, np.integer)) or not 1 <= self.num_agents <= MAX_CARS:
@@ -147,6 +154,13 @@ class RaceConfig:
             raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {self.render_mode!r}")
         if self.camera not in ("auto", "track", "follow"):
             raise ValueError(f"camera must be 'auto', 'track' or 'follow', got {self.camera!r}")
+        if self.follow_car is not None and (isinstance(self.follow_car, bool) or not isinstance(
+                self.follow_car, (int, np.integer)) or not 0 <= self.follow_car < self.num_agents):
+            raise ValueError(f"follow_car must be None or a car index in [0, {self.num_agents}), got {self.follow_car!r}")
+        if self.observed_rivals is not None and (isinstance(self.observed_rivals, bool) or not isinstance(
+                self.observed_rivals, (int, np.integer)) or not 1 <= self.observed_rivals < MAX_CARS):
+            raise ValueError(f"observed_rivals must be None (every other car) or an integer in [1, {MAX_CARS - 1}] "
+                             f"(the nearest rivals observed), got {self.observed_rivals!r}")
         if len(self.preview_distances) < 1 or not all(np.isfinite(d) and d >= 0 for d in self.preview_distances):
             raise ValueError(
                 f"preview_distances must be non-empty, finite and >= 0, got {self.preview_distances!r}"

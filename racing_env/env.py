@@ -138,7 +138,7 @@ class RacingParallelEnv(ParallelEnv):
         # on the device once, as one array: a step neither re-transfers them nor pays for
         # their argument leaves (racing_env.packing)
         self._constants, self._layout = pack(self.params)
-        obs_dim = observation_size(num, len(config.preview_distances))
+        obs_dim = observation_size(num, len(config.preview_distances), config.observed_rivals)
         # every finite float32 vector (physical units, no natural bounds): finite limits,
         # because Gymnasium's check_env warns about infinite Box bounds
         big = np.finfo(np.float32).max
@@ -362,7 +362,8 @@ class RacingParallelEnv(ParallelEnv):
 
         if self._renderer is None:
             self._renderer = Renderer(self.track, self.game.vehicles, size=self.config.render_size,
-                                      camera=self.config.camera, laps=self.race_laps, finish_s=self.finish_s)
+                                      camera=self.config.camera, laps=self.race_laps, finish_s=self.finish_s,
+                                      follow_car=self.config.follow_car)
         return self._renderer
 
     def scene(self, labels=None, plans=None):

@@ -1,11 +1,16 @@
 """The agents' observation vectors (pure JAX, all cars at once).
 
-Observation of car i, shape ``(8 + 7 (N - 1) + 3 P,)`` with P preview distances:
+Observation of car i, shape ``(8 + 7 K + 3 P,)`` with P preview distances and K rival
+blocks (``K = N - 1`` by default, or the ``observed_rivals`` of the race):
 
 * own state: ``V, n, chi, ax, ay``, room to the left boundary ``w_left(s) - n``, room to the
   right boundary ``w_right(s) + n``, and the fraction of the race still to go;
-* for each other car j, in cyclic order ``i+1, ..., i-1``: wrapped gap ``ds``, ``dn``,
-  ``dV``, ``dchi``, its ``ax``, ``ay`` and whether it is still racing (1/0);
+* a block per rival: wrapped gap ``ds``, ``dn``, ``dV``, ``dchi``, its ``ax``, ``ay`` and
+  whether it is still racing (1/0). By default every other car j, in cyclic order
+  ``i+1, ..., i-1``. With ``observed_rivals = K`` the K cars nearest by wrapped ``|ds|``
+  (ahead or behind alike; equal distances to the lower index), nearest first, whatever N:
+  a policy trained in a duel then reads a field the same way. Blocks beyond the N - 1
+  rivals of a small field are zeros with the racing flag 0 (an absent car);
 * the track ahead at each preview distance d: ``kappa(s+d)``, ``w_left(s+d)``, ``w_right(s+d)``.
 
 Units are physical (m, m/s, rad, m/s^2, 1/m).
@@ -25,19 +30,23 @@ OTHER_FEATURES = 7
 PREVIEW_FEATURES = 3
 
 
-def observation_size(num_cars: int, num_preview: int) -> int:
-    return OWN_FEATURES + OTHER_FEATURES * (num_cars - 1) + PREVIEW_FEATURES * num_preview
+def observation_size(num_cars: int, num_preview: int, observed_rivals: int | None = None) -> int:
+    """The length of an observation: ``N - 1`` rival blocks, or ``observed_rivals``."""
+    rivals = num_cars - 1 if observed_rivals is None else observed_rivals
+    return OWN_FEATURES + OTHER_FEATURES * rivals + PREVIEW_FEATURES * num_preview
 
 
-def cars_racing(observation: np.ndarray | None, index: int, num_cars: int) -> np.ndarray:
+def cars_racing(observation: np.ndarray | None, index: int, num_cars: int,
+                observed_rivals: int | None = None) -> np.ndarray:
     """Which cars are still racing, ``(num_cars,)`` bool, as car ``index``'s observation says
     (its own entry True). The env's flags describe the cars after the step just taken
     (a car that finished or retired in it is already out). All True when ``observation``
-    is None or not of this layout's size. A transformed observation of the same size (e.g.
-    normalised by a wrapper) cannot be told apart and is read as if raw: planners must be
-    given the env's own observations."""
+    is None or not of this layout's size, and with ``observed_rivals`` (the race's; its
+    blocks do not say which car they describe). A transformed observation of the same size
+    (e.g. normalised by a wrapper) cannot be told apart and is read as if raw: planners must
+    be given the env's own observations."""
     racing = np.ones(num_cars, dtype=bool)
-    if observation is None:
+    if observation is None or observed_rivals is not None:
         return racing
     obs = np.asarray(observation)
     rest = obs.size - observation_size(num_cars, 0)
@@ -54,8 +63,10 @@ def observe(
     track: Track,
     finish_s: jax.Array,
     preview: jax.Array,
+    observed_rivals: int | None = None,
 ) -> jax.Array:
-    """Observations of all cars: ``x (N, 6)``, ``active (N,)`` -> ``(N, obs_size)``."""
+    """Observations of all cars: ``x (N, 6)``, ``active (N,)`` -> ``(N, obs_size)``;
+    ``observed_rivals`` (static): the K nearest rivals' blocks instead of every other car's."""
     num_cars = x.shape[0]
     s, n = x[:, S], x[:, N_LAT]
     to_go = jnp.clip((finish_s - s) / finish_s, 0.0, 1.0)
@@ -74,7 +85,13 @@ def observe(
     )
     # others[i, k] describes car (i + k) % N for k = 1..N-1
     idx = (jnp.arange(num_cars)[:, None] + jnp.arange(1, num_cars)[None, :]) % num_cars
-    xo = x[idx]  # (N, N-1, 6)
+    if observed_rivals is not None:  # the cars of idx by |ds|, nearest first (stable: lower index on ties)
+        cyclic_gap = jnp.abs(track.wrap_ds(x[idx, S] - s[:, None]))
+        by_index = jnp.argsort(idx, axis=1)  # the blocks in index order, so that ties go to the lower index
+        idx = jnp.take_along_axis(idx, by_index, axis=1)
+        nearest = jnp.argsort(jnp.take_along_axis(cyclic_gap, by_index, axis=1), axis=1, stable=True)
+        idx = jnp.take_along_axis(idx, nearest, axis=1)[:, :observed_rivals]
+    xo = x[idx]  # (N, K, 6)
     others = jnp.stack(
         [
             track.wrap_ds(xo[..., S] - s[:, None]),
@@ -86,7 +103,10 @@ def observe(
             active[idx].astype(x.dtype),
         ],
         axis=-1,
-    ).reshape(num_cars, -1)
+    )
+    if observed_rivals is not None and observed_rivals > num_cars - 1:  # absent cars: zeros, not racing
+        others = jnp.pad(others, ((0, 0), (0, observed_rivals - (num_cars - 1)), (0, 0)))
+    others = others.reshape(num_cars, -1)
     s_ahead = s[:, None] + preview[None, :]
     ahead = jnp.stack(
         [track.kappa_at(s_ahead), track.width_left_at(s_ahead), track.width_right_at(s_ahead)],

@@ -70,6 +70,10 @@ class RaceParams(NamedTuple):
         max_steps: steps after which a race is truncated (int32 scalar).
         starts: the scenario's start distribution, which :func:`draw_start` draws from
             (:class:`racing_env.starts.Starts`).
+        rival_slots: the observation's rival blocks, of which only the shape is read (it is
+            static under ``jit``): ``(K,)`` for the K nearest rivals
+            (``RaceConfig.observed_rivals``), ``(0,)`` (the default) for every other car in
+            index order (:mod:`racing_env.observation`).
 
     ``max_steps_in_episode`` (gymnax's name for the step limit) is ``max_steps``, and
     :meth:`replace` takes either name, as gymnax's params' ``replace`` does.
@@ -81,6 +85,12 @@ class RaceParams(NamedTuple):
     rules: RaceRules
     max_steps: jax.Array
     starts: Starts
+    rival_slots: jax.Array = np.zeros(0)
+
+    @property
+    def observed_rivals(self) -> int | None:
+        """The observation's nearest-rival blocks K, or None: every other car (static)."""
+        return int(self.rival_slots.shape[0]) or None
 
     @property
     def max_steps_in_episode(self) -> jax.Array:
@@ -195,6 +205,7 @@ def race_params(config: RaceConfig, track: Track, game: RaceGame, finish_s: floa
         rules=race_rules(config),
         max_steps=np.int32(config.max_steps),
         starts=scenario_starts(config.scenario, track, config.num_agents, config.vehicles, finish_s),
+        rival_slots=np.zeros(config.observed_rivals or 0),
     )
 
 
@@ -221,7 +232,8 @@ def start(x0: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array, Race
     )
     state = RaceState(x0, status, jnp.zeros((), jnp.int32))
     game = params.game
-    obs = observe(x0, status.active, game.track, params.finish_s, params.preview).astype(jnp.float32)
+    obs = observe(x0, status.active, game.track, params.finish_s, params.preview,
+                  params.observed_rivals).astype(jnp.float32)
     none = jnp.zeros(num, dtype=bool)
     info = RaceInfo(
         s=x0[:, S],
@@ -288,7 +300,8 @@ def step(
     # the status keeps its dtypes (finish_time is the state's float)
     new_status = jax.tree_util.tree_map(lambda new, old: new.astype(old.dtype), verdict.status, status)
     # observed with the cars still racing after this step's verdict
-    obs = observe(x_next, new_status.active, game.track, params.finish_s, params.preview).astype(jnp.float32)
+    obs = observe(x_next, new_status.active, game.track, params.finish_s, params.preview,
+                  params.observed_rivals).astype(jnp.float32)
     info = RaceInfo(
         s=x_next[:, S],
         lap=_lap(params, x_next[:, S]),

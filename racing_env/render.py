@@ -5,13 +5,16 @@ race position, its agent's name and what its planner expects (its plan and its p
 of every other car). :class:`Renderer` draws scenes with Pillow:
 
 - **Cameras.** ``follow`` keeps the cars still racing in a window that zooms with their
-  spread (:func:`follow_view`) and shows the whole circuit as an inset map; ``track``
+  spread (:func:`follow_view`; in a field of more than :data:`FOLLOW_CARS` cars, or with
+  ``follow_car``, the pack around the leader or that car) and shows the whole circuit as an
+  inset map; ``track``
   shows the whole circuit; ``auto`` (the default) follows a field of up to
   :data:`FOLLOW_CARS` cars and shows a bigger one whole where the circuit fits in
   :data:`TRACK_VIEW_MAX` metres.
 - **Labels and heads-up lines**: each car is tagged with its label (the agent's name),
   and a box in the top-left corner gives the time, the leader's lap (or distance) and, per
-  car in race order, its position, speed and gap to the leader.
+  car in race order, its position, speed and gap to the leader [m] (with three cars or more
+  also the interval to the car ahead, in brackets).
 - **Plans** (``plans=True``): a car's own plan as a long-dashed line and its prediction of
   each other car as a short-dashed line, both in the planning car's colour, so whose
   expectation it is reads from the colour and whose trajectory from where it starts.
@@ -97,14 +100,21 @@ def car_polygons(track: Track, x: np.ndarray, vehicles: Any) -> np.ndarray:
     return np.stack([cx[:, None] + c * lx - s * ly, cy[:, None] + s * lx + c * ly], axis=-1)
 
 
-def follow_view(xy: np.ndarray, racing: np.ndarray, leader: int) -> tuple[np.ndarray, float]:
+def follow_view(xy: np.ndarray, racing: np.ndarray, leader: int, focus: int | None = None
+                ) -> tuple[np.ndarray, float]:
     """The follow camera's window: ``(centre (2,), side)`` [m] for car positions ``xy (N, 2)``.
 
     The window holds the cars still ``racing (N,)`` (all cars once none is) with a margin:
     its side is ``1.5 x`` their spread plus :data:`FOLLOW_MARGIN`, at least
     :data:`FOLLOW_MIN_SPAN`. Wider than :data:`FOLLOW_MAX_SPAN`, it stays at that side
-    centred on the ``leader``'s car: the others are on the inset map.
+    centred on the ``leader``'s car: the others are on the inset map. With ``focus`` (a car
+    index) it holds the pack around that car instead: the cars within half of
+    :data:`FOLLOW_MAX_SPAN` of it (the car itself whether racing or not).
     """
+    if focus is not None:
+        near = np.hypot(*(xy - xy[focus]).T) <= 0.5 * FOLLOW_MAX_SPAN
+        racing = (np.asarray(racing) & near) | (np.arange(xy.shape[0]) == focus)
+        leader = focus
     points = xy[racing] if np.any(racing) else xy
     lo, hi = points.min(axis=0), points.max(axis=0)
     side = 1.5 * float(np.max(hi - lo)) + FOLLOW_MARGIN
@@ -140,10 +150,14 @@ class Renderer:
         laps: the race's laps (the heads-up line shows the leader's lap of them), or None
             for a race over a distance.
         finish_s: the finish line's arc length [m] (shown as distance when ``laps`` is None).
+        follow_car: the car the follow camera holds with the pack around it
+            (:func:`follow_view`'s ``focus``); None: in a field of more than
+            :data:`FOLLOW_CARS` cars the pack around the leader, else every car racing.
     """
 
     def __init__(self, track: Track, vehicles: Any, size: int = 512, camera: str = "auto", *,
-                 plans: bool = True, laps: int | None = None, finish_s: float | None = None):
+                 plans: bool = True, laps: int | None = None, finish_s: float | None = None,
+                 follow_car: int | None = None):
         if camera not in CAMERAS:
             raise ValueError(f"camera must be one of {list(CAMERAS)}, got {camera!r}")
         if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or not 32 <= size <= 4096:
@@ -159,6 +173,7 @@ class Renderer:
         steps = np.concatenate([np.diff(self._left, axis=0), np.diff(self._right, axis=0)])
         self._reach = float(np.max(np.hypot(steps[:, 0], steps[:, 1]))) if len(steps) else 0.0
         self.camera = camera
+        self.follow_car = follow_car
         self._fonts = {k: _font(max(9, round(self.size * k / 512))) for k in (11, 13)}
         self._whole_track: Image.Image | None = None
         self._inset: tuple[Image.Image, np.ndarray, float, int] | None = None
@@ -186,7 +201,8 @@ class Renderer:
         racing = np.ones(x.shape[0], bool) if scene.status is None else np.asarray(scene.status) == RACING
         candidates = np.flatnonzero(racing) if racing.any() else np.arange(x.shape[0])
         leader = int(candidates[np.argmax(x[candidates, S])])
-        return follow_view(np.stack([cx, cy], axis=-1), racing, leader)
+        focus = self.follow_car if self.follow_car is not None else (leader if x.shape[0] > FOLLOW_CARS else None)
+        return follow_view(np.stack([cx, cy], axis=-1), racing, leader, focus)
 
     # --- the track ------------------------------------------------------------------------
     def _draw_track(self, draw: ImageDraw.ImageDraw, centre: np.ndarray, span: float) -> None:
@@ -299,11 +315,14 @@ class Renderer:
         elif self.finish_s is not None:
             header.append(f"{max(x[lead, S], 0.0):.0f}/{self.finish_s:.0f} m")
         lines = [("  ".join(header), PANEL_TEXT)] if header else []
+        field = x.shape[0] > 2
         for place, i in enumerate(order, 1):
             state = {FINISHED: "finished", RETIRED: "out"}.get(int(status[i]))
             gap = "" if place == 1 else f"+{x[lead, S] - x[i, S]:.1f} m"
+            if field and place > 2:  # and the interval to the car ahead
+                gap += f" ({x[order[place - 2], S] - x[i, S]:+.1f})"
             lines.append((f"P{place} {labels[i] or f'car_{i}'}  {x[i, V]:4.1f} m/s  {state or gap}", car_colour(i)))
-        font = self._fonts[13]
+        font = self._fonts[13] if x.shape[0] <= 10 else self._fonts[11]
         height = font.size + 4
         width = max(draw.textlength(text, font=font) for text, _ in lines) + 16
         draw.rectangle([0, 0, width, height * len(lines) + 6], fill=PANEL)

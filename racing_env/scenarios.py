@@ -121,10 +121,17 @@ def grid_starts(
     shuffle: bool = True,
 ) -> Starts:
     """The distribution of :func:`grid`: slot k ``k * row_spacing / 2`` metres behind the
-    front, alternately at ``+lateral_offset`` (left) and ``-lateral_offset``, at ``speed``
-    [m/s]; the cars shuffled over the slots (``shuffle``) and jittered (``jitter``: up to
-    +-1 m in s, +-0.3 m in n and +-1 m/s in speed)."""
+    front, alternately at ``+lateral_offset`` (left) and ``-lateral_offset`` (a staggered
+    two-wide grid for any number of cars), at ``speed`` [m/s]; the cars shuffled over the
+    slots (``shuffle``) and jittered (``jitter``: up to +-1 m in s, +-0.3 m in n and +-1 m/s
+    in speed). A grid deeper than the track allows (half its length on a closed track, the
+    track less 20 m to the finish on an open one) is refused, with the most cars it holds."""
     depth = 0.5 * row_spacing * (num_cars - 1)
+    room = 0.5 * float(track.length) - 5.0 if track.closed else float(track.length) - 25.0
+    if depth > room:
+        most = int(room // (0.5 * row_spacing)) + 1 if row_spacing > 0 else num_cars
+        raise ValueError(f"a grid of {num_cars} cars is {depth:g} m deep, more than track {track.name!r} "
+                         f"({float(track.length):g} m) has room for: at most {most} cars here")
     front = _front_of_grid(track, depth)
     slots = np.zeros((num_cars, STATE_DIM))
     for slot in range(num_cars):
@@ -242,14 +249,22 @@ ANYWHERE_MIN_RUN = 100.0
 ANYWHERE_SPEED = (5.0, 19.0)
 
 
+def field_spread(num_cars: int) -> float:
+    """How far behind a scene's reference point [m] the cars of an ``anywhere`` scene start:
+    15 m for up to three cars, 12 m per car beyond two for bigger fields, so that an
+    overlap-free draw stays likely (20 cars: 216 m)."""
+    return max(15.0, 12.0 * (num_cars - 2))
+
+
 def anywhere_starts(track: Track, num_cars: int = 2, finish_s: float | None = None) -> Starts:
-    """The distribution of :func:`anywhere`: :func:`scene_starts` at :data:`ANYWHERE_SPEED`,
-    the reference point at least :data:`ANYWHERE_MIN_RUN` metres before ``finish_s`` [m]."""
+    """The distribution of :func:`anywhere`: :func:`scene_starts` at :data:`ANYWHERE_SPEED`
+    within :func:`field_spread`, the reference point at least :data:`ANYWHERE_MIN_RUN` metres
+    before ``finish_s`` [m]."""
     if finish_s is not None and finish_s <= ANYWHERE_MIN_RUN:
         raise ValueError(f"scenario 'anywhere' places its scenes at least {ANYWHERE_MIN_RUN:g} m before the finish "
                          f"line, which lies at s = {finish_s:g} m: race further (race_distance)")
     s_max = None if finish_s is None else finish_s - ANYWHERE_MIN_RUN
-    return scene_starts(track, num_cars, speed=ANYWHERE_SPEED, s_max=s_max)
+    return scene_starts(track, num_cars, spread=field_spread(num_cars), speed=ANYWHERE_SPEED, s_max=s_max)
 
 
 def anywhere(

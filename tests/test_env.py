@@ -12,6 +12,7 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 import racing_env
 from racing_env import track as tr
 from racing_env.config import RaceConfig
+from racing_env.env import RacingParallelEnv
 from racing_env.observation import cars_racing
 from racing_env.render import plot_race, save_gif
 from racing_env.vehicle import VehicleParams
@@ -683,3 +684,62 @@ def test_envs_of_one_size_share_one_compiled_step():
     race(race_distance=150.0, on_collision="terminate", reward=RewardConfig(progress=1.0, finish=3.0))
     race(laps=3, on_off_track="both")
     assert _race_step._cache_size() == compiled
+
+
+def test_fields_of_up_to_twenty_cars_start_legally_and_refuse_more():
+    from racing_env.config import MAX_CARS
+    from racing_env.physics import footprint_overlap
+    from racing_env.track import straight
+
+    for scenario in ("grid", "anywhere"):
+        env = RacingParallelEnv(RaceConfig(track="trefoil", num_agents=MAX_CARS, scenario=scenario))
+        env.reset(seed=1)
+        x = env.state()
+        assert not np.any(np.asarray(footprint_overlap(x, env.game.vehicles, env.track)))
+        half = np.stack([env.track.width_left_at(x[:, 0]), env.track.width_right_at(x[:, 0])])
+        assert np.all(x[:, 2] < half[0]) and np.all(-x[:, 2] < half[1])
+    with pytest.raises(ValueError, match=r"num_agents must be an integer in \[1, 20\]"):
+        RaceConfig(num_agents=21)
+    with pytest.raises(ValueError, match="at most 9 cars here"):
+        RacingParallelEnv(RaceConfig(track=straight(length=60.0), num_agents=20))
+
+
+def test_the_nearest_rivals_observation_has_one_size_whatever_the_field():
+    """Four cars on the straight, car 0 between car 3 (2 m behind) and car 1 (5 m ahead), car 2
+    far: with two observed rivals car 0 sees car 3 then car 1; a two-car race's observation
+    has the same size, its missing rival a zero block that is not racing."""
+    from racing_env.observation import OTHER_FEATURES, OWN_FEATURES
+
+    x0 = np.zeros((4, 6))
+    x0[:, 0] = [50.0, 55.0, 120.0, 48.0]
+    x0[:, 1] = 10.0
+    env = RacingParallelEnv(RaceConfig(track="straight", num_agents=4, observed_rivals=2))
+    observations, _ = env.reset(seed=0, options={"x0": x0})
+    rivals = observations["car_0"][OWN_FEATURES:OWN_FEATURES + 2 * OTHER_FEATURES].reshape(2, OTHER_FEATURES)
+    np.testing.assert_allclose(rivals[:, 0], [-2.0, 5.0], atol=1e-5)  # ds of car 3, then car 1
+    duel = RacingParallelEnv(RaceConfig(track="straight", num_agents=2, observed_rivals=2))
+    duel_obs, _ = duel.reset(seed=0)
+    assert duel_obs["car_0"].shape == observations["car_0"].shape == env.observation_space("car_0").shape
+    assert np.all(duel_obs["car_0"][OWN_FEATURES + OTHER_FEATURES:OWN_FEATURES + 2 * OTHER_FEATURES] == 0.0)
+    with pytest.raises(ValueError, match="observed_rivals"):
+        RaceConfig(observed_rivals=0)
+
+
+def test_a_ten_car_field_passes_the_api_checks_and_the_camera_follows_a_chosen_car():
+    from gymnasium.utils.env_checker import check_env
+
+    from racing_env.dynamics import N_LAT, S
+    from racing_env.render import FOLLOW_MAX_SPAN
+
+    config = dict(track="trefoil", num_agents=10, observed_rivals=3, max_steps=30)
+    parallel_api_test(RacingParallelEnv(RaceConfig(**config)), num_cycles=5)
+    check_env(racing_env.RaceEnv(**config), skip_render_check=True)
+    env = RacingParallelEnv(RaceConfig(**config, render_mode="rgb_array", camera="follow", follow_car=7))
+    env.reset(seed=2)
+    x = env.state()
+    centre, side = env.renderer.view(env.scene())
+    cx, cy, _ = env.track.to_cartesian(x[:, S], x[:, N_LAT])
+    xy = np.stack([cx, cy], axis=-1)
+    pack = np.hypot(*(xy - xy[7]).T) <= 0.5 * FOLLOW_MAX_SPAN
+    assert np.all(np.abs(xy[pack] - centre) <= 0.5 * side)  # car 7 and the cars around it are in the window
+    assert env.render().shape == (512, 512, 3)

@@ -266,6 +266,8 @@ class RecedingHorizonAgent(BaseAgent):
             }
         self._plan: dict | None = None  # {"us": (T,N,2), "xs": (T+1,N,6), "K": the ego's gains (T,2,6N) | None}
         self._prepared: dict | None = None  # a re-plan set up for a solve elsewhere (prepare_replan)
+        # the env's nearest-rival observation layout, whose blocks do not say which car is out
+        self._observed_rivals = getattr(getattr(env_info, "config", None), "observed_rivals", None)
         self._age = 0  # steps since the stored plan was made
         self._recovering = False  # from a standstill until RECOVERED_SPEED (recovery_track_scale)
 
@@ -356,7 +358,7 @@ class RecedingHorizonAgent(BaseAgent):
         speed, with the cars the observation flags as out of the race as ghosts."""
         if x.shape != (self.game.num_players, 6):
             raise ValueError(f"joint state must have shape ({self.game.num_players}, 6), got {x.shape}")
-        racing = cars_racing(observation, self.index, self.game.num_players)
+        racing = cars_racing(observation, self.index, self.game.num_players, self._observed_rivals)
         if self._games_by_place is not None:
             record["leading"] = self._is_leading(x, racing)
             self.planning_game = self._games_by_place[record["leading"]]
