@@ -9,8 +9,8 @@ as ``racing tournament`` races them. Race-steps per second for each N, the first
 (which compiles) reported apart, and the exponent of the cost of a step in N fitted over
 the fields (:func:`cost_exponent`).
 
-:func:`vector_field_row`: the vectorised env with a field, beside two cars, when the env
-provides :func:`experiments.bench_rl.vector_field_rows`.
+:func:`vector_field_rows`: the vectorised env with a field of coasting cars (random learner
+actions) beside two cars, at the same batch, timed in turns in one run.
 """
 
 from __future__ import annotations
@@ -94,10 +94,28 @@ def field_rows(fields: tuple[int, ...] = FIELDS, steps: int = 40) -> Iterator[di
         yield exponent
 
 
-def bench_field() -> Iterator[dict[str, Any]]:
-    """`racing bench --only field`: :func:`field_rows`, then the vectorised env's field row."""
-    yield from field_rows()
-    from experiments import bench_rl
+def vector_field_rows(cars: tuple[int, ...] = (2, 10), num_envs: int = 256, calls: int = 200,
+                      repeats: int = 3) -> Iterator[dict[str, Any]]:
+    """The vectorised env (``RaceVectorEnv``) of ``num_envs`` races of ``cars`` cars on the
+    trefoil, random learner actions, the other cars coasting: race-steps per second (median
+    of ``repeats`` runs of ``calls`` steps), each field's row with its ratio to the first's."""
+    import gymnasium
 
-    if hasattr(bench_rl, "vector_field_rows"):
-        yield from bench_rl.vector_field_rows()
+    import racing_env  # noqa: F401 - registers racing_env/Race-v0
+    from experiments.bench_rl import _random_action_rate
+
+    first = None
+    for count in cars:
+        envs = gymnasium.make_vec("racing_env/Race-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
+                                  num_agents=count, track="trefoil")
+        rate, rates, compile_s = _random_action_rate(envs, num_envs, calls, repeats)
+        first = first or rate
+        yield {"name": f"vector_env_{count}_cars_B{num_envs}", "cars": count, "races": num_envs,
+               "steps_per_s": rate, "vs_first_field": rate / first, "compile_s": compile_s,
+               "repeats": [round(r) for r in rates]}
+
+
+def bench_field() -> Iterator[dict[str, Any]]:
+    """`racing bench --only field`: :func:`field_rows`, then :func:`vector_field_rows`."""
+    yield from field_rows()
+    yield from vector_field_rows()

@@ -124,11 +124,12 @@ def grid_starts(
     front, alternately at ``+lateral_offset`` (left) and ``-lateral_offset`` (a staggered
     two-wide grid for any number of cars), at ``speed`` [m/s]; the cars shuffled over the
     slots (``shuffle``) and jittered (``jitter``: up to +-1 m in s, +-0.3 m in n and +-1 m/s
-    in speed). A grid deeper than the track allows (half its length on a closed track, the
-    track less 20 m to the finish on an open one) is refused, with the most cars it holds."""
+    in speed). On a closed track a grid deeper than half the lap is refused, with the most
+    cars it holds (on an open one the grid starts at the track's start, and a finish line
+    not ahead of every car is refused where the race is made)."""
     depth = 0.5 * row_spacing * (num_cars - 1)
-    room = 0.5 * float(track.length) - 5.0 if track.closed else float(track.length) - 25.0
-    if depth > room:
+    room = 0.5 * float(track.length) - 5.0
+    if track.closed and depth > room:
         most = int(room // (0.5 * row_spacing)) + 1 if row_spacing > 0 else num_cars
         raise ValueError(f"a grid of {num_cars} cars is {depth:g} m deep, more than track {track.name!r} "
                          f"({float(track.length):g} m) has room for: at most {most} cars here")

@@ -381,7 +381,7 @@ def test_out_of_box_actions_are_clipped(env2):
 @pytest.mark.parametrize(
     "make, message",
     [
-        (lambda: racing_env.parallel_env(num_agents=0), "num_agents must be an integer >= 1"),
+        (lambda: racing_env.parallel_env(num_agents=0), r"num_agents must be an integer in \[1, 20\]"),
         (lambda: tr.straight(width_left=-1.0), r"Track.width_left must be > 0"),
         (lambda: tr.straight(width_right=0.0), r"Track.width_right must be > 0"),
         (lambda: tr.from_centerline(np.arange(20.0), np.zeros(20), np.full(20, 3.0), np.full(20, -1.0),
@@ -700,8 +700,12 @@ def test_fields_of_up_to_twenty_cars_start_legally_and_refuse_more():
         assert np.all(x[:, 2] < half[0]) and np.all(-x[:, 2] < half[1])
     with pytest.raises(ValueError, match=r"num_agents must be an integer in \[1, 20\]"):
         RaceConfig(num_agents=21)
-    with pytest.raises(ValueError, match="at most 9 cars here"):
-        RacingParallelEnv(RaceConfig(track=straight(length=60.0), num_agents=20))
+    angle = np.linspace(0.0, 2.0 * np.pi, 200, endpoint=False)
+    loop = tr.from_centerline(20.0 * np.cos(angle), 20.0 * np.sin(angle), np.full(200, 4.0), np.full(200, 4.0),
+                              closed=True, name="loop")  # a circle of about 126 m
+    most = int((0.5 * float(loop.length) - 5.0) // 4.0) + 1  # slots 4 m apart within half the lap, less 5 m
+    with pytest.raises(ValueError, match=f"at most {most} cars here"):
+        RacingParallelEnv(RaceConfig(track=loop, num_agents=20))
 
 
 def test_the_nearest_rivals_observation_has_one_size_whatever_the_field():
