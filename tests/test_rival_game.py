@@ -8,7 +8,7 @@ import pytest
 
 from planners import ilq, rival_game
 from planners.agents import make_agent
-from planners.agents.field import batch_size, solve_field
+from planners.agents.field import solve_field
 from racing_env import RaceConfig, RaceGame, VehicleParams
 from racing_env.costs import racing_weights
 from racing_env.env import RacingParallelEnv
@@ -112,14 +112,17 @@ def test_with_rivals_at_least_the_field_the_agent_solves_the_whole_game():
     np.testing.assert_array_equal(agent._plan["K"], np.asarray(expected.K)[:, 0])
 
 
-def test_batch_size_pads_to_the_field_or_a_power_of_two():
-    assert [batch_size(m, 10) for m in (10, 9, 6, 5, 3, 1)] == [10, 10, 10, 8, 4, 1]
-
-
-def test_a_fields_batched_replans_are_each_cars_own():
+def test_a_fields_batched_replans_are_each_cars_own(monkeypatch):
     """Four game planners with one rival each: the field's one batched solve gives every car
     the plan its own solve makes (the same iterations; a batch member is compiled in another
-    program, so equal to rounding: 1e-9 of the plans' size), and the cars race on it."""
+    program, so equal to rounding: 1e-9 of the plans' size), and the cars race on it. When a
+    car has left the race the batch keeps its size (no new compile)."""
+    from planners import ilq_batch
+
+    sizes = []
+    real_solve_batch = ilq_batch.solve_batch
+    monkeypatch.setattr(ilq_batch, "solve_batch", lambda p, x0s, *a, **k: sizes.append(len(x0s)) or
+                        real_solve_batch(p, x0s, *a, **k))
     env = RacingParallelEnv(RaceConfig(track="trefoil", num_agents=4, max_steps=3))
     observations, _ = env.reset(seed=1)
     state = env.state()
@@ -144,6 +147,8 @@ def test_a_fields_batched_replans_are_each_cars_own():
         nearest = rival_game.nearest_rivals(env.track, state, i, 1)[0]
         moved = np.any(batched[i]._plan["us"][:, [i, nearest]] != 0.0, axis=(0, 2))
         assert moved.all()
+    solve_field(batched[:3], [observations[a] for a in names[:3]], state)  # car 3 out of the race
+    assert sizes == [4, 4]
 
 
 def _field_races(seeds, cars=4):

@@ -28,16 +28,14 @@ import numpy as np
 from planners import ilq_batch, rival_game
 from planners.ilqr import predict_constant_velocity
 
-__all__ = ["batch_size", "field_batching", "solve_field"]
+__all__ = ["field_batching", "solve_field"]
 
 
-def batch_size(members: int, field: int) -> int:
-    """The batch a group of ``members`` re-plans is solved in, padded so that a race compiles
-    few batch sizes: the field's size ``field`` while more than half of it re-plans, else the
-    next power of two. Padding costs next to nothing on CPU (:func:`_solve_group`)."""
-    if members > field // 2:
-        return max(field, members)
-    return 1 << max(0, (members - 1).bit_length())
+_LARGEST: dict[tuple, int] = {}
+"""The largest batch solved per group key (:func:`_group_key`) in this process: a group's
+batch is padded to it, so that a car that finishes or retires does not cost a compile.
+Padding costs next to nothing when the members are solved one after another
+(:func:`_solve_group`), a duplicate solve each in lock step."""
 
 
 def field_batching(agent: Any, devices) -> str:
@@ -98,12 +96,12 @@ def solve_field(agents: Sequence[Any], observations: Sequence[Any], joint_state:
         local = prepare(observation, joint_state, predicted.get(key))
         if local is not None:
             groups.setdefault(_group_key(agent, local), []).append((position, agent, local))
-    field = len(agents)
     stats: dict[str, Any] = {"batches": 0, "members": 0, "seconds": 0.0, "charged": {}}
-    for members in groups.values():
+    for key, members in groups.items():
         t0 = time.perf_counter()
+        size = _LARGEST[key] = max(len(members), _LARGEST.get(key, 0))
         try:
-            results = _solve_group(members, field)
+            results = _solve_group(members, size)
         except Exception as exc:  # noqa: BLE001 - each agent falls back as after its own failed solve
             results = [exc] * len(members)
         seconds = time.perf_counter() - t0
@@ -116,12 +114,12 @@ def solve_field(agents: Sequence[Any], observations: Sequence[Any], joint_state:
     return stats
 
 
-def _solve_group(members: list[tuple[int, Any, rival_game.LocalGame]], field: int) -> list[Any]:
+def _solve_group(members: list[tuple[int, Any, rival_game.LocalGame]], size: int) -> list[Any]:
     """The single results (NumPy :class:`planners.ilq.SolverResult`) of one group's local games."""
     locals_ = [local for _, _, local in members]
     devices = jax.local_devices()
     count = len(locals_)
-    size = -(-batch_size(count, field) // len(devices)) * len(devices)  # each device's part the same size
+    size = -(-size // len(devices)) * len(devices)  # each device's part the same size
     # the members spread evenly over the devices' parts, so that no part holds only padding
     k = np.arange(count)
     slots = (k % len(devices)) * (size // len(devices)) + k // len(devices)
