@@ -39,6 +39,7 @@ from experiments.runner import JobLog
 from experiments.standings import standings, wilson_interval, won_race  # noqa: F401
 from racing_env.config import MAX_CARS, RETIRING_MODES, RaceConfig
 from racing_env.env import RacingParallelEnv
+from racing_env.render import RACING
 from racing_env.scenarios import FIXED_STARTS, SCENARIOS
 
 RESULTS = "results.jsonl"
@@ -170,20 +171,27 @@ def schedule(config: TournamentConfig) -> list[dict[str, Any]]:
     return races
 
 
-def count_overtakes(s: np.ndarray) -> int:
-    """Position swaps between any two cars along ``s (T, N)`` (sign changes of the gaps)."""
-    return int(overtakes_by_car(s)[0].sum())
+def count_overtakes(s: np.ndarray, racing: np.ndarray | None = None) -> int:
+    """Position swaps between any two cars along ``s (T, N)`` (sign changes of the gaps),
+    while both race (:func:`overtakes_by_car`)."""
+    return int(overtakes_by_car(s, racing)[0].sum())
 
 
-def overtakes_by_car(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def overtakes_by_car(s: np.ndarray, racing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Each car's passes along ``s (T, N)`` (race distance [m]): ``made (N,)``, the times it
     went from behind another car to ahead of it, and ``lost (N,)``, the times another car did
     so to it (sign changes of the pairwise gaps, a step level with a car not counted as a
-    change)."""
-    made = np.zeros(s.shape[1], dtype=int)
-    lost = np.zeros(s.shape[1], dtype=int)
-    for i, j in itertools.combinations(range(s.shape[1]), 2):
-        sign = np.sign(s[:, i] - s[:, j])
+    change). With ``racing (T, N)`` bool (each car still in the race at each step) only the
+    steps from which both cars were still racing count: a car that finished or retired is
+    frozen, and the cars that reach its spot later do not pass it."""
+    T, N = s.shape
+    racing = np.ones((T, N), dtype=bool) if racing is None else np.asarray(racing, dtype=bool)
+    made = np.zeros(N, dtype=int)
+    lost = np.zeros(N, dtype=int)
+    for i, j in itertools.combinations(range(N), 2):
+        both = racing[:, i] & racing[:, j]
+        counted = np.concatenate([[True], both[:-1]])  # step t counts if both raced at t - 1
+        sign = np.sign(s[counted, i] - s[counted, j])
         sign = sign[sign != 0]
         changes = sign[1:][sign[1:] != sign[:-1]]  # the sign after each change: +1 i passed j
         made[i] += int(np.sum(changes > 0))
@@ -264,7 +272,8 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
         gap = {"seconds": finish[second] - finish[winner]}
     else:
         gap = {"metres": float(final_s[winner] - final_s[second])}
-    made, lost = overtakes_by_car(xs[:, :, 0])
+    racing = np.asarray(result.status) == RACING  # (T+1, N): who was still in the race at each step
+    made, lost = overtakes_by_car(xs[:, :, 0], racing)
     cars = []
     for i, (spec, car) in enumerate(zip(lineup, result.summary)):
         agent = agents[i]
@@ -292,7 +301,7 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             "actions_clipped_fraction": summary.get("clipped_fraction"), "error": faults.get(i),
         })
     record = {"steps": result.steps, "order": [lineup[i] for i in order], "gap": gap,
-              "overtakes": count_overtakes(xs[:, :, 0]), "cars": cars}
+              "overtakes": int(made.sum()), "cars": cars}
     if replay:
         from experiments.replay import replay_of
 

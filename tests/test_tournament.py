@@ -495,6 +495,10 @@ def test_passes_are_counted_per_car():
     made, lost = tour.overtakes_by_car(s)
     assert made.tolist() == [2, 2, 0] and lost.tolist() == [1, 1, 2]
     assert tour.count_overtakes(s) == made.sum() == lost.sum() == 4
+    # car 2 finished (frozen) at step 0: the others reaching its spot later do not pass it
+    racing = np.array([[True, True, False]] * 3)
+    made, lost = tour.overtakes_by_car(s, racing)
+    assert made.tolist() == [1, 1, 0] and lost.tolist() == [1, 1, 0]
 
 
 def test_a_fields_leaderboard_rates_agents_by_their_cars_places():
