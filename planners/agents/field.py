@@ -42,9 +42,9 @@ def field_batching(agent: Any, devices) -> str:
     """How a field's batch is solved (:func:`planners.ilq_batch.solve_batch`'s ``batching``):
     in lock step (``"vmap"``) for real-time re-plans (``iterations``), whose members all stop
     at the same iteration cap, so that none waits for another, and which XLA:CPU then runs
-    faster than one after another (docs/performance.md, "Fields"); otherwise the solver's
-    default for the devices (on CPU one after another, each member stopping at its own
-    convergence)."""
+    faster than one after another (docs/performance.md,
+    "Fields (`racing bench --only field`)"); otherwise the solver's default for the devices
+    (on CPU one after another, each member stopping at its own convergence)."""
     if getattr(agent, "iterations", None) is not None:
         return "vmap"
     return ilq_batch.resolve_batching("auto", devices)
