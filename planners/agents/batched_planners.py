@@ -141,11 +141,7 @@ def _solve_joined(planners: list["BatchedPlanner"], requests: list[tuple]) -> li
     slots = (k % len(first.devices)) * per_device + k // len(first.devices)  # spread over the devices' parts
 
     def joined(parts, inert=None):
-        values = np.concatenate(parts)
-        out = np.empty((size,) + values.shape[1:], dtype=values.dtype)
-        out[...] = values[0] if inert is None or first.batching == "vmap" else inert  # as BatchedPlanner._padded
-        out[slots] = values
-        return out
+        return first._padded(np.concatenate(parts), size, slots, inert)
 
     x0s = joined([request[0] for request in requests], inert=np.nan)
     racing = joined([request[1] for request in requests])
