@@ -1,7 +1,9 @@
 """Safe writes to a run's output folder.
 
 - Files written whole or not at all (:func:`replace_atomically`): a reader, or a run
-  interrupted mid-write, finds the old file or the new one, never half of one.
+  interrupted mid-write, finds the old file or the new one, never half of one; a Ctrl-C
+  during the write is held until the file is in place (:func:`interrupts_held`), so the
+  run stops as interrupted, not with the error of a writer cut in half.
 - One writer per folder (:func:`one_writer`): the resumable runs (tournaments, sweeps,
   trainings, exploitability studies) append to the files in their ``--out`` folder and
   resume from what those hold, so two runs writing one folder at once would interleave
@@ -13,6 +15,8 @@ from __future__ import annotations
 
 import contextlib
 import json
+import signal
+import threading
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -20,13 +24,38 @@ LOCK = ".lock"
 """The file in an output folder that a run writing there holds locked."""
 
 
+@contextlib.contextmanager
+def interrupts_held() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) while the block runs, then act on it: the handler that was in
+    place runs once the block has ended (Python's raises ``KeyboardInterrupt`` there).
+
+    A ``KeyboardInterrupt`` raised inside a writer (``zipfile``, ``numpy.savez``) can leave
+    it half closed, and the error its cleanup then raises replaces the interrupt. Outside
+    the main thread (where signal handlers cannot be set) the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[Any] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(frame))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught and callable(previous):
+        previous(signal.SIGINT, caught[0])
+    elif caught and previous == signal.SIG_DFL:
+        raise KeyboardInterrupt
+
+
 def replace_atomically(write: Callable[[Path], Any], path: Path) -> None:
     """``write(partial)`` to ``path`` + ``.partial`` in the same folder, then rename it onto
     ``path``, so a reader (or an interrupted run) never finds a half-written file: the old
-    one stays."""
+    one stays. A Ctrl-C meanwhile takes effect once the file is in place
+    (:func:`interrupts_held`)."""
     partial = path.with_name(path.name + ".partial")
-    write(partial)
-    partial.replace(path)
+    with interrupts_held():
+        write(partial)
+        partial.replace(path)
 
 
 def write_json_atomically(report: Any, path: Path) -> None:

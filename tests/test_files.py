@@ -1,13 +1,15 @@
-"""Safe writes to a run's output folder: one writer at a time."""
+"""Safe writes to a run's output folder: files written whole, one writer at a time."""
 
+import os
 import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from experiments.cli import main
-from experiments.files import LOCK, FolderInUse, one_writer
+from experiments.files import LOCK, FolderInUse, one_writer, replace_atomically
 
 HOLDER = """
 import sys, time
@@ -16,6 +18,29 @@ with one_writer(sys.argv[1], "test run"):
     print("held", flush=True)
     time.sleep(600)
 """
+
+
+def test_a_ctrl_c_during_a_write_stops_the_run_once_the_whole_file_is_in_place(tmp_path):
+    """SIGINT while numpy writes a zip: the file is written whole and replaces the old one,
+    then KeyboardInterrupt (not the zip writer's error of being cut in half)."""
+    path = tmp_path / "arrays.npz"
+    np.savez(path, a=np.zeros(3))
+    new = np.arange(100_000.0)
+
+    def write(partial):
+        with open(partial, "wb") as sink:
+            os.kill(os.getpid(), signal.SIGINT)  # delivered now, in the middle of the writer's work
+            np.savez_compressed(sink, a=new)
+
+    handler = signal.getsignal(signal.SIGINT)
+    if handler is not signal.default_int_handler:
+        pytest.skip("this process does not turn SIGINT into KeyboardInterrupt")
+    with pytest.raises(KeyboardInterrupt):
+        replace_atomically(write, path)
+    with np.load(path) as data:
+        np.testing.assert_array_equal(data["a"], new)
+    assert not path.with_name(path.name + ".partial").exists()
+    assert signal.getsignal(signal.SIGINT) is handler  # the handler is back
 
 
 @pytest.fixture
