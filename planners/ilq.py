@@ -780,7 +780,7 @@ def initial_carry(problem: GameProblem, x0: Array, us0: Array, options: SolverOp
     xs0 = rollout(problem, x0, us0)
     nan_hist = jnp.full((options.max_iterations,), jnp.nan, dtype)
     return SolverCarry(
-        it=jnp.asarray(0),
+        it=jnp.zeros((), int),  # not weakly typed: the same type as after an iteration
         xs=xs0,
         us=us0,
         K=jnp.zeros((T, N, m, x0.shape[0]), dtype),
