@@ -25,8 +25,6 @@ from racing_env.config import RaceConfig
 from racing_env.costs import CostWeights
 from racing_env.observation import cars_racing, observe
 
-# races that run long: compiled with XLA's full optimisations (tests/conftest.py)
-pytestmark = pytest.mark.optimized
 
 
 def test_split_spec():

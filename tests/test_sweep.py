@@ -14,8 +14,6 @@ from experiments.cli import main
 from experiments.sweep import SweepConfig, load_sweep, run_sweep
 from interrupting import ctrl_c_when, start_racing
 
-# races that run long: compiled with XLA's full optimisations (tests/conftest.py)
-pytestmark = pytest.mark.optimized
 
 # Scripted cars on short races: the backends, not the driving, are under test here.
 TINY_TOML = """
