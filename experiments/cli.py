@@ -59,12 +59,17 @@ def _cmd_equilibria(args: argparse.Namespace) -> int:
     return 0
 
 
+TOURNAMENT_AGENTS = ["ilqr", "ilqgame-ol", "ilqgame-fb", "raceline"]  # racing tournament's agents by default
+
+
 def _cmd_tournament(args: argparse.Namespace) -> int:
     from experiments.tournament import TournamentConfig, run_tournament
     from planners.agents import split_spec_list
 
+    lineup = None if args.lineup is None else tuple(split_spec_list(args.lineup))
+    agents = args.agents if args.agents is not None else [] if lineup is not None else TOURNAMENT_AGENTS
     config = TournamentConfig(
-        agents=tuple(split_spec_list(args.agents)),
+        agents=tuple(split_spec_list(agents)), lineup=lineup,
         track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
         cars=args.cars, seed=args.seed, versus=args.versus, max_steps=args.max_steps, step_budget_s=args.step_budget,
         on_collision=args.collision, on_off_track=args.off_track, scenario=args.scenario,
@@ -396,14 +401,18 @@ def build_parser() -> argparse.ArgumentParser:
         "tournament", parents=[cache, backends, recording],
         help="round robin of agents over seeded start grids (resumable; leaderboard, report.html, replays)",
         description="Every combination of --cars agents races on --grids start grids, once per rotation of "
-        "the starting slots (with more --cars than agents: one field of all of them per grid). Results are appended to OUT/results.jsonl as races end, every race's replay to "
+        "the starting slots (with more --cars than agents, or a --lineup: one field per grid). Results are appended to OUT/results.jsonl as races end, every race's replay to "
         "OUT/replays; rerunning the same command resumes. Races run here, on --workers local processes, or on "
         "Ray (--backend ray); the leaderboard is the same. Prints the leaderboard; writes OUT/summary.csv, "
         "leaderboard.json, head_to_head.png, race.gif (the first race, with the planners' plans) and "
         "report.html (open it in a browser). Agent specs: racing agents; guide: docs/sweeps.md.",
     )
-    tour.add_argument("--agents", nargs="+", default=["ilqr", "ilqgame-ol", "ilqgame-fb", "raceline"],
-                      help="agent specs (space- or comma-separated)")
+    tour.add_argument("--agents", nargs="+", default=None,
+                      help="agent specs (space- or comma-separated; default: " + " ".join(TOURNAMENT_AGENTS) + ")")
+    tour.add_argument("--lineup", nargs="+", default=None, metavar="SPEC[*K]",
+                      help="race this field on every grid instead of a round robin: the specs of its cars, SPEC*K "
+                      "for K cars of a spec, e.g. \"ilqgame-fb*4,ilqr*3,lane-keeping*3\" (at most 20 cars); the "
+                      "cars are shuffled over the slots per grid; --agents may be left out, --cars too")
     tour.add_argument("--track", default="trefoil", help="track name (racing tracks lists them) or TUMFTM CSV path (default: trefoil)")
     tour.add_argument("--laps", type=int, default=1, help="laps on closed tracks (default: 1)")
     tour.add_argument("--race-distance", type=float, default=None, help="finish line [m]; overrides --laps")
@@ -411,10 +420,10 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--versus", default=None, metavar="SPEC",
                       help="race every other agent against this one only (a gauntlet), not a full round robin; "
                            "one of --agents (name in any case, options in any order)")
-    tour.add_argument("--cars", type=int, default=2,
-                      help="cars per race (default: 2; at most 20); 1: a time trial, each agent alone on every grid, "
-                      "ranked by mean finish time; more than the agents: one field per grid, every agent a fair "
-                      "share of the cars, shuffled over the slots, rated by its cars' places")
+    tour.add_argument("--cars", type=int, default=None,
+                      help="cars per race (default: 2, or the size of --lineup; at most 20); 1: a time trial, each "
+                      "agent alone on every grid, ranked by mean finish time; more than the agents: one field per "
+                      "grid, every agent a fair share of the cars, shuffled over the slots, rated by its cars' places")
     tour.add_argument("--seed", type=int, default=0, help="tournament seed: it seeds the start grids (default: 0)")
     tour.add_argument("--max-steps", type=int, default=3000,
                       help="truncate races after this many steps of 0.1 s (default: 3000)")

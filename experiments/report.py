@@ -461,14 +461,18 @@ def write_tournament_report(out: Path, config: RaceSpec, board: dict[str, Any], 
     time_trial = config.cars == 1
     planned = config.schedule()
     races = _race_rows(out, records, {race["id"]: k for k, race in enumerate(planned)}, lambda record: record["cars"])
+    field = config.lineup is not None or config.cars > len(config.agents)  # one field per grid
+    lineup = config.lineup
     run = _run_facts(out, config, [
         ("agents", "; ".join(config.agents)),
+        *([("lineup", "; ".join(f"{spec} x{lineup.count(spec)}" for spec in config.agents))]
+          if lineup is not None else []),
         ("format", "time trial: each agent alone" if time_trial else f"{config.cars} cars per race, "
          + (f"every agent against {config.versus}" if config.versus else
-            "a field of all agents per grid" if config.cars > len(config.agents) else "round robin")),
+            "the lineup's field per grid" if lineup is not None else
+            "a field of all agents per grid" if field else "round robin")),
         ("start", f"{config.scenario}, {config.grids} grid(s), seed {config.seed}, "
-         + ("the field shuffled over the slots per grid" if config.cars > len(config.agents)
-            else "every rotation of the slots")),
+         + ("the field shuffled over the slots per grid" if field else "every rotation of the slots")),
     ], len(records), len(planned), TOURNAMENT_FILES)
     rows = [{**row, "rank": k, "ci": _ci_cells(row["win_rate"], *row["win_rate_ci95"])}
             for k, row in enumerate(board["rows"], 1)]
@@ -501,7 +505,9 @@ def write_tournament_report(out: Path, config: RaceSpec, board: dict[str, Any], 
         matrix = [_Column("row ahead of column", lambda i: names[i], kind="name"),
                   *(_Column(name, lambda i, j=j: "-" if i == j else str(wins[i][j]), kind="num")
                     for j, name in enumerate(names))]
-        head_to_head = (_note("Races in which the row agent finished ahead of the column agent.")
+        head_to_head = (_note("Races in which the row agent finished ahead of the column agent"
+                              + (" (in a field, pairs of cars: each car of the row agent with each car of the "
+                                 "column agent in a race)." if field else "."))
                         + _table("head-to-head-table", matrix, range(len(names)))
                         + _png(out, "head_to_head.png", "head-to-head heat map"))
     health_rows = [{"agent": row["agent"], "health": solver_health(
@@ -528,7 +534,7 @@ def write_sweep_report(out: Path, config: RaceSpec, rows: list[dict[str, Any]], 
         replays: at most this many races embedded as GIFs (:func:`pick_replays`).
     """
     out = Path(out)
-    time_trial = len(config.lineup) == 1
+    time_trial = config.cars == 1
     points = config.points()
     names = [name for name, _ in config.parameters]
     planned = config.schedule()
@@ -539,8 +545,9 @@ def write_sweep_report(out: Path, config: RaceSpec, rows: list[dict[str, Any]], 
         ("lineup", "; ".join(f"{k}: {spec}" for k, spec in enumerate(config.lineup))
          + (" (time trial: the agent alone)" if time_trial else "")),
         ("parameters", "; ".join(f"{name} = {list(values)}" for name, values in config.parameters)),
-        ("start", f"{len(points)} point(s) x {config.grids} grid(s) x {len(config.lineup)} rotation(s), "
-                  f"seed {config.seed}"),
+        ("start", f"{len(points)} point(s) x {config.grids} grid(s) x "
+                  + (f"one field of {config.cars} cars shuffled over the slots" if config.field
+                     else f"{len(config.lineup)} rotation(s)") + f", seed {config.seed}"),
     ], len(records), len(planned), SWEEP_FILES)
     rows = [{**row, "ci": _wilson_cells(row["wins"], row["races"])} for row in rows]
     point = [_Column(name, lambda row, name=name: str(points[row["point"]][name])) for name in names]
@@ -555,11 +562,23 @@ def write_sweep_report(out: Path, config: RaceSpec, rows: list[dict[str, Any]], 
                    _value("mean place", "mean_place", "{:.2f}"), _value("margin [s]", "mean_margin_s", "{:+.2f}"),
                    _ratio("finished", "finished"), _ERRORS]
         note = _MARGIN_NOTE
+        if config.cars > 2:  # places say more than wins in a field
+            columns[-3:-3] = [_Column("rivals beaten [95% CI]", lambda row: _share_text(
+                                  {"beaten_share": row.get("beaten_share"),
+                                   "beaten_share_ci95": (row.get("beaten_ci95_low"), row.get("beaten_ci95_high"))}),
+                                  kind="num"),
+                              _Column("passes made/suffered", lambda row: f"{_num(row.get('overtakes'), '{:d}')}/"
+                                      f"{_num(row.get('overtaken'), '{:d}')}", kind="num"),
+                              _value("contact steps", "contact_steps", "{:d}")]
+            note += (" With more than two cars per race: the share of the other agents' cars each agent's cars beat "
+                     "(with a 95% Wilson interval over those pairs), its passes made and suffered and its cars' steps "
+                     "in contact" + ("; in a field, races, wins and places count each car of an agent." if config.field
+                                     else "."))
     plot = _png(out, "sweep.png", "sweep plot: agent 0's results against the first parameter")
     by_agent: dict[tuple[int, int], list[dict[str, Any]]] = {}  # (point, agent index) -> its cars
     for record in records:
-        for index, car in enumerate(record["agents"]):
-            by_agent.setdefault((record["point_index"], index), []).append(car)
+        for index, car in enumerate(record["agents"]):  # a field's cars name their agent (entry)
+            by_agent.setdefault((record["point_index"], car.get("entry", index)), []).append(car)
     health_rows = [{**row, "health": solver_health(by_agent.get((row["point"], row["agent"]), []))} for row in rows]
     return _write_page(
         out, f"Sweep: {' vs '.join(config.lineup)}" + (" (time trial)" if time_trial else ""), run=run,

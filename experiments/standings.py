@@ -39,7 +39,19 @@ def rating_ranks(order: Sequence[str]) -> tuple[list[str], list[float]]:
     """The agents of a race with finishing ``order`` (specs, first first; an agent may drive
     several cars) and their ranks for the Plackett-Luce update: each agent once, ranked by the
     mean place of its cars (equal means are a tie). With one car per agent, the order itself
-    and the ranks 1, 2, ..."""
+    and the ranks 1, 2, ...
+
+    Why one player per agent, ranked by its cars' mean place: an agent's cars are one driver
+    (one spec, the same policy), so they share one rating. Making each car a member of its
+    agent's openskill team would rate the team by the sum of its members' ratings, so an
+    agent with four cars would count as a stronger unit than one with three for the same
+    driving. The best place of its cars is biased the same way: of equally good drivers,
+    the best of four cars beats the best of three more often than not. The mean place is
+    not: where every car of the field is equally good, every car's place has the same
+    distribution, and the mean place of an agent's cars has the same expectation, (N + 1) / 2,
+    whatever their number. So a lineup that gives an agent more cars than another (an
+    explicit lineup, or the extra cars of :func:`experiments.tournament.field_lineup` in
+    one grid) does not favour it."""
     places: dict[str, list[int]] = {}
     for place, spec in enumerate(order, 1):
         places.setdefault(spec, []).append(place)

@@ -14,6 +14,12 @@ is raced on ``grids`` seeded rolling grids, once per rotation of the starting sl
     "agent0.c_collision" = [1.0, 10.0, 100.0]   # cost weight of agent 0's car, wherever it starts
     jerk_weight = [0.01, 0.03]                 # every car's jerk weight r
 
+A lineup entry ``"SPEC*K"`` is K cars of that spec (:func:`experiments.tournament.expand_lineup`),
+one agent of the lineup: a lineup with a count (``lineup = ["ilqgame-fb", "lane-keeping*9"]``)
+races a field, once per grid, its cars shuffled over the starting slots as a tournament's
+fields are (:func:`experiments.tournament.shuffle_field`), instead of once per rotation; an
+``agent<i>.`` parameter then sets every car of entry i, and the summary pools them.
+
 Parameter names: the race's ``track``, ``laps``, ``race_distance``, ``max_steps``,
 ``jerk_weight``, ``on_collision``, ``on_off_track``; ``weights.<field>`` (a
 :class:`racing_env.costs.CostWeights` field, for every car), ``vehicles.<field>`` (a
@@ -49,7 +55,8 @@ from experiments.formatting import mean_or_none, or_dash
 from experiments.jsonl import read_jsonl, settings_json
 from experiments.race_spec import RACE_FIELDS, RaceSpec
 from experiments.runner import JobLog
-from experiments.standings import won_race
+from experiments.standings import wilson_interval, won_race
+from experiments.tournament import expand_lineup, shuffle_field, split_count
 from planners.agents import with_options
 from racing_env.config import RaceConfig, is_number
 from racing_env.costs import CostWeights
@@ -78,11 +85,14 @@ class SweepConfig(RaceSpec):
     Attributes:
         lineup: agent specs by agent index (:func:`planners.agents.make_agent`); agent 0 is
             the subject of the summary, which reports every agent. One spec: a time trial,
-            the agent alone on the track, where a finished lap counts as a win.
+            the agent alone on the track, where a finished lap counts as a win. An entry
+            ``"SPEC*K"`` is K cars of the spec, one agent: a lineup with a count races a
+            field (:attr:`field`), at most :data:`racing_env.config.MAX_CARS` cars.
         parameters: ``(name, values)`` pairs; every combination is a point.
         track, laps, race_distance, max_steps, jerk_weight, on_collision, on_off_track: the
             race (as in tournaments) where a parameter does not set them.
-        grids: seeded start grids per point, each raced once per rotation of the slots.
+        grids: seeded start grids per point, each raced once per rotation of the slots (a
+            field: once, its cars shuffled over the slots, :meth:`field_slots`).
         seed: seeds the grids.
         step_budget_s: an action slower than this loses the race (None: no budget).
     """
@@ -94,8 +104,11 @@ class SweepConfig(RaceSpec):
     step_budget_s: float | None = None
 
     def __post_init__(self) -> None:
+        if isinstance(self.lineup, str) or not all(isinstance(entry, str) for entry in self.lineup):
+            raise ValueError(f"a lineup is a list of agent specs (\"SPEC*K\": K cars), got {self.lineup!r}")
         if len(self.lineup) < 1:
             raise ValueError(f"a lineup needs at least 1 agent spec (1: a time trial), got {list(self.lineup)}")
+        expand_lineup(self.lineup)  # counts and the field's size
         if not _is_int(self.grids) or self.grids < 1:
             raise ValueError(f"grids must be an integer >= 1, got {self.grids!r}")
         if not _is_int(self.seed) or self.seed < 0:
@@ -108,7 +121,7 @@ class SweepConfig(RaceSpec):
         if not self.parameters:
             raise ValueError("a sweep needs a [parameters] table with at least one parameter")
         for name, values in self.parameters:
-            check_parameter_name(name, self.lineup)
+            check_parameter_name(name, self.specs)
             if not isinstance(values, tuple) or not values:
                 raise ValueError(f"parameter {name} needs a non-empty list of values, got {values!r}")
             if name in NUMBER_PARAMETERS or name.partition(".")[2] in CAR_FIELDS:
@@ -124,12 +137,48 @@ class SweepConfig(RaceSpec):
         for point in self.points():  # every value is checked where it is used, before any race
             self.race_config(point, rotation=0)
             # the specs a point's options change (the lineup's own, which may load models, run_sweep checks)
-            check_specs(spec for spec, base in zip(self.lineup_specs(point), self.lineup) if spec != base)
+            check_specs(spec for spec, base in zip(self.lineup_specs(point), self.specs) if spec != base)
+
+    @property
+    def specs(self) -> tuple[str, ...]:
+        """The agents' specs by agent index: the lineup's entries without their counts."""
+        return tuple(split_count(entry)[0] for entry in self.lineup)
+
+    @property
+    def counts(self) -> tuple[int, ...]:
+        """Each agent's number of cars (1 unless its entry says ``*K``)."""
+        return tuple(split_count(entry)[1] for entry in self.lineup)
+
+    @property
+    def cars(self) -> int:
+        """Cars per race."""
+        return sum(self.counts)
+
+    @property
+    def field(self) -> bool:
+        """Whether the lineup gives a count (``"SPEC*K"``): then every grid is raced once,
+        by a field whose cars are shuffled over the slots (:meth:`field_slots`), not once per
+        rotation."""
+        return any("*" in entry for entry in self.lineup)
+
+    def field_slots(self, grid: int) -> list[int]:
+        """The agent index of each starting slot of grid ``grid``'s field: agent 0's cars,
+        then agent 1's, ..., shuffled by :func:`experiments.tournament.shuffle_field` with
+        the sweep's seed (every point races the same order on the same grid)."""
+        return shuffle_field([agent for agent, count in enumerate(self.counts) for _ in range(count)], grid, self.seed)
+
+    def slot_agents(self, job: dict[str, Any]) -> list[int]:
+        """The agent index of each starting slot of a scheduled race: the field's order, or
+        the lineup rotated by the job's ``rotation`` (slot k holds agent ``(k + rotation) % N``)."""
+        if job.get("slots") is not None:
+            return list(job["slots"])
+        cars = len(self.lineup)
+        return [(slot + job["rotation"]) % cars for slot in range(cars)]
 
     def lineup_specs(self, point: dict[str, Any]) -> list[str]:
         """The lineup's specs (by agent index) with the point's agent options added."""
         specs = []
-        for agent, spec in enumerate(self.lineup):
+        for agent, spec in enumerate(self.specs):
             options = {key.split(".", 1)[1]: value for key, value in point.items()
                        if key.startswith(f"agent{agent}.") and key.split(".", 1)[1] not in CAR_FIELDS}
             specs.append(with_options(spec, options))
@@ -144,12 +193,15 @@ class SweepConfig(RaceSpec):
         """Every race of the sweep in a fixed order (:func:`schedule`)."""
         return schedule(self)
 
-    def race_config(self, point: dict[str, Any], rotation: int) -> RaceConfig:
+    def race_config(self, point: dict[str, Any], rotation: int = 0, slots: list[int] | None = None) -> RaceConfig:
         """The race of a point with the lineup rotated by ``rotation`` (slot k holds agent
-        ``(k + rotation) % N``); per-agent weights and car parameters follow their agent
-        into its slot."""
+        ``(k + rotation) % N``), or with agent ``slots[k]`` in slot k (a field,
+        :meth:`slot_agents`); per-agent weights and car parameters follow their agent into
+        its slots."""
         race = dataclasses.replace(self.race_spec(), **{k: v for k, v in point.items() if k in RACE_FIELDS})
-        cars = len(self.lineup)
+        if slots is None:
+            slots = self.slot_agents({"rotation": rotation}) if not self.field else self.field_slots(0)
+        cars = len(slots)
 
         def fields(prefix: str, names: tuple[str, ...]) -> dict[str, Any]:
             return {k.split(".", 1)[1]: v for k, v in point.items()
@@ -157,7 +209,7 @@ class SweepConfig(RaceSpec):
 
         weights, vehicles = [], []
         for slot in range(cars):
-            agent = (slot + rotation) % cars
+            agent = slots[slot]
             weights.append(race.weights().replace(**{**fields("weights.", WEIGHT_FIELDS),
                                                      **fields(f"agent{agent}.", WEIGHT_FIELDS)}))
             vehicles.append(VehicleParams(**{**fields("vehicles.", VEHICLE_FIELDS),
@@ -191,7 +243,8 @@ def _spec_option_types(spec: str) -> dict[str, type]:
 
 
 def check_parameter_name(name: str, lineup: tuple[str, ...]) -> None:
-    """Refuse a parameter the sweep does not know, saying which it does."""
+    """Refuse a parameter the sweep does not know, saying which it does (``lineup``: the
+    agents' specs, without counts)."""
     cars = len(lineup)
     head, _, field = name.partition(".")
     index = head[5:]
@@ -247,10 +300,15 @@ def _flatten(path: Path, table: dict[str, Any], prefix: str = "") -> dict[str, A
 
 
 def schedule(config: SweepConfig) -> list[dict[str, Any]]:
-    """Every race of the sweep in a fixed order: ``id``, point index and values, rotation, grid seed."""
+    """Every race of the sweep in a fixed order: ``id``, point index and values, rotation (a
+    field: ``slots``, the agent index of each starting slot), grid seed."""
     jobs = []
     for index, point in enumerate(config.points()):
         for grid in range(config.grids):
+            if config.field:  # one race of the field per grid
+                jobs.append({"id": f"p{index}/grid{grid}/field", "point_index": index, "point": point,
+                             "slots": config.field_slots(grid), "grid": grid, "seed": config.seed * 10_000 + grid})
+                continue
             for rotation in range(len(config.lineup)):
                 jobs.append({"id": f"p{index}/grid{grid}/r{rotation}", "point_index": index, "point": point,
                              "rotation": rotation, "grid": grid, "seed": config.seed * 10_000 + grid})
@@ -260,18 +318,21 @@ def schedule(config: SweepConfig) -> list[dict[str, Any]]:
 def run_job(config: SweepConfig, job: dict[str, Any], plans: bool = False) -> dict[str, Any]:
     """Race one job and return its record: the job, and per agent (by lineup index) its
     car's result in that race (start place, place, finish time, distance, speed, incidents,
-    errors), and the race's replay (with the planners' plans when ``plans``)."""
+    passes made and suffered, errors), and the race's replay (with the planners' plans
+    when ``plans``). In a field, ``agents`` lists the cars by starting slot instead, each
+    with its agent index (``entry``)."""
     from experiments.tournament import race_lineup
 
-    cars = len(config.lineup)
-    rotation = job["rotation"]
-    order = [(slot + rotation) % cars for slot in range(cars)]  # the agent index in each slot
+    order = config.slot_agents(job)  # the agent index in each slot
     specs = config.lineup_specs(job["point"])
-    record, _ = race_lineup(config.race_config(job["point"], rotation), [specs[a] for a in order],
+    record, _ = race_lineup(config.race_config(job["point"], slots=order), [specs[a] for a in order],
                             job["seed"], step_budget_s=config.step_budget_s, plans=plans)
-    by_agent = [None] * cars
-    for slot, agent in enumerate(order):
-        by_agent[agent] = {**record["cars"][slot], "slot": slot}
+    if config.field:
+        by_agent = [{**car, "slot": slot, "entry": agent} for slot, (car, agent) in enumerate(zip(record["cars"], order))]
+    else:
+        by_agent = [None] * len(order)
+        for slot, agent in enumerate(order):
+            by_agent[agent] = {**record["cars"][slot], "slot": slot}
     return {**job, "steps": record["steps"], "overtakes": record["overtakes"], "gap": record["gap"],
             "agents": by_agent, "replay": record["replay"]}
 
@@ -283,8 +344,12 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
     alone), mean and best finish time of its finished races, overtakes per race, contact steps,
     time off track, errors, and for planners the mean share of re-plans that converged
     (results where it is low are the solver's, not the weights': see
-    docs/experiments/sweep-aggression.md)."""
-    cars = len(config.lineup)
+    docs/experiments/sweep-aggression.md); and the place-based figures a field needs: passes
+    made and suffered (``overtakes``, ``overtaken``; None where a record predates them) and
+    the share of the other agents' cars its cars beat (``beaten`` of ``faced``, with a 95%
+    Wilson interval over those pairs). In a field an agent's cars are pooled: ``races``,
+    wins, places and margins count cars (an agent of three cars on two grids: 6)."""
+    cars = config.cars
     position = {job["id"]: k for k, job in enumerate(schedule(config))}
     by_point: dict[int, list[dict[str, Any]]] = {}
     for record in sorted(records, key=lambda r: position[r["id"]]):  # sums in one order, however they came
@@ -293,14 +358,24 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
     for index, point in enumerate(config.points()):
         races = by_point.get(index, [])
         for agent, spec in enumerate(config.lineup):
-            mine = [r["agents"][agent] for r in races]
+            mine = [car for r in races for car in agent_cars(r, agent)]
             times_of_mine = [car["finish_time"] for car in mine if car["finish_time"] is not None]
             margins = []
+            beaten = faced = 0
             for race in races:
                 times = [car["finish_time"] for car in race["agents"]]
-                if cars > 1 and all(t is not None for t in times):
-                    others = [t for k, t in enumerate(times) if k != agent]
-                    margins.append(float(np.mean(others)) - times[agent])
+                for k, car in enumerate(race["agents"]):
+                    if car.get("entry", k) != agent:
+                        continue
+                    if cars > 1 and all(t is not None for t in times):
+                        others = [t for j, t in enumerate(times) if j != k]
+                        margins.append(float(np.mean(others)) - times[k])
+                    rivals = [other for j, other in enumerate(race["agents"]) if other.get("entry", j) != agent]
+                    faced += len(rivals)
+                    beaten += sum(other["place"] > car["place"] for other in rivals)
+            beaten_lo, beaten_hi = wilson_interval(beaten, faced)
+            passes = [car.get("overtakes") for car in mine]
+            lost = [car.get("overtaken") for car in mine]
             rows.append({
                 "point": index, **point, "agent": agent, "spec": spec, "races": len(mine),
                 "wins": sum(won_race(car, cars) for car in mine),
@@ -313,12 +388,22 @@ def summarize(config: SweepConfig, records: Iterable[dict[str, Any]]) -> list[di
                 "mean_finish_time_s": float(np.mean(times_of_mine)) if times_of_mine else None,
                 "best_finish_time_s": min(times_of_mine) if times_of_mine else None,
                 "overtakes_per_race": float(np.mean([r["overtakes"] for r in races])) if races else None,
+                "overtakes": None if None in passes else sum(passes),
+                "overtaken": None if None in lost else sum(lost),
+                "beaten": beaten, "faced": faced, "beaten_share": beaten / faced if faced else None,
+                "beaten_ci95_low": beaten_lo, "beaten_ci95_high": beaten_hi,
                 "contact_steps": sum(car["collision_steps"] for car in mine),
                 "time_off_track_s": float(sum(car["time_off_track"] for car in mine)),
                 "errors": sum(car["error"] is not None for car in mine),
                 "converged_fraction": mean_or_none(car.get("solver_converged_fraction") for car in mine),
             })
     return rows
+
+
+def agent_cars(record: dict[str, Any], agent: int) -> list[dict[str, Any]]:
+    """The cars of agent ``agent`` (its lineup index) in a sweep's race record: its one car,
+    or in a field (cars by slot, each with its ``entry``) all of its cars."""
+    return [car for k, car in enumerate(record["agents"]) if car.get("entry", k) == agent]
 
 
 def read_results(out: Path) -> list[dict[str, Any]]:
@@ -339,7 +424,7 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
     from racing_env.env import RacingParallelEnv
 
     check_backend(backend, workers)
-    check_specs(config.lineup)
+    check_specs(config.specs)
     # every point's race as the env builds it, so that one it refuses fails before the first
     # race: a track that is not built in and not a readable file, a finish line beyond an
     # open track's end
@@ -376,7 +461,14 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         writer.writeheader()
         writer.writerows(rows)
     names = [name for name, _ in config.parameters]
-    time_trial = len(config.lineup) == 1
+    time_trial = config.cars == 1
+    places = config.cars > 2  # in a field, places say more than wins
+
+    def beaten(row: dict[str, Any]) -> str:
+        if row["beaten_share"] is None:
+            return "-"
+        return f"{row['beaten_share']:.2f} [{row['beaten_ci95_low']:.2f}, {row['beaten_ci95_high']:.2f}]"
+
     columns = [  # (header, cell of a row, shown in a time trial)
         ("agent", lambda row: f"{row['agent']}: {row['spec']}", True),
         ("races", lambda row: str(row["races"]), True),
@@ -385,6 +477,9 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         ("finished", lambda row: f"{row['finished']}/{row['races']}", True),
         ("retired", lambda row: str(row["retired"]), True),
         ("mean place", lambda row: or_dash(row["mean_place"], "{:.2f}"), False),
+        *((("rivals beaten [95% CI]", beaten, False),
+           ("passes made/suffered", lambda row: f"{or_dash(row['overtakes'], '{:d}')}/{or_dash(row['overtaken'], '{:d}')}",
+            False)) if places else ()),
         ("margin [s]", lambda row: or_dash(row["mean_margin_s"], "{:+.2f}"), False),
         ("finish time [s]", lambda row: or_dash(row["mean_finish_time_s"], "{:.2f}"), True),
         ("best [s]", lambda row: or_dash(row["best_finish_time_s"], "{:.2f}"), True),
@@ -407,8 +502,9 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
 
 def plot_sweep(config: SweepConfig, rows: list[dict[str, Any]], path: Path) -> None:
     """Agent 0's results against the first parameter, one line per combination of the
-    others: its win rate, mean margin and contact steps per race; in a time trial, the
-    share of laps finished, the mean finish time and the time off the track per lap."""
+    others: its win rate (with more than two cars, the share of the other agents' cars it
+    beat), mean margin and contact steps per race; in a time trial, the share of laps
+    finished, the mean finish time and the time off the track per lap."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -417,15 +513,18 @@ def plot_sweep(config: SweepConfig, rows: list[dict[str, Any]], path: Path) -> N
     names = [name for name, _ in config.parameters]
     first, rest = names[0], names[1:]
     subject = [row for row in rows if row["agent"] == 0]
-    time_trial = len(config.lineup) == 1
+    time_trial = config.cars == 1
+    places = config.cars > 2
     key = "mean_finish_time_s" if time_trial else "mean_margin_s"
 
     def per_race(row: dict[str, Any], value: float) -> float:
         return value / row["races"] if row["races"] else np.nan
 
     panels = [  # (y label, value of a row)
-        (f"laps finished by {config.lineup[0]}" if time_trial else f"win rate of {config.lineup[0]}",
-         lambda row: per_race(row, row["wins"])),
+        (f"laps finished by {config.lineup[0]}" if time_trial else f"rivals beaten by {config.lineup[0]}" if places
+         else f"win rate of {config.lineup[0]}",
+         lambda row: (np.nan if row["beaten_share"] is None else row["beaten_share"]) if places
+         else per_race(row, row["wins"])),
         ("mean finish time [s]" if time_trial else "mean finish margin [s]",
          lambda row: np.nan if row[key] is None else row[key]),
         ("time off track per lap [s]" if time_trial else "contact steps per race",

@@ -45,7 +45,7 @@ from racing_env.scenarios import FIXED_STARTS, SCENARIOS
 RESULTS = "results.jsonl"
 CONFIG = "tournament.json"
 GIF = "race.gif"
-ADDED_LATER = ("on_collision", "on_off_track", "scenario")  # left out of tournament.json at their defaults
+ADDED_LATER = ("on_collision", "on_off_track", "scenario", "lineup")  # left out of tournament.json at their defaults
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -59,7 +59,14 @@ class TournamentConfig(RaceSpec):
 
     ``cars`` above the number of agents (up to :data:`racing_env.config.MAX_CARS`) races a
     field on every grid (:func:`field_lineup`): every agent drives ``cars // len(agents)`` or
-    one more of the cars.
+    one more of the cars. ``cars`` left out (None) is 2, or the size of ``lineup``.
+
+    ``lineup``: an explicit field instead, the specs of its cars (a spec repeated, or
+    ``"SPEC*K"`` for K cars of it: :func:`expand_lineup`), raced once per grid with its cars
+    shuffled over the slots (:func:`shuffle_field`). ``agents`` may then be left empty (the
+    lineup's distinct specs, in order of first appearance) or name exactly those; ``cars``
+    must be the lineup's size; ``versus`` and the fixed two-car starts do not apply. The
+    lineup is kept expanded, each spec as ``agents`` writes it.
 
     ``jerk_weight`` is the planners' jerk weight r (R = r I) in the race's game; the default
     is :data:`racing_env.costs.RACING_JERK_WEIGHT`, the env's own racing default.
@@ -77,16 +84,21 @@ class TournamentConfig(RaceSpec):
     behind every finisher by distance covered.
     """
 
-    agents: tuple[str, ...]
+    agents: tuple[str, ...] = ()
     grids: int = 2
-    cars: int = 2
+    cars: int | None = None
     seed: int = 0
     step_budget_s: float = 1.0
     versus: str | None = None
     scenario: str = "grid"
+    lineup: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()  # the race's fields
+        if self.lineup is not None:
+            self._set_lineup()
+        elif self.cars is None:
+            object.__setattr__(self, "cars", 2)
         if self.scenario not in SCENARIOS:
             raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {sorted(SCENARIOS)}")
         if self.scenario in FIXED_STARTS and (self.cars != 2 or self.grids != 1):
@@ -119,6 +131,38 @@ class TournamentConfig(RaceSpec):
         if not self.step_budget_s > 0:
             raise ValueError(f"step_budget_s must be > 0 seconds, got {self.step_budget_s}")
 
+    def _set_lineup(self) -> None:
+        """Check ``lineup`` and set the fields it decides: the lineup expanded, each spec as
+        ``agents`` writes it, ``agents`` (its distinct specs when left empty) and ``cars``."""
+        if isinstance(self.lineup, str) or not all(isinstance(entry, str) for entry in self.lineup):
+            raise ValueError(f"lineup must be a sequence of agent specs (\"SPEC*K\": K cars), got {self.lineup!r}")
+        lineup = expand_lineup(self.lineup)
+        firsts: dict[Any, str] = {}  # the first spelling of every agent in the lineup
+        for spec in lineup:
+            firsts.setdefault(normal_spec(spec), spec)
+        agents = tuple(self.agents) or tuple(firsts.values())
+        spelled = {normal_spec(spec): spec for spec in agents}
+        if set(spelled) != set(firsts) or len(spelled) != len(agents):
+            raise ValueError(f"agents must be the lineup's distinct specs (or left out), got agents {list(agents)} "
+                             f"for the lineup's {list(firsts.values())}")
+        if self.cars is not None and self.cars != len(lineup):
+            raise ValueError(f"the lineup has {len(lineup)} cars, but cars (--cars) is {self.cars}: leave cars out "
+                             f"or make it the lineup's size")
+        if self.versus is not None:
+            raise ValueError("a lineup races its whole field on every grid: versus (a gauntlet) does not apply")
+        if self.scenario in FIXED_STARTS:
+            raise ValueError(f"a lineup races one field per grid, from a seeded start: scenario {self.scenario!r} "
+                             f"has one fixed start for each order of two cars; use {sorted(set(SCENARIOS) - set(FIXED_STARTS))}")
+        object.__setattr__(self, "lineup", tuple(spelled[normal_spec(spec)] for spec in lineup))
+        object.__setattr__(self, "agents", agents)
+        object.__setattr__(self, "cars", len(lineup))
+
+    @property
+    def field(self) -> bool:
+        """Whether the races are fields (one per grid: an explicit ``lineup``, or more cars
+        than agents) rather than a round robin of distinct agents."""
+        return self.lineup is not None or self.cars > len(self.agents)
+
     def schedule(self) -> list[dict[str, Any]]:
         """All races in a fixed order (:func:`schedule`)."""
         return schedule(self)
@@ -141,22 +185,61 @@ def field_lineup(agents: Sequence[str], cars: int, grid: int, seed: int) -> list
 
     Every agent gets ``cars // len(agents)`` cars; the ``cars % len(agents)`` left over go to
     the agents ``grid, grid + 1, ...`` (cyclically), so over the grids every agent gets as
-    many extra cars as any other, within one. The cars are then shuffled over the slots by a
-    permutation drawn from ``numpy.random.default_rng([seed, grid])``: no agent always starts
-    in front. Deterministic in ``(agents, cars, grid, seed)``."""
+    many extra cars as any other, within one. The cars are then shuffled over the slots
+    (:func:`shuffle_field`): no agent always starts in front. Deterministic in
+    ``(agents, cars, grid, seed)``."""
     count = len(agents)
     extra = {(grid + r) % count for r in range(cars % count)}
     field = [spec for k, spec in enumerate(agents) for _ in range(cars // count + (k in extra))]
-    order = np.random.default_rng([seed, grid]).permutation(cars)
+    return shuffle_field(field, grid, seed)
+
+
+def shuffle_field(field: Sequence[Any], grid: int, seed: int) -> list[Any]:
+    """``field`` (one entry per car) in the order of grid ``grid``'s starting slots: permuted
+    by ``numpy.random.default_rng([seed, grid]).permutation(len(field))`` (slot k takes entry
+    ``permutation[k]``). A slot is a car's index in the race; the seeded grid start then places
+    the car indices on the grid's rows by a permutation of its own (the grid seed's), so every
+    car's place on the grid is drawn anew for every grid, and ``start_place`` in the records
+    says where each started. Deterministic in ``(field, grid, seed)``."""
+    order = np.random.default_rng([seed, grid]).permutation(len(field))
     return [field[k] for k in order]
+
+
+def expand_lineup(entries: Sequence[str]) -> list[str]:
+    """The cars of a lineup written with counts: ``"SPEC*K"`` is K cars of ``SPEC`` (K an
+    integer >= 1; a spec's own options stay before the count, ``"ilqgame-fb:rivals=3*4"``),
+    any other entry one car. ``["ilqgame-fb*2", "lane-keeping"]`` is
+    ``["ilqgame-fb", "ilqgame-fb", "lane-keeping"]``. Refuses an empty lineup, a bad count
+    and more than :data:`racing_env.config.MAX_CARS` cars."""
+    cars: list[str] = []
+    for entry in entries:
+        spec, count = split_count(entry)
+        cars.extend([spec] * count)
+    if not cars:
+        raise ValueError("a lineup needs at least one car, e.g. \"ilqgame-fb*4,ilqr*3,lane-keeping*3\"")
+    if len(cars) > MAX_CARS:
+        raise ValueError(f"a lineup of {len(cars)} cars; a race has at most {MAX_CARS} (racing_env.config.MAX_CARS)")
+    return cars
+
+
+def split_count(entry: str) -> tuple[str, int]:
+    """``(spec, count)`` of a lineup entry ``"SPEC*K"`` or ``"SPEC"`` (count 1)."""
+    spec, star, count = entry.strip().rpartition("*")
+    if not star:
+        spec, count = entry.strip(), "1"
+    if not spec.strip() or not count.strip().isdigit() or int(count) < 1:
+        raise ValueError(f"lineup entry {entry!r}: write SPEC or SPEC*K with K an integer >= 1 cars of it, "
+                         f"e.g. \"lane-keeping*3\"")
+    return spec.strip(), int(count)
 
 
 def schedule(config: TournamentConfig) -> list[dict[str, Any]]:
     """All races in a fixed order: ``id``, the specs by starting slot, the grid seed."""
     races = []
-    if config.cars > len(config.agents):  # a field per grid
+    if config.field:  # a field per grid
         for grid in range(config.grids):
-            lineup = field_lineup(config.agents, config.cars, grid, config.seed)
+            lineup = (shuffle_field(config.lineup, grid, config.seed) if config.lineup is not None
+                      else field_lineup(config.agents, config.cars, grid, config.seed))
             seed = config.seed * 10_000 + grid
             races.append({"id": f"field{config.cars}@grid{grid}", "lineup": lineup, "seed": seed, "grid": grid})
         return races
@@ -330,8 +413,9 @@ def leaderboard(config: TournamentConfig, records: list[dict[str, Any]]) -> dict
     return standings(config.agents, records, time_trial=config.cars == 1)
 
 
-def plot_head_to_head(table: dict[str, Any], path: Path) -> None:
-    """Heat map: row agent finished ahead of column agent in this many races."""
+def plot_head_to_head(table: dict[str, Any], path: Path, pairs: bool = False) -> None:
+    """Heat map: row agent finished ahead of column agent in this many races (``pairs``: a
+    field's count, pairs of cars, each car of the one with each car of the other in a race)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -348,10 +432,19 @@ def plot_head_to_head(table: dict[str, Any], path: Path) -> None:
     ax.set_xlabel("... finished behind")
     ax.set_ylabel("row agent finished ahead of ...")
     fig.colorbar(image, ax=ax, shrink=0.8)
-    ax.set_title("head to head (races)")
+    ax.set_title("head to head (pairs of cars in a race)" if pairs else "head to head (races)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def _beaten_text(row: dict[str, Any]) -> str:
+    """A leaderboard row's share of rivals beaten with its 95% interval, e.g.
+    ``0.62 [0.51, 0.72]`` (a dash where it faced no rival)."""
+    if row.get("beaten_share") is None:
+        return "-"
+    lo, hi = row["beaten_share_ci95"]
+    return f"{row['beaten_share']:.2f} [{lo:.2f}, {hi:.2f}]"
 
 
 def _certified_cells(board: dict[str, Any]) -> tuple[tuple[str, ...], list[tuple[str, ...]]]:
@@ -438,14 +531,18 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
             raise KeyboardInterrupt  # the races run so far are kept in results.jsonl; no leaderboard
         records = log.records()
         board = leaderboard(config, records)
+        intervals = ("win_rate_ci95", "beaten_share_ci95")  # two columns each in the CSV
         with open(out / "summary.csv", "w", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=[k for k in board["rows"][0] if k != "win_rate_ci95"] + ["ci95_low", "ci95_high"])
+            writer = csv.DictWriter(handle, fieldnames=[k for k in board["rows"][0] if k not in intervals]
+                                    + ["ci95_low", "ci95_high", "beaten_ci95_low", "beaten_ci95_high"])
             writer.writeheader()
             for row in board["rows"]:
-                flat = {k: v for k, v in row.items() if k != "win_rate_ci95"}
-                writer.writerow({**flat, "ci95_low": row["win_rate_ci95"][0], "ci95_high": row["win_rate_ci95"][1]})
+                flat = {k: v for k, v in row.items() if k not in intervals}
+                writer.writerow({**flat, "ci95_low": row["win_rate_ci95"][0], "ci95_high": row["win_rate_ci95"][1],
+                                 "beaten_ci95_low": row["beaten_share_ci95"][0],
+                                 "beaten_ci95_high": row["beaten_share_ci95"][1]})
         if config.cars > 1:
-            plot_head_to_head(board["head_to_head"], out / "head_to_head.png")
+            plot_head_to_head(board["head_to_head"], out / "head_to_head.png", pairs=config.field)
         (out / "leaderboard.json").write_text(json.dumps(board, indent=2))
         written = [out / RESULTS, out / "summary.csv"] + ([out / "head_to_head.png"] if config.cars > 1 else [])
         written += [out / GIF] if (out / GIF).exists() else []
@@ -461,14 +558,19 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
     certified_header, certified = _certified_cells(board)
     limits = any(row.get("mean_limit_ratio") is not None for row in board["rows"])  # circuits with a lap-time limit
-    for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]", "finished",
+    places = config.cars > 2  # in a field, places say more than wins
+    for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]",
+                *(("mean place", "rivals beaten [95% CI]", "passes made/suffered") if places else ()), "finished",
                 *(("retired",) if retire else ()), "margin [s]", *(("x limit",) if limits else ()), "errors", "contacts", "off track", "act [ms]",
                 "converged", *certified_header):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
         lo, hi = row["win_rate_ci95"]
         table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
-                      f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]", f"{row['finished']}/{row['races']}",
+                      f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]",
+                      *((or_dash(row["mean_place"], "{:.2f}"), _beaten_text(row),
+                         f"{row['overtakes']}/{row['overtaken']}") if places else ()),
+                      f"{row['finished']}/{row['races']}",
                       *((str(row["retired"]),) if retire else ()),
                       or_dash(row["mean_margin_s"], "{:+.2f}"),
                       *((or_dash(row.get("mean_limit_ratio"), "{:.3f}"),) if limits else ()),
