@@ -326,3 +326,48 @@ def test_bad_command_lines_fail_before_any_race(tmp_path, capsys):
     assert main(["sweep", str(path), "--out", str(tmp_path / "d")]) == 2
     assert "the finish line at s = 5000 m lies beyond the end of the open track" in capsys.readouterr().err
     assert not any((tmp_path / name / sweep.RESULTS).exists() for name in "abcd")
+
+
+def test_a_lineup_with_counts_sweeps_a_field(tmp_path, capsys):
+    """``"SPEC*K"`` in a sweep's lineup: each point races one field per grid, its five cars
+    shuffled over the slots the same way at every point (on one grid here: the fields'
+    order over the grids is the tournaments' shuffle, tested there); ``agent1.`` sets both of agent 1's
+    cars; the summary pools an agent's cars, and its rivals beaten and passes are those of
+    the records."""
+    path = tmp_path / "field.toml"
+    path.write_text('lineup = ["lane-keeping", "lane-keeping*2", "constant-speed*2"]\ntrack = "straight"\n'
+                    'race_distance = 120.0\nmax_steps = 400\ngrids = 1\n'
+                    '[parameters]\n"agent1.target_speed" = [12.0, 20.0]\n')
+    config = load_sweep(path)
+    assert config.field and config.cars == 5 and config.counts == (1, 2, 2)
+    jobs = sweep.schedule(config)
+    assert [job["id"] for job in jobs] == ["p0/grid0/field", "p1/grid0/field"]
+    assert jobs[0]["slots"] == jobs[1]["slots"] == config.field_slots(0) and sorted(jobs[0]["slots"]) == [0, 1, 1, 2, 2]
+    assert main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 0
+    records = sweep.read_results(tmp_path / "out")
+    rows = json.loads((tmp_path / "out" / "summary.json").read_text())
+    for record in records:
+        speed = record["point"]["agent1.target_speed"]
+        assert [car["entry"] for car in record["agents"]] == record["slots"]
+        assert [car["slot"] for car in record["agents"]] == list(range(5))
+        assert [car["agent"] for car in record["agents"] if car["entry"] == 1] == [
+            f"lane-keeping:target_speed={speed}"] * 2
+    for row in rows:
+        mine = [(car, r) for r in records if r["point_index"] == row["point"]
+                for car in sweep.agent_cars(r, row["agent"])]
+        assert row["races"] == len(mine) == config.counts[row["agent"]]
+        assert row["mean_place"] == pytest.approx(np.mean([car["place"] for car, _ in mine]), rel=1e-15)
+        rivals = [(car, other) for car, r in mine for other in r["agents"] if other["entry"] != row["agent"]]
+        assert (row["beaten"], row["faced"]) == (sum(o["place"] > c["place"] for c, o in rivals), len(rivals))
+        assert row["overtakes"] == sum(car["overtakes"] for car, _ in mine)
+    # the two faster lane keepers beat more of their rivals than at 12 m/s
+    fast, slow = ([row for row in rows if row["agent"] == 1 and row["agent1.target_speed"] == v][0] for v in (20.0, 12.0))
+    assert fast["beaten_share"] > slow["beaten_share"]
+    err = capsys.readouterr().err  # the table's headers wrap in its narrow columns
+    assert "beaten" in err and "made/" in err
+    report = (tmp_path / "out" / "report.html").read_text()
+    assert "one field of 5 cars shuffled over the slots" in report and "rivals beaten" in report
+    with pytest.raises(ValueError, match="at most 20"):
+        SweepConfig(lineup=("lane-keeping*20", "constant-speed"), parameters=(("laps", (1,)),))
+    with pytest.raises(ValueError, match=r"lineup entry 'lane-keeping\*0'"):
+        SweepConfig(lineup=("lane-keeping*0", "constant-speed"), parameters=(("laps", (1,)),))

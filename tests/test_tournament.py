@@ -524,6 +524,10 @@ def test_a_fields_leaderboard_rates_agents_by_their_cars_places():
     assert rows["a"]["rating"] > rows["b"]["rating"]  # a tie, then a win
 
 
+# The default run races a field end to end in test_a_ten_car_lineup_races_end_to_end (the
+# same schedule, records and leaderboard from an explicit lineup); --cars' fields are
+# scheduled by field_lineup, whose default test above checks them.
+@pytest.mark.slow
 def test_a_tournament_of_fields_races_every_agent_in_one_race_per_grid(tmp_path):
     """Six scripted cars from three agents on two grids: every record has six cars of the
     lineup scheduled, each car's passes add up to the race's, and the leaderboard's place
@@ -547,3 +551,70 @@ def test_a_tournament_of_fields_races_every_agent_in_one_race_per_grid(tmp_path)
         assert row["races"] == len(places) == 4 and row["mean_place"] == pytest.approx(np.mean(places), rel=1e-15)
     report = (tmp_path / "report.html").read_text()
     assert "rivals beaten" in report and "a field of all agents per grid" in report
+
+
+def test_a_lineup_names_the_field_with_counts_and_bad_lineups_are_refused():
+    """``"SPEC*K"`` is K cars; the agents are the lineup's distinct specs (written as the
+    lineup first writes them, or as ``agents`` does); every grid races the whole field,
+    shuffled over the slots as ``field_lineup``'s fields are; a round robin's schedule is the
+    one it always was."""
+    assert tour.expand_lineup(["a*2", "b", "c:x=1,y=2*3"]) == ["a", "a", "b", "c:x=1,y=2", "c:x=1,y=2", "c:x=1,y=2"]
+    config = tour.TournamentConfig(lineup=("lane-keeping*4", "LANE-KEEPING:target_speed=20*3", "constant-speed",
+                                           "constant-speed*2"), grids=3, **{k: v for k, v in SHORT.items() if k != "grids"})
+    assert config.agents == ("lane-keeping", "LANE-KEEPING:target_speed=20", "constant-speed") and config.cars == 10
+    assert config.field and [race["id"] for race in config.schedule()] == ["field10@grid0", "field10@grid1", "field10@grid2"]
+    for race in config.schedule():
+        assert sorted(race["lineup"]) == sorted(config.lineup) and race["seed"] == race["grid"]
+        assert race["lineup"] == tour.shuffle_field(config.lineup, race["grid"], seed=0)
+    assert len({tuple(race["lineup"]) for race in config.schedule()}) == 3
+    # agents may name the lineup's specs in another spelling: the lineup takes theirs
+    named = tour.TournamentConfig(agents=("b", "a"), lineup=("A*2", "b"), cars=3)
+    assert named.lineup == ("a", "a", "b") and named.agents == ("b", "a")
+    # without a lineup and with cars <= agents: the round robin, ids and lineups as ever
+    robin = tour.TournamentConfig(agents=("a", "b", "c"))
+    assert robin.cars == 2 and not robin.field
+    assert [race["id"] for race in robin.schedule()[:3]] == ["a|b@grid0", "b|a@grid0", "a|b@grid1"]
+    bad = {"a lineup of 21 cars; a race has at most 20": dict(lineup=("a*11", "b*10")),
+           r"lineup entry 'a\*0'": dict(lineup=("a*0", "b")),
+           r"lineup entry 'a\*two'": dict(lineup=("a*two", "b")),
+           "the lineup has 4 cars, but cars": dict(lineup=("a*2", "b*2"), cars=5),
+           "agents must be the lineup's distinct specs": dict(lineup=("a", "b"), agents=("a", "c")),
+           "versus": dict(lineup=("a", "b"), versus="a"),
+           "fixed start": dict(lineup=("a", "b"), scenario="paper", grids=1),
+           "at least 2 agent specs": dict(lineup=("a*3",))}
+    for message, fields in bad.items():
+        with pytest.raises(ValueError, match=message):
+            tour.TournamentConfig(**fields)
+
+
+def test_a_ten_car_lineup_races_end_to_end(tmp_path, capsys):
+    """``racing tournament --lineup`` with ten scripted cars of three agents on two grids:
+    the records hold the scheduled lineups, the leaderboard's place figures are the records'
+    (each agent's cars pooled, rivals its cars beat counted pair by pair), and the console,
+    the CSV and the report show them."""
+    lineup = "lane-keeping*4,lane-keeping:target_speed=20*3,constant-speed*3"
+    assert main(["tournament", "--lineup", lineup, "--track", "straight", "--race-distance", "120", "--grids", "2",
+                 "--max-steps", "400", "--no-gif", "--out", str(tmp_path)]) == 0
+    config = tour.TournamentConfig(lineup=tuple(lineup.split(",")), grids=2, track="straight", race_distance=120.0,
+                                   max_steps=400)
+    records = tour.load_results(tmp_path)
+    assert [r["id"] for r in records] == ["field10@grid0", "field10@grid1"]
+    board = json.loads((tmp_path / "leaderboard.json").read_text())
+    for record, race in zip(records, config.schedule()):
+        assert [car["agent"] for car in record["cars"]] == race["lineup"]
+        assert sorted(car["place"] for car in record["cars"]) == list(range(1, 11))
+        assert sum(car["overtakes"] for car in record["cars"]) == record["overtakes"]
+    for row in board["rows"]:
+        cars = [(car, r) for r in records for car in r["cars"] if car["agent"] == row["agent"]]
+        assert row["races"] == len(cars) == 2 * config.lineup.count(row["agent"])
+        assert row["mean_place"] == pytest.approx(np.mean([car["place"] for car, _ in cars]), rel=1e-15)
+        beaten = sum(other["place"] > car["place"] for car, r in cars for other in r["cars"]
+                     if other["agent"] != row["agent"])
+        assert (row["beaten"], row["faced"]) == (beaten, sum(10 - config.lineup.count(row["agent"]) for _ in cars))
+        assert row["overtakes"] == sum(car["overtakes"] for car, _ in cars)
+    out = capsys.readouterr().out  # the table's headers wrap in its narrow columns
+    assert "beaten" in out and "made/" in out
+    header = (tmp_path / "summary.csv").read_text().splitlines()[0].split(",")
+    assert {"mean_place", "beaten_share", "beaten_ci95_low", "beaten_ci95_high"} <= set(header)
+    report = (tmp_path / "report.html").read_text()
+    assert "the lineup&#x27;s field per grid" in report and "lane-keeping x4" in report and "pairs of cars" in report
