@@ -680,7 +680,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="races over a grid of settings from a TOML file, on local worker processes or a Ray cluster",
         description="Race a lineup of agents at every combination of the parameters in a TOML file (its keys: "
         "docs/sweeps.md; examples: docs/sweeps/*.toml), on --grids seeded grids per point, once per rotation "
-        "of the starting slots. Records go to OUT/results.jsonl as races end; rerunning the same command resumes. "
+        "of the starting slots (a lineup with counts, \"SPEC*K\" for K cars: one field per grid). Records go to OUT/results.jsonl as races end; rerunning the same command resumes. "
         "Prints a table per point and agent; writes summary.csv, summary.json, sweep.png, report.html and every "
         "race's replay (OUT/replays, for racing replay). Backends: local "
         "(--workers processes; 1 runs in this process) or ray (--address of a running cluster, or a local one "

@@ -9,8 +9,9 @@ identical for the same configuration whether or not the run was interrupted.
 With ``cars = 1`` it is a time trial: each agent laps alone on every grid, and the
 leaderboard ranks them by mean finish time. With more cars than agents it races fields
 (:func:`field_lineup`): one race per grid whose cars are the agents, each a fair share of
-the field, in an order shuffled per grid; the leaderboard then rates the agents by their
-cars' places (:func:`experiments.standings.standings`).
+the field, in an order shuffled per grid; an explicit ``lineup`` (``"SPEC*K"``: K cars of a
+spec, :func:`expand_lineup`) races that field on every grid, shuffled the same way. The
+leaderboard then rates the agents by their cars' places (:func:`experiments.standings.standings`).
 
 An agent that raises, or whose action takes longer than ``step_budget_s`` (the first
 action of a race is exempt: it may compile), loses that race: it is placed last, the error

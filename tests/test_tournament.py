@@ -618,3 +618,25 @@ def test_a_ten_car_lineup_races_end_to_end(tmp_path, capsys):
     assert {"mean_place", "beaten_share", "beaten_ci95_low", "beaten_ci95_high"} <= set(header)
     report = (tmp_path / "report.html").read_text()
     assert "the lineup&#x27;s field per grid" in report and "lane-keeping x4" in report and "pairs of cars" in report
+
+
+def test_duels_and_round_robins_are_rated_as_one_player_per_car_in_finishing_order():
+    """With one car per agent the place-based rating is openskill's Plackett-Luce update of
+    the finishing order itself, to the bit: the ratings of duels and round robins do not move."""
+    from openskill.models import PlackettLuce
+
+    from experiments.standings import standings
+
+    def car(agent, place):
+        return {"agent": agent, "place": place, "finish_time": 60.0 + place, "error": None, "collision_steps": 0,
+                "time_off_track": 0.0, "act_time_mean_s": 0.01}
+
+    orders = [["a", "b"], ["b", "a"], ["a", "c"], ["c", "b", "a"]]
+    records = [{"order": order, "cars": [car(n, p) for p, n in enumerate(order, 1)]} for order in orders]
+    model = PlackettLuce()
+    ratings = {n: model.rating(name=n) for n in "abc"}
+    for order in orders:
+        for n, [new] in zip(order, model.rate([[ratings[n]] for n in order], ranks=list(range(1, len(order) + 1)))):
+            ratings[n] = new
+    rows = {row["agent"]: row for row in standings(["a", "b", "c"], records, time_trial=False)["rows"]}
+    assert all((rows[n]["rating_mu"], rows[n]["rating_sigma"]) == (ratings[n].mu, ratings[n].sigma) for n in "abc")
