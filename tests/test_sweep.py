@@ -11,6 +11,7 @@ import pytest
 
 from experiments import sweep
 from experiments.cli import main
+from experiments.standings import wilson_interval
 from experiments.sweep import SweepConfig, load_sweep, run_sweep
 from interrupting import ctrl_c_when, start_racing
 
@@ -202,7 +203,11 @@ def test_summary_of_hand_made_records():
                        "mean_margin_s": -1.0,  # only the race both finished counts
                        "mean_finish_time_s": 60.0, "best_finish_time_s": 59.0,
                        "overtakes_per_race": 0.5, "contact_steps": 3, "time_off_track_s": 0.0, "errors": 0,
-                       "converged_fraction": 0.7}
+                       "converged_fraction": 0.7,
+                       "overtakes": None, "overtaken": None,  # records without the cars' passes: older ones
+                       # its car beat the keeper's in the first race, not in the second
+                       "beaten": 1, "faced": 2, "beaten_share": 0.5,
+                       "beaten_ci95_low": wilson_interval(1, 2)[0], "beaten_ci95_high": wilson_interval(1, 2)[1]}
     assert keeper["wins"] == 1 and keeper["mean_margin_s"] == 1.0 and keeper["time_off_track_s"] == 0.4
     assert keeper["finished"] == 1 and keeper["retired"] == 1  # it retired in the second race
     assert keeper["converged_fraction"] is None  # not a planner
@@ -371,3 +376,13 @@ def test_a_lineup_with_counts_sweeps_a_field(tmp_path, capsys):
         SweepConfig(lineup=("lane-keeping*20", "constant-speed"), parameters=(("laps", (1,)),))
     with pytest.raises(ValueError, match=r"lineup entry 'lane-keeping\*0'"):
         SweepConfig(lineup=("lane-keeping*0", "constant-speed"), parameters=(("laps", (1,)),))
+
+
+def test_a_fields_car_parameters_follow_every_car_of_their_agent():
+    """``agent1.v_max`` in a field sets the car of every slot agent 1 holds, and only those."""
+    config = SweepConfig(lineup=("lane-keeping", "constant-speed*2"), parameters=(("agent1.v_max", (30.0,)),),
+                         track="straight", race_distance=120.0)
+    (point,) = config.points()
+    for slots in ([1, 0, 1], [0, 1, 1], config.field_slots(0)):
+        race = config.race_config(point, slots=slots)
+        assert [car.v_max == 30.0 for car in race.vehicles] == [agent == 1 for agent in slots]
