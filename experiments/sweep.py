@@ -56,7 +56,7 @@ from experiments.jsonl import read_jsonl, settings_json
 from experiments.race_spec import RACE_FIELDS, RaceSpec
 from experiments.runner import JobLog
 from experiments.standings import wilson_interval, won_race
-from experiments.tournament import expand_lineup, shuffle_field, split_count
+from experiments.tournament import expand_lineup, has_count, shuffle_field, split_count
 from planners.agents import with_options
 from racing_env.config import RaceConfig, is_number
 from racing_env.costs import CostWeights
@@ -159,7 +159,7 @@ class SweepConfig(RaceSpec):
         """Whether the lineup gives a count (``"SPEC*K"``): then every grid is raced once,
         by a field whose cars are shuffled over the slots (:meth:`field_slots`), not once per
         rotation."""
-        return any("*" in entry for entry in self.lineup)
+        return any(has_count(entry) for entry in self.lineup)
 
     def field_slots(self, grid: int) -> list[int]:
         """The agent index of each starting slot of grid ``grid``'s field: agent 0's cars,

@@ -224,14 +224,22 @@ def expand_lineup(entries: Sequence[str]) -> list[str]:
 
 
 def split_count(entry: str) -> tuple[str, int]:
-    """``(spec, count)`` of a lineup entry ``"SPEC*K"`` or ``"SPEC"`` (count 1)."""
-    spec, star, count = entry.strip().rpartition("*")
-    if not star:
-        spec, count = entry.strip(), "1"
-    if not spec.strip() or not count.strip().isdigit() or int(count) < 1:
+    """``(spec, count)`` of a lineup entry ``"SPEC*K"`` or ``"SPEC"`` (count 1). Only a whole
+    number after the last ``*`` is a count: an entry like ``"rl:runs/a*b/model.zip"`` is one
+    car of that spec."""
+    text = entry.strip()
+    spec, star, count = text.rpartition("*")
+    if not star or not count.strip().isdigit():
+        spec, count = text, "1"
+    if not spec.strip() or int(count) < 1:
         raise ValueError(f"lineup entry {entry!r}: write SPEC or SPEC*K with K an integer >= 1 cars of it, "
                          f"e.g. \"lane-keeping*3\"")
     return spec.strip(), int(count)
+
+
+def has_count(entry: str) -> bool:
+    """Whether a lineup entry gives a count (``"SPEC*K"``, :func:`split_count`)."""
+    return split_count(entry)[0] != entry.strip()
 
 
 def schedule(config: TournamentConfig) -> list[dict[str, Any]]:
