@@ -31,8 +31,9 @@ def interrupts_held() -> Iterator[None]:
 
     A ``KeyboardInterrupt`` raised inside a writer (``zipfile``, ``numpy.savez``) can leave
     it half closed, and the error its cleanup then raises replaces the interrupt. Outside
-    the main thread (where signal handlers cannot be set) the block runs as it is."""
-    if threading.current_thread() is not threading.main_thread():
+    the main thread (where signal handlers cannot be set), or where SIGINT's handler was not
+    set from Python (it could not be put back), the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is None:
         yield
         return
     caught: list[Any] = []
