@@ -16,7 +16,7 @@ from pathlib import Path
 # Agent names (planners.methods, the registry planners.AGENTS), solver modes and SB3 algorithms
 # are written out here and in the choices below (importing planners loads JAX);
 # tests/test_library_surface.py checks them against their definitions.
-DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "raceline")
+DEMO_AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "raceline")  # racing demo's, and racing tournament's by default
 # racing_env.config.INCIDENT_MODES, racing_env.scenarios.SCENARIOS and
 # experiments.rl.train.TRAINING_STARTS (not imported here: JAX)
 INCIDENT_CHOICES = ("penalty", "terminate", "both", "ignore")
@@ -59,15 +59,12 @@ def _cmd_equilibria(args: argparse.Namespace) -> int:
     return 0
 
 
-TOURNAMENT_AGENTS = ["ilqr", "ilqgame-ol", "ilqgame-fb", "raceline"]  # racing tournament's agents by default
-
-
 def _cmd_tournament(args: argparse.Namespace) -> int:
     from experiments.tournament import TournamentConfig, run_tournament
     from planners.agents import split_spec_list
 
     lineup = None if args.lineup is None else tuple(split_spec_list(args.lineup))
-    agents = args.agents if args.agents is not None else [] if lineup is not None else TOURNAMENT_AGENTS
+    agents = args.agents if args.agents is not None else [] if lineup is not None else list(DEMO_AGENTS)
     config = TournamentConfig(
         agents=tuple(split_spec_list(agents)), lineup=lineup,
         track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
@@ -408,7 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
         "report.html (open it in a browser). Agent specs: racing agents; guide: docs/sweeps.md.",
     )
     tour.add_argument("--agents", nargs="+", default=None,
-                      help="agent specs (space- or comma-separated; default: " + " ".join(TOURNAMENT_AGENTS) + ")")
+                      help="agent specs (space- or comma-separated; default: " + " ".join(DEMO_AGENTS) + ")")
     tour.add_argument("--lineup", nargs="+", default=None, metavar="SPEC[*K]",
                       help="race this field on every grid instead of a round robin: the specs of its cars, SPEC*K "
                       "for K cars of a spec, e.g. \"ilqgame-fb*4,ilqr*3,lane-keeping*3\" (at most 20 cars); the "
