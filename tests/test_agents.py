@@ -85,11 +85,11 @@ def test_short_race_trefoil(spec):
         assert record.summary[0]["time_off_track"] == 0.0
 
 
-# the open-loop game on Monza in the slow run: it races the trefoil above by default, and
-# the circuit's data reach the three planners through the same game (iLQR and the feedback
-# game race Monza here)
-@pytest.mark.parametrize("spec", [pytest.param(spec, marks=pytest.mark.slow) if spec == "ilqgame-ol" else spec
-                                  for spec in ALL_SPECS])
+# the open-loop game and iLQR on Monza in the slow run: they race the trefoil above by
+# default, the circuit's data reach the three planners through the same game (the feedback
+# game races Monza here), and iLQR gets through Monza's chicane in test_prediction.py
+@pytest.mark.parametrize("spec", [pytest.param(spec, marks=pytest.mark.slow) if spec in ("ilqgame-ol", "ilqr")
+                                  else spec for spec in ALL_SPECS])
 def test_short_race_monza(spec):
     env = racing_env.parallel_env(
         track="Monza", num_agents=2, race_distance=100.0, max_steps=60

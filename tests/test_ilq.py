@@ -402,7 +402,9 @@ def test_feedforward_regularization_keeps_the_feedback_equilibrium(game, feedbac
 
 
 
-@pytest.mark.parametrize("convexify", ["gauss_newton", "none"])  # own-input / general LQ solver
+# own-input / general LQ solver; the general one in the slow run: its damped feed-forward is
+# checked stage by stage in test_lq_game.py (own=False), and the option reaches the LQ solve here
+@pytest.mark.parametrize("convexify", ["gauss_newton", pytest.param("none", marks=pytest.mark.slow)])
 def test_feedforward_regularization_damps_the_first_step_but_not_its_gains(game, convexify):
     first = {name: ilq.solve(game, X0, mode="feedback", convexify=convexify, max_iterations=1, **options)
              for name, options in {"plain": {}, "damped": FEEDFORWARD}.items()}

@@ -391,6 +391,10 @@ def test_overtakes_count_sign_changes():
     assert tour.count_overtakes(s) == 2
 
 
+# slow: a cut last line is dropped (test_jsonl), an interrupted tournament resumes without
+# re-running and matches (test_interrupted_tournament_resumes_without_rerunning_and_matches), and a
+# real process stopped mid-run resumes (test_sweep's Ctrl-C test) by default
+@pytest.mark.slow
 def test_killed_tournament_process_resumes_to_the_same_table(tmp_path):
     """SIGKILL a real `racing tournament` process mid-way, rerun: kept races, same table."""
     args = ["tournament", "--agents", "lane-keeping", "constant-speed", "--track", "trefoil",
