@@ -22,7 +22,8 @@ Legacy emitters: the quick run also compiles with XLA:CPU's fusion emitters off
 before JAX starts): XLA then emits its fusions with its older elemental code generator,
 which compiles a program in about 60% of the time (a thousand small eager operations: 20 s
 -> 12 s; the solver tests of ``test_ilq.py``: -27%). The same HLO is computed, its
-rounding may differ in the last bits; ``make test-all`` keeps XLA's default.
+rounding may differ in the last bits; ``make test-all`` keeps XLA's default. Set only
+for the jaxlib series checked to know the flag (0.10), since XLA aborts on an unknown one.
 
 The cache: every test process (the xdist workers and the subprocesses tests start:
 ``racing`` commands, the docs' code blocks) compiles many of the same solvers (the agents'
@@ -47,6 +48,14 @@ from racing_env.xla_setup import configure_for_racing
 QUICK_COMPILE_VAR = "JAX_DISABLE_MOST_OPTIMIZATIONS"  # what tells subprocesses to compile quickly
 OPTIMIZED_VAR = "RACING_TEST_OPTIMIZED"  # 1: the whole run compiles with XLA's full optimisations
 LEGACY_EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"  # quicker XLA:CPU compiles (module docstring)
+# XLA aborts on a flag its version does not know: set only for the jaxlib series checked to have it
+_LEGACY_EMITTERS_JAXLIB = ("0.10.",)
+
+
+def _jaxlib_has_legacy_emitters_flag() -> bool:
+    import jaxlib
+
+    return getattr(jaxlib, "__version__", "").startswith(_LEGACY_EMITTERS_JAXLIB)
 
 
 def optimized_run() -> bool:
@@ -55,7 +64,8 @@ def optimized_run() -> bool:
 
 
 # XLA reads XLA_FLAGS when its backend starts: before the first JAX computation.
-if not optimized_run() and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+if (not optimized_run() and _jaxlib_has_legacy_emitters_flag()
+        and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", "")):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {LEGACY_EMITTERS_FLAG}".strip()
 # What the commands run with, before the first JAX computation: float64 (the tests' tolerances
 # assume it), the loop kernels and inline dispatch.
