@@ -15,6 +15,15 @@ def mean_or_none(values: Iterable[float | None]) -> float | None:
     return float(np.mean(present)) if present else None
 
 
+def share_with_interval(share: float | None, interval: tuple[float, float] | None) -> str:
+    """A share and its interval as a console table shows them, e.g. ``0.62 [0.51, 0.72]``;
+    ``-`` when there is no share (e.g. an agent that faced no rival)."""
+    if share is None:
+        return "-"
+    lo, hi = interval
+    return f"{share:.2f} [{lo:.2f}, {hi:.2f}]"
+
+
 def or_dash(value: float | None, form: str) -> str:
     """``form`` (a ``str.format`` template such as ``"{:+.2f} s"``) applied to ``value``, or
     ``-`` when there is no value (e.g. a mean over no finished races)."""

@@ -391,13 +391,12 @@ def _value(header: str, key: str, form: str) -> _Column:
     return _Column(header, lambda row: _num(row[key], form), kind="num")
 
 
-def _share_text(row: dict[str, Any]) -> str:
-    """A leaderboard row's ``beaten_share`` with its interval, e.g. ``62% [51-72%]`` (a dash
-    for none, e.g. rows from records before the count)."""
-    share = row.get("beaten_share")
+def _share_text(share: float | None, interval: tuple[float, float] | None) -> str:
+    """A share of rivals beaten with its interval, e.g. ``62% [51-72%]`` (a dash for none,
+    e.g. rows from records before the count)."""
     if share is None:
         return "-"
-    lo, hi = row["beaten_share_ci95"]
+    lo, hi = interval
     return f"{share:.0%} [{lo:.0%}-{hi:.0%}]"
 
 
@@ -461,7 +460,7 @@ def write_tournament_report(out: Path, config: RaceSpec, board: dict[str, Any], 
     time_trial = config.cars == 1
     planned = config.schedule()
     races = _race_rows(out, records, {race["id"]: k for k, race in enumerate(planned)}, lambda record: record["cars"])
-    field = config.lineup is not None or config.cars > len(config.agents)  # one field per grid
+    field = config.field  # one field per grid
     lineup = config.lineup
     run = _run_facts(out, config, [
         ("agents", "; ".join(config.agents)),
@@ -493,7 +492,9 @@ def write_tournament_report(out: Path, config: RaceSpec, board: dict[str, Any], 
                 + _MARGIN_NOTE + _LIMIT_NOTE)
         if config.cars > 2:  # places say more than wins in a field
             columns[4:4] = [_value("mean place", "mean_place", "{:.2f}"),
-                            _Column("rivals beaten [95% CI]", lambda row: _share_text(row), kind="num"),
+                            _Column("rivals beaten [95% CI]", lambda row: _share_text(row.get("beaten_share"),
+                                                                                   row.get("beaten_share_ci95")),
+                                    kind="num"),
                             _Column("passes made/suffered", lambda row: f"{row.get('overtakes', 0)}/{row.get('overtaken', 0)}",
                                     kind="num"),
                             _value("contact steps", "collision_steps", "{:d}")]
@@ -564,8 +565,7 @@ def write_sweep_report(out: Path, config: RaceSpec, rows: list[dict[str, Any]], 
         note = _MARGIN_NOTE
         if config.cars > 2:  # places say more than wins in a field
             columns[-3:-3] = [_Column("rivals beaten [95% CI]", lambda row: _share_text(
-                                  {"beaten_share": row.get("beaten_share"),
-                                   "beaten_share_ci95": (row.get("beaten_ci95_low"), row.get("beaten_ci95_high"))}),
+                                  row.get("beaten_share"), (row.get("beaten_ci95_low"), row.get("beaten_ci95_high"))),
                                   kind="num"),
                               _Column("passes made/suffered", lambda row: f"{_num(row.get('overtakes'), '{:d}')}/"
                                       f"{_num(row.get('overtaken'), '{:d}')}", kind="num"),

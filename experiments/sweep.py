@@ -51,7 +51,7 @@ import numpy as np
 
 from experiments.backends import check_backend
 from experiments.files import one_writer
-from experiments.formatting import mean_or_none, or_dash
+from experiments.formatting import mean_or_none, or_dash, share_with_interval
 from experiments.jsonl import read_jsonl, settings_json
 from experiments.race_spec import RACE_FIELDS, RaceSpec
 from experiments.runner import JobLog
@@ -464,11 +464,6 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
     time_trial = config.cars == 1
     places = config.cars > 2  # in a field, places say more than wins
 
-    def beaten(row: dict[str, Any]) -> str:
-        if row["beaten_share"] is None:
-            return "-"
-        return f"{row['beaten_share']:.2f} [{row['beaten_ci95_low']:.2f}, {row['beaten_ci95_high']:.2f}]"
-
     columns = [  # (header, cell of a row, shown in a time trial)
         ("agent", lambda row: f"{row['agent']}: {row['spec']}", True),
         ("races", lambda row: str(row["races"]), True),
@@ -477,7 +472,8 @@ def _write_summary(config: SweepConfig, rows: list[dict[str, Any]], out: Path, c
         ("finished", lambda row: f"{row['finished']}/{row['races']}", True),
         ("retired", lambda row: str(row["retired"]), True),
         ("mean place", lambda row: or_dash(row["mean_place"], "{:.2f}"), False),
-        *((("rivals beaten [95% CI]", beaten, False),
+        *((("rivals beaten [95% CI]", lambda row: share_with_interval(
+               row["beaten_share"], (row["beaten_ci95_low"], row["beaten_ci95_high"])), False),
            ("passes made/suffered", lambda row: f"{or_dash(row['overtakes'], '{:d}')}/{or_dash(row['overtaken'], '{:d}')}",
             False)) if places else ()),
         ("margin [s]", lambda row: or_dash(row["mean_margin_s"], "{:+.2f}"), False),

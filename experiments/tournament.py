@@ -32,7 +32,7 @@ import numpy as np
 
 from experiments.backends import check_backend
 from experiments.files import one_writer
-from experiments.formatting import or_dash
+from experiments.formatting import or_dash, share_with_interval
 from experiments.jsonl import read_jsonl, settings_json
 from experiments.race_spec import RaceSpec
 from experiments.runner import JobLog
@@ -447,15 +447,6 @@ def plot_head_to_head(table: dict[str, Any], path: Path, pairs: bool = False) ->
     plt.close(fig)
 
 
-def _beaten_text(row: dict[str, Any]) -> str:
-    """A leaderboard row's share of rivals beaten with its 95% interval, e.g.
-    ``0.62 [0.51, 0.72]`` (a dash where it faced no rival)."""
-    if row.get("beaten_share") is None:
-        return "-"
-    lo, hi = row["beaten_share_ci95"]
-    return f"{row['beaten_share']:.2f} [{lo:.2f}, {hi:.2f}]"
-
-
 def _certified_cells(board: dict[str, Any]) -> tuple[tuple[str, ...], list[tuple[str, ...]]]:
     """The ``certified`` column of the tables, ``(header, cells by row)``: empty when no
     agent certified its re-plans."""
@@ -574,10 +565,10 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
                 "converged", *certified_header):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
-        lo, hi = row["win_rate_ci95"]
         table.add_row(str(k), row["agent"], f"{row['rating']:.2f}", f"{row['wins']}/{row['races']}",
-                      f"{row['win_rate']:.2f} [{lo:.2f}, {hi:.2f}]",
-                      *((or_dash(row["mean_place"], "{:.2f}"), _beaten_text(row),
+                      share_with_interval(row["win_rate"], row["win_rate_ci95"]),
+                      *((or_dash(row["mean_place"], "{:.2f}"),
+                         share_with_interval(row.get("beaten_share"), row.get("beaten_share_ci95")),
                          f"{row['overtakes']}/{row['overtaken']}") if places else ()),
                       f"{row['finished']}/{row['races']}",
                       *((str(row["retired"]),) if retire else ()),
