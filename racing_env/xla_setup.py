@@ -109,13 +109,19 @@ def with_loop_kernels(xla_flags: str, threshold_bytes: int = LOOP_KERNEL_BYTES, 
     return " ".join(tokens + [_EXTRA_OPTIONS_FLAG + option])
 
 
-def _jaxlib_knows_ynn_flag() -> bool:
+def _jaxlib_in_series(series: tuple[str, ...]) -> bool:
+    """Whether the installed jaxlib's version starts with one of ``series`` (e.g. ``("0.10.",)``):
+    XLA aborts on a flag its version does not know, so version-bound flags are set only there."""
     try:
         import jaxlib
 
-        return jaxlib.__version__.startswith(_YNN_FLAG_JAXLIB)
+        return jaxlib.__version__.startswith(series)
     except (ImportError, AttributeError):
         return False
+
+
+def _jaxlib_knows_ynn_flag() -> bool:
+    return _jaxlib_in_series(_YNN_FLAG_JAXLIB)
 
 
 def _backend_started() -> bool:

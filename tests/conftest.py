@@ -43,7 +43,7 @@ import pytest
 
 from planners.compile_cache import ENV_VAR, MAX_BYTES, enable_compile_cache
 from planners.devices import use_cpu_cores
-from racing_env.xla_setup import configure_for_racing
+from racing_env.xla_setup import _jaxlib_in_series, configure_for_racing
 
 QUICK_COMPILE_VAR = "JAX_DISABLE_MOST_OPTIMIZATIONS"  # what tells subprocesses to compile quickly
 OPTIMIZED_VAR = "RACING_TEST_OPTIMIZED"  # 1: the whole run compiles with XLA's full optimisations
@@ -52,19 +52,13 @@ LEGACY_EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"  # quicker XLA:CPU 
 _LEGACY_EMITTERS_JAXLIB = ("0.10.",)
 
 
-def _jaxlib_has_legacy_emitters_flag() -> bool:
-    import jaxlib
-
-    return getattr(jaxlib, "__version__", "").startswith(_LEGACY_EMITTERS_JAXLIB)
-
-
 def optimized_run() -> bool:
     """Whether this run compiles with XLA's full optimisations (``RACING_TEST_OPTIMIZED``)."""
     return os.environ.get(OPTIMIZED_VAR, "").strip().lower() in {"1", "true", "yes", "on"}
 
 
 # XLA reads XLA_FLAGS when its backend starts: before the first JAX computation.
-if (not optimized_run() and _jaxlib_has_legacy_emitters_flag()
+if (not optimized_run() and _jaxlib_in_series(_LEGACY_EMITTERS_JAXLIB)
         and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", "")):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {LEGACY_EMITTERS_FLAG}".strip()
 # What the commands run with, before the first JAX computation: float64 (the tests' tolerances
