@@ -11,6 +11,7 @@ import argparse
 import json
 import os
 import sys
+from typing import Any
 from pathlib import Path
 
 # Agent names (planners.methods, the registry planners.AGENTS), solver modes and SB3 algorithms
@@ -59,6 +60,26 @@ def _cmd_equilibria(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_contact_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--contact``, ``--penalties`` and ``--penalty-seconds`` (the race's contact and
+    steward, :class:`experiments.race_spec.RaceSpec`)."""
+    from racing_env.contact import CONTACT_MODES
+    from racing_env.steward import PENALTY_MODES
+
+    parser.add_argument("--contact", default="physics", choices=CONTACT_MODES,
+                        help="physics: cars that meet collide (the default); ghost: they drive through each other")
+    parser.add_argument("--penalties", default="time", choices=PENALTY_MODES,
+                        help="what the steward does to the car that caused a contact incident (docs/rules.md): time "
+                        "(the default: --penalty-seconds added to its race time), drive-through, disqualify (at its "
+                        "third) or none (verdicts recorded only)")
+    parser.add_argument("--penalty-seconds", type=float, default=5.0,
+                        help="seconds per incident with --penalties time (default: 5)")
+
+
+def _contact_fields(args: argparse.Namespace) -> dict[str, Any]:
+    return {"contact": args.contact, "penalties": args.penalties, "penalty_seconds": args.penalty_seconds}
+
+
 def _cmd_tournament(args: argparse.Namespace) -> int:
     from experiments.tournament import TournamentConfig, run_tournament
     from planners.agents import split_spec_list
@@ -69,7 +90,7 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
         agents=tuple(split_spec_list(agents)), lineup=lineup,
         track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
         cars=args.cars, seed=args.seed, versus=args.versus, max_steps=args.max_steps, step_budget_s=args.step_budget,
-        on_collision=args.collision, on_off_track=args.off_track, scenario=args.scenario,
+        on_collision=args.collision, on_off_track=args.off_track, scenario=args.scenario, **_contact_fields(args),
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
     )
     _check_ray(args.backend)
@@ -198,6 +219,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         subprocesses=args.subprocesses,
         normalize=args.normalize,
         on_off_track=args.off_track, on_collision=args.collision, eval_off_track=args.eval_off_track,
+        **_contact_fields(args),
         checkpoint_every=args.checkpoint_every,
         eval_every=args.eval_every, eval_grids=args.eval_grids,
         reward=tuple(parse_reward_weight(text) for text in args.reward or ()), init_model=args.init_model,
@@ -441,6 +463,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "in contact retire and place behind every finisher, by distance)")
     tour.add_argument("--off-track", default="penalty", choices=INCIDENT_CHOICES,
                       help="what leaving the track does, as for --collision (default: penalty)")
+    _add_contact_arguments(tour)
     tour.add_argument("--out", default="runs/tournament", help="output folder (default: runs/tournament)")
     tour.add_argument("--no-gif", action="store_true", help="do not render a GIF of the first race")
     tour.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")
@@ -584,7 +607,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="what leaving the track does in the evaluations (default: the tournaments' rule, "
                        "counted but not ending the race; terminate retires a learner that leaves the track)")
     train.add_argument("--collision", default="penalty", choices=INCIDENT_CHOICES,
-                       help="what contact does in training (default: penalty)")
+                       help="what contact does to the learner's reward in training (default: penalty: the reward's "
+                       "fault and collision terms)")
+    _add_contact_arguments(train)
     train.add_argument("--jerk-weight", type=float, default=None,
                        help="every car's jerk weight r in the race's game, which planner opponents plan with "
                        "(default: 0.01, racing_env.costs.RACING_JERK_WEIGHT, as in tournaments and sweeps)")
@@ -596,7 +621,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--reward", action="append", metavar="TERM=WEIGHT",
                        help="a reward weight of the training race (repeatable): progress (per metre, default 0.1), "
                        "position (per step, times (cars behind - cars ahead)/(N-1), default 0), collision (per step "
-                       "in contact, -5), off_track (per step, -1), finish (times (N - place)/(N - 1), 10), lead (per "
+                       "in contact, 0), fault (per incident the steward finds the learner caused, -10), off_track (per step, -1), finish (times (N - place)/(N - 1), 10), lead (per "
                        "metre gained on the lead over the furthest rival, 0; sums to the lead at the line minus the "
                        "lead at the start), time (per second raced, 0; e.g. -1 charges for time: over a finished "
                        "race it sums to the weight times the finish time)")

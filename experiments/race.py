@@ -31,7 +31,13 @@ class RaceRecord:
         summary: per car: ``agent``, ``position``, ``finished``, ``retired`` (by an incident
             rule), ``finish_time`` [s] (None if not finished), ``distance`` [m],
             ``mean_speed`` [m/s], ``collision_steps``, ``time_off_track`` [s], ``off_track_steps``
-            (the steps after which the car was off the track).
+            (the steps after which the car was off the track), ``penalty`` (the steward's time
+            penalties [s]), ``race_time`` (finish time plus penalties [s], None if not
+            finished: what orders the finishers), ``faults`` (incidents it answered for).
+        incidents: every contact incident, in order: ``step`` (the step it began in, 1 for
+            the first), ``time`` [s], ``cars`` (the pair's indices), ``verdict``
+            (:data:`racing_env.steward.VERDICTS`), ``at_fault`` (the index of the car that
+            answers, None for a racing incident) and ``closing_speed`` [m/s].
         frames: rendered RGB frames (empty unless ``render_every``).
         steps: env steps taken.
         status: ``(T+1, N)`` int8 each car's status at each step
@@ -59,6 +65,7 @@ class RaceRecord:
     plans: list[list[np.ndarray | None]] | None = None
     labels: tuple[str, ...] = ()
     dt: float = 0.1
+    incidents: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
     def scene(self, k: int) -> Scene:
         """What the frame of step ``k`` shows (:class:`racing_env.render.Scene`)."""
@@ -76,6 +83,25 @@ def plan_of(policy: Policy) -> np.ndarray | None:
     if plan is None:
         return None
     return np.asarray(plan)[:, :, [S, N_LAT]].astype(np.float32)
+
+
+def incidents_of(infos: dict[str, dict[str, Any]], index: dict[str, int], step: int, dt: float
+                 ) -> list[dict[str, Any]]:
+    """The incidents that began in step ``step`` (1 for the first) from the env's ``infos``,
+    each once (see :attr:`RaceRecord.incidents`); ``index`` maps agents to car indices."""
+    found = []
+    for agent, info in infos.items():
+        i = index[agent]
+        for incident in info["incidents"]:
+            j = index[incident["with"]]
+            if i < j:
+                other_fault = any(mine["at_fault"] for mine in infos.get(incident["with"], {}).get("incidents", [])
+                                  if mine["with"] == agent)
+                at_fault = i if incident["at_fault"] else (j if other_fault else None)
+                found.append({"step": step, "time": round(step * dt, 9), "cars": [i, j],
+                              "verdict": incident["verdict"], "at_fault": at_fault,
+                              "closing_speed": float(incident["closing_speed"])})
+    return found
 
 
 def _solve_field(policies: Sequence[Policy], observations: Sequence[Any], state: np.ndarray,
@@ -179,6 +205,7 @@ def run_race(
             off_steps[i] += info["off_track"]
             contact_steps[i] += info["collided"]
             last_info[agent] = info
+        record.incidents.extend(incidents_of(infos, index, step + 1, env.config.dt))
         xs.append(env.state())
         standing()
         step += 1
@@ -205,6 +232,9 @@ def run_race(
                 "collision_steps": int(contact_steps[i]),
                 "time_off_track": float(off_steps[i] * dt),
                 "off_track_steps": int(off_steps[i]),
+                "penalty": float(info["penalty"]),
+                "race_time": None if info["finish_time"] is None else info["finish_time"] + float(info["penalty"]),
+                "faults": int(info["faults"]),
             }
         )
     record.xs, record.status, record.position = xs, np.array(status, np.int8), np.array(position, np.int16)

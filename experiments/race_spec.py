@@ -1,7 +1,7 @@
 """The race a tournament, a sweep or a training run races, declared once.
 
 :class:`RaceSpec` holds what the three configurations share about their race (track, length,
-step cap, the planners' jerk weight, incident rules) and checks it once; each
+step cap, the planners' jerk weight, incident rules, contact and the steward's penalties) and checks it once; each
 configuration inherits its fields, so they stay flat keyword arguments
 (``TournamentConfig(agents=..., track="straight", laps=2)``) and flat keys in the
 ``tournament.json``, ``sweep.json`` and ``train.json`` settings files.
@@ -16,6 +16,8 @@ import numbers
 from typing import Any
 
 from racing_env.config import RaceConfig, check_incident_rules, check_race_length
+from racing_env.contact import CONTACT_MODES
+from racing_env.steward import RULES, check_stewarding
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights, racing_weights
 
 
@@ -35,6 +37,13 @@ class RaceSpec:
         on_collision / on_off_track: what contact and leaving the track do
             (:data:`racing_env.config.INCIDENT_MODES`): ``penalty`` (reward term only),
             ``terminate`` (the car retires), ``both`` or ``ignore``.
+        contact: ``physics`` (cars collide, the default) or ``ghost`` (they drive through
+            each other), :data:`racing_env.contact.CONTACT_MODES`.
+        penalties: what the steward does to the car that caused an incident
+            (:data:`racing_env.steward.PENALTY_MODES`; docs/rules.md): ``time`` (the default,
+            ``penalty_seconds`` added to its race time), ``drive-through``, ``disqualify`` or
+            ``none``.
+        penalty_seconds: [s] per incident with ``penalties="time"``.
     """
 
     track: str = "trefoil"
@@ -44,6 +53,9 @@ class RaceSpec:
     jerk_weight: float = RACING_JERK_WEIGHT
     on_collision: str = "penalty"
     on_off_track: str = "penalty"
+    contact: str = "physics"
+    penalties: str = "time"
+    penalty_seconds: float = 5.0
 
     def __post_init__(self) -> None:
         check_race_spec(self)
@@ -64,7 +76,8 @@ class RaceSpec:
         ``render_mode``, ...), which override the spec's (e.g. per-car ``weights``)."""
         race: dict[str, Any] = dict(track=self.track, laps=self.laps, race_distance=self.race_distance,
                                     max_steps=self.max_steps, on_collision=self.on_collision,
-                                    on_off_track=self.on_off_track, weights=self.weights())
+                                    on_off_track=self.on_off_track, weights=self.weights(), contact=self.contact,
+                                    penalties=self.penalties, penalty_seconds=self.penalty_seconds)
         race.update(fields)
         return RaceConfig(num_agents=num_agents, scenario=scenario, **race)
 
@@ -82,3 +95,6 @@ def check_race_spec(spec: RaceSpec) -> None:
     if isinstance(weight, bool) or not isinstance(weight, numbers.Real) or not weight > 0:
         raise ValueError(f"jerk_weight must be a number > 0, got {weight!r}")
     check_incident_rules(on_collision=spec.on_collision, on_off_track=spec.on_off_track)
+    if spec.contact not in CONTACT_MODES:
+        raise ValueError(f"contact must be one of {CONTACT_MODES}, got {spec.contact!r}")
+    check_stewarding(spec.penalties, spec.penalty_seconds, 3, RULES)

@@ -70,7 +70,8 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
     figure of a field, where a win rate says little), passes made and suffered
     (``overtakes``, ``overtaken``), Plackett-Luce rating (openskill, updated once per race
     with each agent ranked by its cars' mean place, :func:`rating_ranks`; ``rating`` is
-    mu - 3 sigma), races finished, retired and faulted, contact steps, mean
+    mu - 3 sigma), races finished, retired and faulted, contact steps, incidents its cars
+    answered for (``faults``), mean
     finish-time margin over the other cars (races all finished), mean and best finish
     time, time off track (seconds, steps and races with any), mean action time, and for planners the mean shares of converged
     and of certified re-plans (None without any). Rows are ranked by rating, or in a time
@@ -83,7 +84,7 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
     model = PlackettLuce()
     ratings = {n: model.rating(name=n) for n in names}
     h2h = np.zeros((len(names), len(names)), dtype=int)
-    stats = {n: {"races": 0, "wins": 0, "finished": 0, "retired": 0, "errors": 0, "collision_steps": 0, "act_times": [],
+    stats = {n: {"races": 0, "wins": 0, "finished": 0, "retired": 0, "errors": 0, "collision_steps": 0, "faults": 0, "act_times": [],
                  "margins": [], "finish_times": [], "limit_ratios": [], "off_track_s": 0.0, "off_track_steps": 0,
                  "off_track_races": 0, "converged": [], "certified": [], "places": [], "beaten": 0, "faced": 0,
                  "overtakes": 0, "overtaken": 0} for n in names}
@@ -122,6 +123,7 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
             st["retired"] += bool(car.get("retired", False))  # records from before incident rules: none
             st["errors"] += car["error"] is not None
             st["collision_steps"] += car["collision_steps"]
+            st["faults"] += car.get("faults", 0)  # records from before the steward: none
             if np.isfinite(car["act_time_mean_s"]):  # NaN: the car faulted before a timed action
                 st["act_times"].append(car["act_time_mean_s"])
             if car.get("solver_converged_fraction") is not None:  # planners only
@@ -148,6 +150,8 @@ def standings(names: Sequence[str], records: Sequence[dict[str, Any]], *, time_t
                      "beaten_share_ci95": [beaten_lo, beaten_hi],
                      "overtakes": st["overtakes"], "overtaken": st["overtaken"], "rating_mu": r.mu, "rating_sigma": r.sigma,
                      "rating": r.mu - 3 * r.sigma, "finished": st["finished"], "retired": st["retired"], "errors": st["errors"], "collision_steps": st["collision_steps"],
+                     # contact incidents the steward found its cars to blame for
+                     "faults": st["faults"],
                      # finish-time lead over the mean of the other cars, in races where all finished
                      "mean_margin_s": float(np.mean(st["margins"])) if st["margins"] else None,
                      # over the races it finished

@@ -316,11 +316,14 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
 
     The record holds the finishing ``order`` (specs), the ``gap`` to the second car (None
     for a lone car, a time trial), the ``overtakes`` and, per car, its place on the grid
-    (``start_place``, 1 = in front), place, finish time, distance, mean speed, contact
+    (``start_place``, 1 = in front), place, finish time (the crossing plus the steward's time
+    penalties; ``crossing_time`` and ``penalty`` apart), incidents it answered for
+    (``faults``), distance, mean speed, contact
     steps, time off track and its steps (``off_track_steps``), its passes made and suffered (``overtakes``, ``overtaken``), whether an incident rule ``retired`` it, action times, solver
     failures, its re-plans' iterations (mean, median, 95th percentile), the shares of its re-plans that converged and (a game agent with ``certify``
     on; else None) that were certified local Nash equilibria (``certified_share``), and the
-    ``error`` of a car that faulted.
+    ``error`` of a car that faulted; and the race's ``incidents``
+    (:attr:`experiments.race.RaceRecord.incidents`).
     Faults are recorded, never raised: a car that raises or blows ``step_budget_s`` is last.
     With ``replay`` the record's ``"replay"`` is the race's :class:`experiments.replay.Replay`
     (with the planners' plans when ``plans``), which :class:`experiments.runner.JobLog`
@@ -348,9 +351,9 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
                       catch_errors=True, plans=plans, labels=lineup)
     xs, faults = result.xs, result.faults
     final_s = xs[-1, :, 0]
-    finish = [car["finish_time"] for car in result.summary]
+    finish = [car["race_time"] for car in result.summary]  # finish time plus the steward's penalties
 
-    def key(i):  # finishers by time, then the rest by distance, faulted cars last
+    def key(i):  # finishers by race time, then the rest by distance, faulted cars last
         return (i in faults, finish[i] is None, finish[i] if finish[i] is not None else -final_s[i])
 
     order = sorted(range(len(lineup)), key=key)
@@ -374,7 +377,9 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
         times = result.act_times[i]
         cars.append({
             "agent": spec, "car": car["agent"], "start_place": start_places[i], "place": places[i],
-            "finish_time": finish[i],
+            # the race time: the crossing plus the steward's time penalties (``penalty``)
+            "finish_time": finish[i], "crossing_time": car["finish_time"], "penalty": car["penalty"],
+            "faults": car["faults"],
             # the finish time over the race's lap-time limit (racing_env.limits.race_limit), and its line
             "limit_ratio": finish[i] / limit[0] if limit is not None and finish[i] is not None else None,
             "limit_time": limit[0] if limit is not None else None, "limit_line": limit[1] if limit is not None else None,
@@ -393,7 +398,7 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             "actions_clipped_fraction": summary.get("clipped_fraction"), "error": faults.get(i),
         })
     record = {"steps": result.steps, "order": [lineup[i] for i in order], "gap": gap,
-              "overtakes": int(made.sum()), "cars": cars}
+              "overtakes": int(made.sum()), "cars": cars, "incidents": result.incidents}
     if replay:
         from experiments.replay import replay_of
 
@@ -561,7 +566,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     places = config.cars > 2  # in a field, places say more than wins
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]",
                 *(("mean place", "rivals beaten [95% CI]", "passes made/suffered") if places else ()), "finished",
-                *(("retired",) if retire else ()), "margin [s]", *(("x limit",) if limits else ()), "errors", "contacts", "off track", "act [ms]",
+                *(("retired",) if retire else ()), "margin [s]", *(("x limit",) if limits else ()), "errors", "contact steps", "at fault", "off track", "act [ms]",
                 "converged", *certified_header):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
@@ -575,7 +580,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
                       or_dash(row["mean_margin_s"], "{:+.2f}"),
                       *((or_dash(row.get("mean_limit_ratio"), "{:.3f}"),) if limits else ()),
                       str(row["errors"]),
-                      str(row["collision_steps"]), or_dash(row.get("off_track_steps"), "{:d}"),
+                      str(row["collision_steps"]), str(row["faults"]), or_dash(row.get("off_track_steps"), "{:d}"),
                       f"{1e3 * row['mean_act_time_s']:.1f}",
                       or_dash(row["converged_fraction"], "{:.0%}"), *certified[k - 1])
     console.print(table)

@@ -7,8 +7,10 @@ from typing import Sequence
 
 import numpy as np
 
+from racing_env.contact import check_contact
 from racing_env.costs import CostWeights, racing_weights
 from racing_env.scenarios import SCENARIOS
+from racing_env.steward import RULES, check_stewarding
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
 
@@ -48,7 +50,8 @@ class RewardConfig:
     Attributes:
         progress: per metre of arc length gained this step.
         position: per step, times ``(cars behind - cars ahead) / (N - 1)``.
-        collision: per step with the car's footprint overlapping another (negative = penalty).
+        collision: per step with the car's footprint touching another's, whoever caused it
+            (negative = penalty; off by default: ``fault`` charges the car that caused it).
         off_track: per step with the car's centre beyond a track boundary.
         finish: on crossing the finish line, times ``(N - place) / (N - 1)`` (winner gets it all;
             a lone car, N = 1, too).
@@ -66,15 +69,18 @@ class RewardConfig:
             with ``time`` it does. Charging time rewards ending the episode early, so pair
             it with ``off_track`` (and ``collision``) penalties, or with ``progress``
             paying more per step at racing speed than ``time`` charges.
+        fault: per contact incident the car answers for, by the steward's verdict
+            (:mod:`racing_env.steward`), charged in the step the incident begins.
     """
 
     progress: float = 0.1
     position: float = 0.0
-    collision: float = -5.0
+    collision: float = 0.0
     off_track: float = -1.0
     finish: float = 10.0
     lead: float = 0.0
     time: float = 0.0
+    fault: float = -10.0
 
 
 MAX_CARS = 20
@@ -106,9 +112,26 @@ class RaceConfig:
         max_steps: steps after which the race is truncated.
         dt: time step [s].
         horizon: planning horizon in steps for the game built from this config.
-        on_collision / on_off_track: what an incident does: ``penalty`` (reward term only,
-            the default), ``terminate`` (the car is out, no penalty), ``both`` or ``ignore``
-            (reported in infos only).
+        on_collision / on_off_track: what an incident does to the cars' rewards and
+            races: ``penalty`` (reward terms only, the default), ``terminate`` (the car is
+            out, no penalty), ``both`` or ``ignore`` (reported in infos only). Contact's own
+            physics and the steward's penalties apply whatever ``on_collision`` says.
+        contact: ``physics`` (the default: cars that meet collide, :mod:`racing_env.contact`)
+            or ``ghost`` (they drive through each other; contact is only detected).
+        restitution: the share ``e`` in ``[0, 1]`` of the closing speed two colliding cars
+            separate with.
+        contact_friction: Coulomb coefficient ``mu >= 0`` of the sliding between two cars
+            in a contact.
+        penalties: what the steward (:mod:`racing_env.steward`) does to a car that caused an
+            incident: ``time`` (the default: ``penalty_seconds`` added to its race time,
+            which orders the finish), ``drive-through``, ``disqualify`` (out at its
+            ``disqualify_after``-th) or ``none`` (verdicts recorded only).
+        penalty_seconds: [s] per incident, with ``penalties="time"``.
+        severity_speed: None (the default): every time penalty is ``penalty_seconds``; a
+            speed [m/s]: the penalty is scaled by the incident's closing speed over it.
+        disqualify_after: at-fault incidents that retire a car, with ``penalties="disqualify"``.
+        rules: the steward's rules that apply, a subset of :data:`racing_env.steward.RULES`
+            (docs/rules.md).
         reward: reward weights.
         preview_distances: distances ahead [m] at which curvature and widths are observed.
         render_mode: None, ``rgb_array`` or ``human``.
@@ -140,6 +163,14 @@ class RaceConfig:
     camera: str = "auto"
     follow_car: int | None = None
     observed_rivals: int | None = None
+    contact: str = "physics"
+    restitution: float = 0.3
+    contact_friction: float = 0.5
+    penalties: str = "time"
+    penalty_seconds: float = 5.0
+    severity_speed: float | None = None
+    disqualify_after: int = 3
+    rules: tuple[str, ...] = RULES
 
     def __post_init__(self) -> None:
         if not isinstance(self.num_agents, (int, np.integer)) or not 1 <= self.num_agents <= MAX_CARS:
@@ -150,6 +181,13 @@ class RaceConfig:
         if not (np.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"dt must be a positive number of seconds, got {self.dt!r}")
         check_incident_rules(on_collision=self.on_collision, on_off_track=self.on_off_track)
+        check_contact(self.contact, self.restitution, self.contact_friction)
+        check_stewarding(self.penalties, self.penalty_seconds, self.disqualify_after, self.rules)
+        object.__setattr__(self, "rules", tuple(self.rules))  # hashable, whatever sequence came in
+        if self.severity_speed is not None and not (is_number(self.severity_speed) and np.isfinite(
+                self.severity_speed) and self.severity_speed > 0):
+            raise ValueError(f"severity_speed must be None (unscaled penalties) or a speed > 0 m/s, "
+                             f"got {self.severity_speed!r}")
         if self.render_mode not in (None, "rgb_array", "human"):
             raise ValueError(f"render_mode must be None, 'rgb_array' or 'human', got {self.render_mode!r}")
         if self.camera not in ("auto", "track", "follow"):

@@ -36,21 +36,31 @@ from racing_env.packing import Layout, pack, unpack
 from racing_env.race import RaceInfo, RaceParams, check_starts_behind, finish_line
 from racing_env.referee import REWARD_TERMS, RaceStatus
 from racing_env.scenarios import make_scenario
+from racing_env.steward import VERDICTS
 from racing_env.starts import fresh_key, key_from_seed
 from racing_env.track import get_track
+
+
+# Columns of the packed rows (:func:`_per_car_rows`): floats, then int32 (N columns each for
+# the pair fields after the per-car ones).
+_FLOAT_COLUMNS = ("finish_time", "reward", *REWARD_TERMS, "penalty", "serving")
+_INT_COLUMNS = ("active", "finished", "out", "place", "position", "collided", "off_track", "lap", "faults")
+_PAIR_INTS = ("contact", "last_contact", "incident", "fault", "rule")
 
 
 def _per_car_rows(params: RaceParams, status: RaceStatus, reward, info: RaceInfo):
     """Per-car results packed into two arrays (two to read back instead of a dozen).
 
-    Returns floats ``(N, 2 + len(REWARD_TERMS))``: finish_time, reward, the reward terms (``REWARD_TERMS``);
-    and int32 ``(N, 8 + N)``: active, finished, out, place, position, collided, off_track,
-    lap, then which cars each one touches.
+    Returns floats ``(N, len(_FLOAT_COLUMNS) + N)``: the columns of ``_FLOAT_COLUMNS``, then the
+    closing speeds of the incidents begun in the step; and int32 ``(N, len(_INT_COLUMNS) + 5 N)``:
+    the columns of ``_INT_COLUMNS``, then the ``(N, N)`` fields of ``_PAIR_INTS``.
     """
-    floats = jnp.concatenate([status.finish_time[:, None], reward[:, None], info.terms], axis=1)
+    floats = jnp.concatenate([status.finish_time[:, None], reward[:, None], info.terms, status.penalty[:, None],
+                              status.serving[:, None], info.incidents.closing], axis=1)
     flags = [status.active, status.finished, status.out, status.place, info.position, info.collided,
-             info.off_track, info.lap]
-    ints = jnp.concatenate([jnp.stack(flags, axis=1), info.contact], axis=1).astype(jnp.int32)
+             info.off_track, info.lap, status.faults]
+    pairs = [info.contact, status.last_contact, info.incidents.incident, info.incidents.fault, info.incidents.rule]
+    ints = jnp.concatenate([jnp.stack(flags, axis=1), *pairs], axis=1).astype(jnp.int32)
     return floats, ints
 
 
@@ -109,8 +119,11 @@ class RacingParallelEnv(ParallelEnv):
     ``game`` is the ``RaceGame`` the planners should use (its weights:
     :meth:`RaceConfig.game_weights`, by default the racing jerk weight). ``infos[agent]`` holds ``s``,
     ``lap``, ``position`` (1 = leading), ``collided``, ``contact_with``, ``off_track``,
-    ``finished``, ``finish_time`` [s] (None until finished), ``out`` (retired by an incident rule) and the
-    ``reward_terms``.
+    ``finished``, ``finish_time`` [s] (None until finished), ``out`` (retired by an incident rule or
+    the steward), ``penalty`` (the steward's time penalties so far [s]), ``faults`` (incidents
+    the car answered for), ``incidents`` (those begun in this step, each a dict: ``with`` the
+    other car, ``verdict`` from :data:`racing_env.steward.VERDICTS`, ``at_fault`` whether this
+    car answers, ``closing_speed`` [m/s]) and the ``reward_terms``.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "name": "racing_v0", "render_fps": 10}
@@ -200,11 +213,7 @@ class RacingParallelEnv(ParallelEnv):
             warnings.warn(f"ignoring unknown reset options {sorted(options)}; allowed: ['x0']", stacklevel=2)
         self._x = x0
         num = self.num_cars
-        self._active = np.ones(num, dtype=bool)
-        self._finished = np.zeros(num, dtype=bool)
-        self._out = np.zeros(num, dtype=bool)
-        self._finish_time = np.full(num, np.nan)
-        self._place = np.zeros(num, dtype=np.int32)
+        self._race_status = RaceStatus(*(np.asarray(a) for a in RaceStatus.start(num, np.float64)))
         self._steps = 0
         self.agents = list(self.possible_agents)
         obs, floats, ints = (
@@ -212,7 +221,7 @@ class RacingParallelEnv(ParallelEnv):
             for a in _race_start(self._constants, self._layout, x0)
         )
         obs = obs.copy()  # writable
-        self._position = ints[:, 4]
+        self._position = ints[:, _INT_COLUMNS.index("position")]
         per_car = self._infos(floats.tolist(), ints.tolist(), with_terms=False)
         infos = {a: per_car[i] for i, a in enumerate(self.agents)}
         observations = {a: obs[self._index[a]] for a in self.agents}
@@ -276,16 +285,14 @@ class RacingParallelEnv(ParallelEnv):
     def step(self, actions: Mapping[str, Any]):
         """Apply normalised jerk actions of all live agents for one time step."""
         normalised = self._checked_actions(actions)  # validates before anything changes
-        out = _race_step(self._constants, self._layout, self._x, self._status(), normalised, self._steps)
+        out = _race_step(self._constants, self._layout, self._x, self._race_status, normalised, self._steps)
         self._steps += 1
         # np.asarray waits for each result; jax.device_get cost about 60 us more per step.
         x, obs, floats, ints = (np.asarray(a) for a in out)
         self._x = x
         obs = obs.copy()  # writable, as users may normalise observations in place
-        flags = ints[:, :3].astype(bool)  # columns of _per_car_rows: active, finished, out, place, ...
-        self._active, self._finished, self._out = flags[:, 0], flags[:, 1], flags[:, 2]
-        self._place, self._position = ints[:, 3], ints[:, 4]
-        self._finish_time = floats[:, 0]  # finish_time, reward, terms
+        self._race_status = self._status_from_rows(floats, ints)
+        self._position = ints[:, _INT_COLUMNS.index("position")]
 
         floats, ints = floats.tolist(), ints.tolist()
         per_car = self._infos(floats, ints, with_terms=True)
@@ -306,8 +313,28 @@ class RacingParallelEnv(ParallelEnv):
         return observations, rewards, terminations, truncations, infos
 
     # --- bookkeeping ----------------------------------------------------------------------
-    def _status(self) -> RaceStatus:
-        return RaceStatus(self._active, self._finished, self._out, self._place, self._finish_time)
+    def _status_from_rows(self, floats: np.ndarray, ints: np.ndarray) -> RaceStatus:
+        """The race's status from the packed rows of :func:`_per_car_rows`."""
+        num = self.num_cars
+        flag = lambda name: ints[:, _INT_COLUMNS.index(name)]  # noqa: E731
+        value = lambda name: floats[:, _FLOAT_COLUMNS.index(name)]  # noqa: E731
+        last = len(_INT_COLUMNS) + num * _PAIR_INTS.index("last_contact")
+        return RaceStatus(
+            active=flag("active").astype(bool), finished=flag("finished").astype(bool), out=flag("out").astype(bool),
+            place=flag("place"), finish_time=value("finish_time"), penalty=value("penalty"), faults=flag("faults"),
+            serving=value("serving"), last_contact=ints[:, last:last + num])
+
+    @property
+    def _active(self) -> np.ndarray:
+        return self._race_status.active
+
+    @property
+    def _finished(self) -> np.ndarray:
+        return self._race_status.finished
+
+    @property
+    def _out(self) -> np.ndarray:
+        return self._race_status.out
 
     def _infos(self, floats: list[list[float]], ints: list[list[int]], with_terms: bool) -> list[dict[str, Any]]:
         """Every car's info dict from the rows of :func:`_per_car_rows` as Python lists
@@ -315,10 +342,14 @@ class RacingParallelEnv(ParallelEnv):
         Python side)."""
         s = self._x[:, S].tolist()
         names = self.possible_agents
+        num, terms_at = self.num_cars, slice(2, 2 + len(REWARD_TERMS))
+        pair = {name: len(_INT_COLUMNS) + num * k for k, name in enumerate(_PAIR_INTS)}
         per_car = []
-        for i in range(self.num_cars):
-            finish_time, _, *terms = floats[i]
-            _, finished, out, _, position, collided, outside, lap, *contact = ints[i]
+        for i in range(num):
+            row, values = ints[i], floats[i]
+            finish_time, penalty, closing = values[0], values[2 + len(REWARD_TERMS)], values[len(_FLOAT_COLUMNS):]
+            _, finished, out, _, position, collided, outside, lap, faults = row[:len(_INT_COLUMNS)]
+            contact = row[pair["contact"]:pair["contact"] + num]
             per_car.append(
                 {
                     "s": s[i],
@@ -331,7 +362,13 @@ class RacingParallelEnv(ParallelEnv):
                     # None until finished (not NaN: NaN != NaN breaks equality checks and JSON)
                     "finish_time": finish_time if finished else None,
                     "out": out == 1,
-                    "reward_terms": dict(zip(REWARD_TERMS, terms)) if with_terms else {},
+                    "penalty": penalty,
+                    "faults": faults,
+                    "incidents": [
+                        {"with": names[j], "verdict": VERDICTS[row[pair["rule"] + j]],
+                         "at_fault": row[pair["fault"] + j] == 1, "closing_speed": closing[j]}
+                        for j in range(num) if row[pair["incident"] + j]],
+                    "reward_terms": dict(zip(REWARD_TERMS, values[terms_at])) if with_terms else {},
                 }
             )
         return per_car

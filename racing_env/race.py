@@ -32,12 +32,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from racing_env.config import RETIRING_MODES, RaceConfig
+from racing_env.contact import ContactModel, collide, overlapping, sweep
 from racing_env.dynamics import S, V
 from racing_env.game import RaceGame
 from racing_env.observation import observe
-from racing_env.physics import drive, footprint_overlap, off_track
+from racing_env.physics import drive, off_track
 from racing_env import starts as starts_lib
 from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
+from racing_env.steward import PIT_SPEED_RATIO, Steward, Verdicts, judge_contacts, make_steward, penalty_seconds
 from racing_env.scenarios import scenario_starts
 from racing_env.starts import Starts
 from racing_env.track import Track
@@ -70,6 +72,9 @@ class RaceParams(NamedTuple):
         max_steps: steps after which a race is truncated (int32 scalar).
         starts: the scenario's start distribution, which :func:`draw_start` draws from
             (:class:`racing_env.starts.Starts`).
+        contact: how cars that meet interact (:class:`racing_env.contact.ContactModel`).
+        steward: the rules incidents are judged by and their penalties
+            (:class:`racing_env.steward.Steward`).
         rival_slots: the observation's rival blocks, of which only the shape is read (it is
             static under ``jit``): ``(K,)`` for the K nearest rivals
             (``RaceConfig.observed_rivals``), ``(0,)`` (the default) for every other car in
@@ -85,6 +90,8 @@ class RaceParams(NamedTuple):
     rules: RaceRules
     max_steps: jax.Array
     starts: Starts
+    contact: ContactModel
+    steward: Steward
     rival_slots: jax.Array = np.zeros(0)
 
     @property
@@ -124,10 +131,13 @@ class RaceInfo(NamedTuple):
         s: arc length [m] (cumulative on closed tracks).
         lap: completed laps (0 on open tracks), int32.
         position: race position, 1 = leading, int32.
-        collided: the footprint overlaps another car's.
-        contact: ``(N, N)`` which cars each one touches.
+        collided: the car touched another in this step.
+        contact: ``(N, N)`` which cars each one touched (met inside the step with contact
+            physics; overlapping at its end with ghost cars).
         off_track: the car's centre is beyond a track boundary.
-        terms: ``(N, 7)`` reward terms, columns as :data:`racing_env.referee.REWARD_TERMS`.
+        terms: ``(N, 8)`` reward terms, columns as :data:`racing_env.referee.REWARD_TERMS`.
+        incidents: the steward's verdicts on the incidents that began in this step
+            (:class:`racing_env.steward.Verdicts`, ``(N, N)`` fields).
     """
 
     s: jax.Array
@@ -137,6 +147,7 @@ class RaceInfo(NamedTuple):
     contact: jax.Array
     off_track: jax.Array
     terms: jax.Array
+    incidents: Verdicts
 
 
 # --- the params of a configured race -------------------------------------------------------
@@ -152,6 +163,7 @@ def race_rules(config: RaceConfig) -> RaceRules:
         reward.finish,
         reward.lead,
         reward.time,
+        reward.fault if penalise(config.on_collision) else 0.0,
     ]
     return RaceRules(
         retire_on_collision=np.asarray(config.on_collision in RETIRING_MODES),
@@ -205,8 +217,17 @@ def race_params(config: RaceConfig, track: Track, game: RaceGame, finish_s: floa
         rules=race_rules(config),
         max_steps=np.int32(config.max_steps),
         starts=scenario_starts(config.scenario, track, config.num_agents, config.vehicles, finish_s),
+        contact=ContactModel.create(config.contact, config.restitution, config.contact_friction),
+        steward=make_steward(track, game.vehicles, config.num_agents, config.penalties, config.penalty_seconds,
+                             config.severity_speed or 0.0, config.disqualify_after, config.rules,
+                             incident_gap_steps=max(1, round(INCIDENT_GAP_S / config.dt))),
         rival_slots=np.zeros(config.observed_rivals or 0),
     )
+
+
+INCIDENT_GAP_S = 1.0
+"""[s] Contact after this long without touching is a new incident (the steward's
+``incident_gap`` in steps)."""
 
 
 # --- the race --------------------------------------------------------------------------------
@@ -223,13 +244,7 @@ def start(x0: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array, Race
     runs in ``x0``'s dtype (as JAX holds it: float32 with ``jax_enable_x64`` off)."""
     x0 = jnp.asarray(x0)
     num = x0.shape[0]
-    status = RaceStatus(
-        active=jnp.ones(num, dtype=bool),
-        finished=jnp.zeros(num, dtype=bool),
-        out=jnp.zeros(num, dtype=bool),
-        place=jnp.zeros(num, dtype=jnp.int32),
-        finish_time=jnp.full(num, jnp.nan, dtype=jnp.result_type(x0)),
-    )
+    status = RaceStatus.start(num, jnp.result_type(x0))
     state = RaceState(x0, status, jnp.zeros((), jnp.int32))
     game = params.game
     obs = observe(x0, status.active, game.track, params.finish_s, params.preview,
@@ -243,8 +258,15 @@ def start(x0: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array, Race
         contact=jnp.zeros((num, num), dtype=bool),
         off_track=none,
         terms=jnp.zeros((num, len(REWARD_TERMS)), dtype=jnp.result_type(x0)),
+        incidents=no_incidents(num, jnp.result_type(x0)),
     )
     return state, obs, info
+
+
+def no_incidents(num: int, dtype) -> Verdicts:
+    """The verdicts of a step without incidents, ``(N, N)`` fields."""
+    nobody = jnp.zeros((num, num), dtype=bool)
+    return Verdicts(nobody, nobody, jnp.zeros((num, num), jnp.int32), jnp.zeros((num, num), dtype))
 
 
 def draw_start(key: jax.Array, params: RaceParams) -> jax.Array:
@@ -290,13 +312,22 @@ def step(
     dtype = jnp.result_type(x)
     steps = state.steps + 1
     active = status.active
-    x_next = jnp.where(active[:, None], drive(game, x, actions), x)
-    contact = footprint_overlap(x_next, game.vehicles, game.track)
-    contact = contact & active[:, None] & active[None, :]
+    x_next = jnp.where(active[:, None], serve_drive_throughs(x, drive(game, x, actions), status.serving, game), x)
+    hit = sweep(x, x_next, active, game.vehicles, game.track)
+    if params.contact.physics:
+        x_next = collide(x, x_next, hit, game.vehicles, params.contact, game.track, game.dt)
+        contact = hit.touch
+    else:
+        contact = overlapping(x_next, active, game.vehicles, game.track)
     outside = off_track(x_next, game.track) & active
     collided = contact.any(axis=1)
+    verdicts = judge_contacts(x, x_next, hit, contact, status.last_contact, steps, outside, game.vehicles,
+                              params.steward, game.track)
+    status = steward_status(status, verdicts, contact, steps, x, x_next, params.steward)
+    new_faults = jnp.sum(verdicts.fault, axis=1, dtype=jnp.int32)
+    disqualified = (params.steward.disqualify_after > 0) & (status.faults >= params.steward.disqualify_after)
     verdict = judge(x[:, S], x_next[:, S], status, collided, outside, steps, game.dt, params.finish_s,
-                    params.rules, speed=x_next[:, V])
+                    params.rules, speed=x_next[:, V], new_faults=new_faults, disqualified=disqualified)
     # the status keeps its dtypes (finish_time is the state's float)
     new_status = jax.tree_util.tree_map(lambda new, old: new.astype(old.dtype), verdict.status, status)
     # observed with the cars still racing after this step's verdict
@@ -310,7 +341,36 @@ def step(
         contact=contact,
         off_track=outside,
         terms=verdict.terms.astype(dtype),
+        incidents=verdicts._replace(closing=verdicts.closing.astype(dtype)),
     )
     truncations = new_status.active & (steps >= params.max_steps)
     terminations = ~new_status.active
     return RaceState(x_next, new_status, steps), obs, verdict.reward.astype(dtype), terminations, truncations, info
+
+
+def serve_drive_throughs(x: jax.Array, x_next: jax.Array, serving: jax.Array, game: RaceGame) -> jax.Array:
+    """``x_next (N, 6)`` with the speed of every car serving a drive-through (``serving (N,)``
+    metres left) held to :data:`racing_env.steward.PIT_SPEED_RATIO` of its top speed, slowing
+    down to it at most at its gg radius."""
+    vehicles = game.vehicles
+    v = x[:, V]
+    pit_speed = PIT_SPEED_RATIO * vehicles.v_max
+    cap = jnp.maximum(pit_speed, v - vehicles.rho(jnp.maximum(v, 0.0)) * game.dt)
+    limited = jnp.where(serving > 0.0, jnp.minimum(x_next[:, V], cap), x_next[:, V])
+    return x_next.at[:, V].set(limited.astype(jnp.result_type(x_next)))
+
+
+def steward_status(status: RaceStatus, verdicts: Verdicts, contact: jax.Array, steps: jax.Array, x: jax.Array,
+                   x_next: jax.Array, steward: Steward) -> RaceStatus:
+    """The status's steward fields after a step: this step's penalties and faults added, the
+    drive-throughs served (metres driven at or below pit speed), each pair's last contact."""
+    dtype = status.penalty.dtype
+    new_faults = jnp.sum(verdicts.fault, axis=1, dtype=jnp.int32)
+    driven = jnp.where(status.serving > 0.0, x_next[:, S] - x[:, S], 0.0)
+    serving = jnp.maximum(status.serving - driven, 0.0) + new_faults * steward.drive_through
+    return status._replace(
+        penalty=(status.penalty + penalty_seconds(verdicts, steward)).astype(dtype),
+        faults=status.faults + new_faults,
+        serving=serving.astype(dtype),
+        last_contact=jnp.where(contact, steps, status.last_contact).astype(jnp.int32),
+    )

@@ -14,9 +14,11 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from racing_env.precision import canonical
+
 
 #: Names of the reward terms, in the order of :attr:`Judgement.terms`' columns.
-REWARD_TERMS = ("progress", "position", "collision", "off_track", "finish", "lead", "time")
+REWARD_TERMS = ("progress", "position", "collision", "off_track", "finish", "lead", "time", "fault")
 
 
 class RaceStatus(NamedTuple):
@@ -29,6 +31,12 @@ class RaceStatus(NamedTuple):
         place: finishing place, 1 = winner; 0 until finished (int32).
         finish_time: time of the crossing [s], interpolated inside the step; NaN until
             finished.
+        penalty: time penalties [s] the steward gave the car (:mod:`racing_env.steward`);
+            the finished cars are placed by ``finish_time + penalty``.
+        faults: the incidents the car answered for (int32).
+        serving: [m] of drive-through penalty the car has still to drive.
+        last_contact: ``(N, N)`` the last step in which each pair touched (int32;
+            :data:`NEVER` before the first).
     """
 
     active: jax.Array
@@ -36,6 +44,32 @@ class RaceStatus(NamedTuple):
     out: jax.Array
     place: jax.Array
     finish_time: jax.Array
+    penalty: jax.Array
+    faults: jax.Array
+    serving: jax.Array
+    last_contact: jax.Array
+
+    @classmethod
+    def start(cls, num: int, dtype) -> "RaceStatus":
+        """The status of ``num`` cars on the grid: all racing, no penalties; floats in ``dtype``
+        (as JAX holds it: float32 with ``jax_enable_x64`` off)."""
+        dtype = canonical(dtype)
+        return cls(
+            active=jnp.ones(num, dtype=bool),
+            finished=jnp.zeros(num, dtype=bool),
+            out=jnp.zeros(num, dtype=bool),
+            place=jnp.zeros(num, dtype=jnp.int32),
+            finish_time=jnp.full(num, jnp.nan, dtype=dtype),
+            penalty=jnp.zeros(num, dtype=dtype),
+            faults=jnp.zeros(num, dtype=jnp.int32),
+            serving=jnp.zeros(num, dtype=dtype),
+            last_contact=jnp.full((num, num), NEVER, dtype=jnp.int32),
+        )
+
+
+#: The ``last_contact`` of a pair that never touched: far enough back that its first
+#: contact begins an incident whatever the incident gap.
+NEVER = -(2**30)
 
 
 class RaceRules(NamedTuple):
@@ -44,7 +78,7 @@ class RaceRules(NamedTuple):
 
     Attributes:
         retire_on_collision, retire_off_track: whether an incident retires the car (bool).
-        weights: ``(7,)`` reward weights in the order of :data:`REWARD_TERMS`; an incident
+        weights: ``(8,)`` reward weights in the order of :data:`REWARD_TERMS`; an incident
             term whose mode gives no penalty has weight 0.
         spread: ``max(N - 1, 1)`` as a float64 scalar, the divisor of the position and
             finish terms. An argument rather than a constant: XLA turns a division by a
@@ -64,7 +98,7 @@ class Judgement(NamedTuple):
         status: the :class:`RaceStatus` after the step.
         positions: race positions, 1 = leading, ``(N,)`` int32.
         crossed: crossed the finish line in this step, ``(N,)`` bool.
-        terms: reward terms ``(N, 7)``, columns as :data:`REWARD_TERMS`.
+        terms: reward terms ``(N, 8)``, columns as :data:`REWARD_TERMS`.
         reward: their sum, ``(N,)``.
     """
 
@@ -82,10 +116,21 @@ def _precedes(key: jax.Array) -> jax.Array:
 
 
 def positions(s: jax.Array, finished: jax.Array, place: jax.Array) -> jax.Array:
-    """Race positions ``(N,)`` (1 = leading): finished cars by place, the others by arc
-    length ``s`` [m]; equal keys keep the cars' order."""
-    key = jnp.where(finished, -1e12 + place, -s)
-    return 1 + jnp.sum(_precedes(key), axis=1, dtype=jnp.int32)
+    """Race positions ``(N,)`` (1 = leading): finished cars first, by place, then the others
+    by arc length ``s`` [m]; equal keys keep the cars' order. Comparisons only, so exact in
+    any precision."""
+    both_finished = finished[:, None] & finished[None, :]
+    both_racing = ~finished[:, None] & ~finished[None, :]
+    before = (finished[None, :] & ~finished[:, None]) | (both_finished & _precedes(place)) | (
+        both_racing & _precedes(-s))
+    return 1 + jnp.sum(before, axis=1, dtype=jnp.int32)
+
+
+def places(finished: jax.Array, race_time: jax.Array) -> jax.Array:
+    """Finishing places ``(N,)`` int32 (1 = winner, 0 = not finished) of the ``finished`` cars
+    by their ``race_time`` [s] (finish time plus penalties; ties by index)."""
+    ahead = _precedes(jnp.where(finished, race_time, jnp.inf)) & finished[None, :]
+    return jnp.where(finished, 1 + jnp.sum(ahead, axis=1, dtype=jnp.int32), 0)
 
 
 def _standings(
@@ -134,6 +179,8 @@ def judge(
     finish_s: jax.Array,
     rules: RaceRules,
     speed: jax.Array | None = None,
+    new_faults: jax.Array | None = None,
+    disqualified: jax.Array | None = None,
 ) -> Judgement:
     """Apply the rules to one step of the cars that were active at its start.
 
@@ -147,22 +194,27 @@ def judge(
         rules: incident rules and reward weights.
         speed: speeds ``V`` [m/s] after the step, ``(N,)``; the lead term extrapolates
             finished cars with them. None: as if finished cars stood at the line.
+        new_faults: ``(N,)`` the incidents each car answers for that began in this step
+            (the ``fault`` term); None: none.
+        disqualified: ``(N,)`` cars the steward retires in this step; None: none.
+
+    The status's steward fields (``penalty``, ``faults``, ``serving``, ``last_contact``)
+    are this step's already; finished cars are placed by ``finish_time + penalty``.
     """
     num = s.shape[0]
     acting = status.active
     crossed = acting & (s >= finish_s)
-    # Crossing time interpolated inside the step; cars crossing in the same step are ranked
-    # by it (ties by index) behind those already finished.
+    # Crossing time interpolated inside the step; the finished cars are placed by it plus
+    # their penalties (ties by index).
     frac = (finish_s - s_prev) / jnp.maximum(s - s_prev, 1e-9)
     t_cross = ((step - 1) + jnp.clip(frac, 0.0, 1.0)) * dt
-    rank = jnp.sum(_precedes(jnp.where(crossed, t_cross, jnp.inf)) & crossed[None, :], axis=1, dtype=jnp.int32)
-    already = jnp.sum(status.finished, dtype=jnp.int32)
-    place = jnp.where(crossed, already + rank + 1, status.place)
     finish_time = jnp.where(crossed, t_cross, status.finish_time)
     finished = status.finished | crossed
+    place = places(finished, finish_time + status.penalty)
 
+    disqualified = jnp.zeros(num, dtype=bool) if disqualified is None else disqualified
     newly_out = acting & ~crossed & (
-        (collided & rules.retire_on_collision) | (outside & rules.retire_off_track)
+        (collided & rules.retire_on_collision) | (outside & rules.retire_off_track) | disqualified
     )
     out = status.out | newly_out
     active = acting & ~finished & ~out
@@ -195,10 +247,13 @@ def judge(
             jnp.where(acting & (w[5] != 0.0), w[5] * (lead_after - lead_before), 0.0),  # 0.0, not -0.0, when off
             # the time raced in this step: all of it, or up to the crossing (the sum is the finish time)
             jnp.where(acting & (w[6] != 0.0), w[6] * (jnp.where(crossed, jnp.clip(frac, 0.0, 1.0), 1.0) * dt), 0.0),
+            # +0.0 without a fault
+            jnp.zeros(num) if new_faults is None else jnp.where(new_faults > 0, w[7] * new_faults, 0.0),
         ],
         axis=1,
     )
     # summed in the terms' order
-    reward = (((((terms[:, 0] + terms[:, 1]) + terms[:, 2]) + terms[:, 3]) + terms[:, 4]) + terms[:, 5]) + terms[:, 6]
-    new_status = RaceStatus(active, finished, out, place, finish_time)
+    reward = ((((((terms[:, 0] + terms[:, 1]) + terms[:, 2]) + terms[:, 3]) + terms[:, 4]) + terms[:, 5])
+              + terms[:, 6]) + terms[:, 7]
+    new_status = status._replace(active=active, finished=finished, out=out, place=place, finish_time=finish_time)
     return Judgement(new_status, pos, crossed, terms, reward)

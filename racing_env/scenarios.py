@@ -119,6 +119,7 @@ def grid_starts(
     speed: float = 15.0,
     jitter: bool = True,
     shuffle: bool = True,
+    vehicles=None,
 ) -> Starts:
     """The distribution of :func:`grid`: slot k ``k * row_spacing / 2`` metres behind the
     front, alternately at ``+lateral_offset`` (left) and ``-lateral_offset`` (a staggered
@@ -126,7 +127,11 @@ def grid_starts(
     slots (``shuffle``) and jittered (``jitter``: up to +-1 m in s, +-0.3 m in n and +-1 m/s
     in speed). On a closed track a grid deeper than half the lap is refused, with the most
     cars it holds (on an open one the grid starts at the track's start, and a finish line
-    not ahead of every car is refused where the race is made)."""
+    not ahead of every car is refused where the race is made). A grid that could put two
+    footprints of ``vehicles`` (default: the paper's car) closer than :data:`START_MARGIN`,
+    whatever the jitter, is refused."""
+    jitter_widths = (1.0, 0.3, 1.0) if jitter else (0.0, 0.0, 0.0)
+    check_grid_clearance(num_cars, row_spacing, lateral_offset, jitter_widths, _default_vehicles(num_cars, vehicles))
     depth = 0.5 * row_spacing * (num_cars - 1)
     room = 0.5 * float(track.length) - 5.0
     if track.closed and depth > room:
@@ -139,7 +144,33 @@ def grid_starts(
         slots[slot, S] = front - 0.5 * row_spacing * slot
         slots[slot, N_LAT] = lateral_offset if slot % 2 == 0 else -lateral_offset
         slots[slot, V] = speed
-    return Starts.grid(slots, shuffle, (1.0, 0.3, 1.0) if jitter else (0.0, 0.0, 0.0))
+    return Starts.grid(slots, shuffle, jitter_widths)
+
+
+START_MARGIN = 0.5
+"""[m] The least clearance between two cars' footprints that a start grid may give, on the
+worst draw of its jitter (the grid's footprints are aligned with the track)."""
+
+
+def check_grid_clearance(num_cars: int, row_spacing: float, lateral_offset: float,
+                         jitter: tuple[float, float, float], vehicles: Sequence[VehicleParams]) -> None:
+    """Refuse a grid whose worst jittered draw puts two footprints of ``vehicles`` (the
+    largest of them) closer than :data:`START_MARGIN` [m]: apart along the track or across it."""
+    if num_cars < 2:
+        return
+    length = max(float(v.length) for v in vehicles)
+    width = max(float(v.width) for v in vehicles)
+    slot = np.arange(num_cars)
+    s = -0.5 * row_spacing * slot
+    n = np.where(slot % 2 == 0, lateral_offset, -lateral_offset)
+    pairs = np.triu_indices(num_cars, 1)
+    along = np.abs(s[pairs[0]] - s[pairs[1]]) - 2.0 * jitter[0] - length
+    across = np.abs(n[pairs[0]] - n[pairs[1]]) - 2.0 * jitter[1] - width
+    clearance = float(np.min(np.maximum(along, across)))
+    if clearance < START_MARGIN:
+        raise ValueError(f"this grid (row_spacing={row_spacing:g} m, lateral_offset={lateral_offset:g} m) can start "
+                         f"two cars {clearance:.2f} m apart, under the {START_MARGIN:g} m every start keeps: "
+                         f"space the rows or the columns further")
 
 
 def grid(
@@ -158,7 +189,7 @@ def grid(
     then capped to ``[0, 0.95 * v_max]`` of each car."""
     vehicles = _default_vehicles(num_cars, vehicles)
     starts = grid_starts(track, num_cars, row_spacing, lateral_offset, speed, jitter=jitter and seed is not None,
-                         shuffle=seed is not None)
+                         shuffle=seed is not None, vehicles=vehicles)
     return Scenario("grid", _drawn(starts, track, vehicles, seed), vehicles)
 
 
@@ -286,7 +317,7 @@ def scenario_starts(name: str, track: Track, num_cars: int, vehicles=None, finis
     if name not in SCENARIOS:
         raise ValueError(f"unknown scenario {name!r}; choose one of {sorted(SCENARIOS)}")
     if name == "grid":
-        return grid_starts(track, num_cars)
+        return grid_starts(track, num_cars, vehicles=vehicles)
     if name == "anywhere":
         return anywhere_starts(track, num_cars, finish_s)
     # the fixed starts: their one state, never shuffled or jittered

@@ -373,6 +373,8 @@ class RaceVectorEnv(VectorEnv):
             "finished": finished,
             "out": ints[:, 5].astype(bool),
             "finish_time": floats[:, 1],
+            "faults": ints[:, 9],
+            "penalty": floats[:, 2 + len(REWARD_TERMS)],
         }
         masks = {f"_{key}": every for key in infos}
         masks["_finish_time"] = finished
@@ -390,15 +392,16 @@ class RaceVectorEnv(VectorEnv):
 
 # --- the compiled calls ------------------------------------------------------------------------
 def _learner_rows(state: RaceState, info: race.RaceInfo, learner: int, terminated, truncated):
-    """The learner's per-race results as two arrays: int32 ``(B, 9)`` lap, position, collided,
-    off_track, finished, out, active, terminated, truncated; float64 ``(B, 9)`` s, finish_time
-    and the reward terms."""
+    """The learner's per-race results as two arrays: int32 ``(B, 10)`` lap, position, collided,
+    off_track, finished, out, active, terminated, truncated, faults; float64 ``(B, 11)`` s,
+    finish_time, the reward terms and the time penalty."""
     status = state.status
     ints = jnp.stack([info.lap[:, learner], info.position[:, learner], info.collided[:, learner],
                       info.off_track[:, learner], status.finished[:, learner], status.out[:, learner],
-                      status.active[:, learner], terminated, truncated], axis=1).astype(jnp.int32)
+                      status.active[:, learner], terminated, truncated, status.faults[:, learner]],
+                     axis=1).astype(jnp.int32)
     floats = jnp.concatenate([info.s[:, learner, None], status.finish_time[:, learner, None],
-                              info.terms[:, learner]], axis=1)
+                              info.terms[:, learner], status.penalty[:, learner, None]], axis=1)
     return ints, floats
 
 
@@ -750,6 +753,8 @@ class GymnaxRace(_Environment):
             "finish_time": stepped.status.finish_time[self.learner].astype(jnp.float32),
             "collided": race_info.collided[self.learner],
             "off_track": race_info.off_track[self.learner],
+            "faults": stepped.status.faults[self.learner],
+            "penalty": stepped.status.penalty[self.learner].astype(jnp.float32),
         }
         carried = PlannedRace(stepped, tuple(planned)) if self._planners else stepped
         return (obs[self.learner], carried, rewards[self.learner].astype(jnp.float32), info["terminated"],

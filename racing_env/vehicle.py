@@ -63,6 +63,8 @@ class VehicleParams:
         min_turn_radius: tightest turning radius the steering allows [m], which caps the
             lateral acceleration at ``V**2 / min_turn_radius`` (see ``ay_turn_max``). Not in
             the paper: its point mass turns on the spot.
+        mass: [kg] what the car weighs in a contact (:mod:`racing_env.contact`): only the
+            ratio of two cars' masses matters. Not in the paper, whose cars never touch.
     """
 
     length: ArrayLike = 4.7
@@ -76,6 +78,7 @@ class VehicleParams:
     # A road car's turning circle is about 11 m across. The cap binds below ~8 m/s only,
     # so racing-speed results (and the paper's scenario) do not feel it.
     min_turn_radius: ArrayLike = 5.0
+    mass: ArrayLike = 800.0
 
     def __post_init__(self) -> None:
         for name, (value, arr) in (concrete_fields(self) or {}).items():

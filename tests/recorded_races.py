@@ -6,9 +6,13 @@ chosen to exercise every rule: contacts and retirements on contact, off-track pe
 retirements, finishes (in turn, with places and finish times), a lap of a closed track, a
 truncation at ``max_steps``, the lead and time reward terms, and three cars.
 
-``python tests/recorded_races.py`` writes ``tests/data/recorded_races.json``. The file in
-the repository was written by the env as it was before its rules moved into
-:mod:`racing_env.race`, so the replay checks that the move changed no race.
+``python tests/recorded_races.py`` writes ``tests/data/recorded_races.json`` and
+``tests/data/recorded_contact_races.json``. The first file was written by the env as it was
+before its rules moved into :mod:`racing_env.race` and before cars collided: its races run
+with ghost cars, no steward penalties and that time's reward (:data:`LEGACY`), and the
+replay checks that neither change altered such a race. The second holds races with contact
+physics and the steward (:data:`CONTACT_RACES`), so that a race with contact replays bit for
+bit from then on.
 """
 
 from __future__ import annotations
@@ -24,19 +28,40 @@ from racing_env import track as tr
 from racing_env.config import RewardConfig
 
 RECORDING = Path(__file__).parent / "data" / "recorded_races.json"
+CONTACT_RECORDING = Path(__file__).parent / "data" / "recorded_contact_races.json"
+
+#: The rules the races of RECORDING were recorded under: cars that drive through each other,
+#: no steward penalties, and the reward's per-step collision term of the time (no fault term).
+LEGACY = dict(contact="ghost", penalties="none")
+LEGACY_REWARD = dict(collision=-5.0, fault=0.0)
+#: What the env's infos and reward terms hold since then, left out of the comparison with RECORDING.
+NEW_INFO_KEYS = ("penalty", "faults", "incidents")
+NEW_TERMS = ("fault",)
 
 #: name -> (config keyword arguments, reset seed, action seed, action bias per car (jx, jy), steps)
 RACES: dict[str, tuple[dict[str, Any], int, int, list[tuple[float, float]], int]] = {
     # side by side, steering into each other: contacts, then a retirement on contact
     "contact_retire": (dict(track="straight", num_agents=2, scenario="side_by_side", on_collision="both",
-                            race_distance=300.0), 0, 1, [(0.6, -0.3), (0.5, 0.3)], 200),
+                            race_distance=300.0, reward=RewardConfig(**LEGACY_REWARD), **LEGACY),
+                       0, 1, [(0.6, -0.3), (0.5, 0.3)], 200),
     # three cars on the trefoil, random steering: off-track penalties, lead/time/position terms
     "trefoil_three": (dict(track="trefoil", num_agents=3, scenario="grid", on_off_track="penalty",
-                           reward=RewardConfig(position=0.1, lead=0.05, time=-0.01), max_steps=120),
-                      3, 2, [(0.8, 0.0)] * 3, 130),
+                           reward=RewardConfig(position=0.1, lead=0.05, time=-0.01, **LEGACY_REWARD), max_steps=120,
+                           **LEGACY), 3, 2, [(0.8, 0.0)] * 3, 130),
     # a short race to the finish: places, finish times, off-track retirements
     "finish": (dict(track="straight", num_agents=3, scenario="grid", race_distance=90.0,
-                    reward=RewardConfig(lead=0.1, time=-0.05)), 5, 3, [(1.0, 0.0)] * 3, 120),
+                    reward=RewardConfig(lead=0.1, time=-0.05, **LEGACY_REWARD), **LEGACY), 5, 3, [(1.0, 0.0)] * 3,
+               120),
+}
+
+#: Races with contact physics and the steward at their defaults (CONTACT_RECORDING).
+CONTACT_RACES: dict[str, tuple[dict[str, Any], int, int, list[tuple[float, float]], int]] = {
+    # side by side, steering into each other: collisions, verdicts, time penalties at the finish
+    "side_by_side": (dict(track="straight", num_agents=2, scenario="side_by_side", race_distance=300.0),
+                     0, 1, [(0.6, -0.3), (0.5, 0.3)], 200),
+    # three cars on the trefoil, random steering and throttle: rear-ends and side contacts
+    "trefoil_three": (dict(track="trefoil", num_agents=3, scenario="grid", max_steps=150), 3, 2,
+                      [(0.9, 0.0), (0.3, 0.0), (0.6, 0.0)], 150),
 }
 
 
@@ -54,6 +79,13 @@ STARTS: dict[str, list[list[float]]] = {
 }
 
 
+#: name -> the start of a race of CONTACT_RACES that does not draw its own (None: drawn).
+CONTACT_STARTS: dict[str, list[list[float]] | None] = {
+    "side_by_side": STARTS["contact_retire"],
+    "trefoil_three": None,
+}
+
+
 def _actions(num: int, seed: int, bias: list[tuple[float, float]], steps: int) -> np.ndarray:
     """Seeded actions ``(steps, num, 2)``: each car's ``bias`` plus noise, mostly inside the
     box, some outside it (the env clips them)."""
@@ -65,12 +97,14 @@ def _track(name: str):
     return {"straight": lambda: tr.straight(length=400.0), "trefoil": tr.trefoil}[name]()
 
 
-def replay(name: str) -> list[dict[str, Any]]:
-    """Race ``name`` in the PettingZoo env; every step as plain Python values."""
-    config, seed, action_seed, bias, steps = RACES[name]
+def replay(name: str, races: dict = RACES, starts: dict = STARTS) -> list[dict[str, Any]]:
+    """Race ``name`` of ``races`` from its start in ``starts`` in the PettingZoo env; every
+    step as plain Python values."""
+    config, seed, action_seed, bias, steps = races[name]
     config = {**config, "track": _track(config["track"])}
     env = racing_env.parallel_env(**config)
-    obs, infos = env.reset(seed=seed, options={"x0": np.array(STARTS[name])})
+    start = starts[name]
+    obs, infos = env.reset(seed=seed, options=None if start is None else {"x0": np.array(start)})
     frames = [{"obs": {a: o.tolist() for a, o in obs.items()}, "infos": infos}]
     actions = _actions(env.num_cars, action_seed, bias, steps)
     for k in range(steps):
@@ -85,8 +119,12 @@ def replay(name: str) -> list[dict[str, Any]]:
 
 
 def main() -> None:
+    from racing_env.xla_setup import configure_for_racing
+
+    configure_for_racing()  # float64, as the tests race
     RECORDING.parent.mkdir(exist_ok=True)
     RECORDING.write_text(json.dumps({name: replay(name) for name in RACES}))
+    CONTACT_RECORDING.write_text(json.dumps({name: replay(name, CONTACT_RACES, CONTACT_STARTS) for name in CONTACT_RACES}))
 
 
 if __name__ == "__main__":

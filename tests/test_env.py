@@ -230,8 +230,9 @@ def test_off_track_detection(env2, trefoil):
 
 
 def test_terminate_on_collision_retires_the_colliding_cars(trefoil):
-    """With on_collision='terminate' the two colliding cars terminate and leave env.agents."""
-    env = racing_env.parallel_env(track=trefoil, num_agents=3, on_collision="terminate")
+    """With on_collision='terminate' the two colliding cars terminate and leave env.agents
+    (ghost cars: the reward is the progress of a car that nothing pushed)."""
+    env = racing_env.parallel_env(track=trefoil, num_agents=3, on_collision="terminate", contact="ghost")
     env.reset(seed=0, options={"x0": _x0((100.0, 10.0, 0.0), (101.0, 10.0, 0.5), (300.0, 10.0, 0.0))})
     observations, rewards, terms, truncs, infos = env.step({a: COAST for a in env.agents})
     assert terms == {"car_0": True, "car_1": True, "car_2": False}

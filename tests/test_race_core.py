@@ -3,6 +3,7 @@ races recorded before the rules moved into the core bit for bit, and the core is
 (jit, vmap) and agrees with the env step for step."""
 
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +12,8 @@ import pytest
 
 import racing_env
 from racing_env import race
-from recorded_races import RACES, RECORDING, replay
+from recorded_races import (CONTACT_RACES, CONTACT_RECORDING, CONTACT_STARTS, NEW_INFO_KEYS, NEW_TERMS, RACES,
+                            RECORDING, replay)
 
 # replays, bit for bit, races the optimised program recorded: compiled with XLA's full
 # optimisations (tests/conftest.py)
@@ -25,12 +27,45 @@ def recording() -> dict:
 
 @pytest.mark.parametrize("name", sorted(RACES))
 def test_the_env_replays_the_recorded_races_bit_for_bit(recording, name):
+    """Ghost cars without penalties race as the env did before contact physics and the
+    steward: the recording's every value, bit for bit (the infos' and terms' new keys aside)."""
     recorded = recording[name]
     # through JSON, as the recording was written: floats keep every bit (repr round-trips)
     now = json.loads(json.dumps(replay(name)))
     assert len(now) == len(recorded)
+    for frame in now:
+        for info in frame["infos"].values():
+            for key in NEW_INFO_KEYS:
+                info.pop(key)
+            for term in NEW_TERMS:
+                assert info["reward_terms"].pop(term, 0.0) == 0.0
     for k, (a, b) in enumerate(zip(now, recorded)):
         assert a == b, f"race {name!r} differs at step {k}"
+
+
+# The contact recording was written with XLA:CPU's legacy emitters, as the default test run
+# compiles (tests/conftest.py). XLA's newer emitters round the contact's square roots and arc
+# tangents differently in the last bit; under them (``make test-all``) the replay is held to
+# the same verdicts and to states within BATCH_TOLERANCE, for the reason given there.
+RECORDED_WITH = "--xla_cpu_use_fusion_emitters=false"
+
+
+@pytest.mark.parametrize("name", sorted(CONTACT_RACES))
+def test_a_race_with_contact_replays_bit_for_bit(name):
+    recorded = json.loads(CONTACT_RECORDING.read_text())[name]
+    now = json.loads(json.dumps(replay(name, CONTACT_RACES, CONTACT_STARTS)))
+    assert len(now) == len(recorded)
+    same_compiler = RECORDED_WITH in os.environ.get("XLA_FLAGS", "")
+    for k, (a, b) in enumerate(zip(now, recorded)):
+        if same_compiler:
+            assert a == b, f"race {name!r} differs at step {k}"
+        else:
+            if k:
+                np.testing.assert_allclose(a["state"], b["state"], rtol=0, atol=BATCH_TOLERANCE)
+            assert [[i["verdict"], i["at_fault"]] for info in a["infos"].values() for i in info["incidents"]] == \
+                [[i["verdict"], i["at_fault"]] for info in b["infos"].values() for i in info["incidents"]]
+    verdicts = [incident for frame in now for info in frame["infos"].values() for incident in info["incidents"]]
+    assert verdicts, f"race {name!r} has no incident to replay"
 
 
 def test_the_recordings_cover_every_rule(recording):

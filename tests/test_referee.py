@@ -14,7 +14,7 @@ from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, posit
 DT = 0.1
 FINISH = 100.0
 WEIGHTS = {"progress": 0.1, "position": 0.5, "collision": -5.0, "off_track": -1.0, "finish": 10.0, "lead": 0.2,
-           "time": -2.0}
+           "time": -2.0, "fault": -10.0}
 
 
 def _rules(num, retire_on_collision=False, retire_off_track=False):
@@ -26,14 +26,16 @@ def _rules(num, retire_on_collision=False, retire_off_track=False):
     )
 
 
-def _status(active, finished=None, out=None, place=None, finish_time=None):
+def _status(active, finished=None, out=None, place=None, finish_time=None, penalty=None):
     num = len(active)
-    return RaceStatus(
+    start = RaceStatus.start(num, jnp.float64)
+    return start._replace(
         active=jnp.asarray(active),
-        finished=jnp.zeros(num, bool) if finished is None else jnp.asarray(finished),
-        out=jnp.zeros(num, bool) if out is None else jnp.asarray(out),
-        place=jnp.zeros(num, jnp.int32) if place is None else jnp.asarray(place, jnp.int32),
-        finish_time=jnp.full(num, jnp.nan) if finish_time is None else jnp.asarray(finish_time),
+        finished=start.finished if finished is None else jnp.asarray(finished),
+        out=start.out if out is None else jnp.asarray(out),
+        place=start.place if place is None else jnp.asarray(place, jnp.int32),
+        finish_time=start.finish_time if finish_time is None else jnp.asarray(finish_time),
+        penalty=start.penalty if penalty is None else jnp.asarray(penalty),
     )
 
 
