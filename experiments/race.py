@@ -163,7 +163,7 @@ def run_race(
     def standing() -> None:  # each car's status and position now, from its last info
         infos_now = [last_info[a] for a in env.possible_agents]
         status.append(car_status([info["finished"] for info in infos_now], [info["out"] for info in infos_now]))
-        position.append([info["position"] for info in infos_now])
+        position.append(env.positions.tolist())  # every car's, penalties included
 
     def draw(k: int) -> None:
         record.xs, record.status, record.position = xs, status, position  # lists: scene(k) indexes them
@@ -218,12 +218,13 @@ def run_race(
     xs = np.stack(xs)
     dt = env.config.dt
     summary = []
+    final_positions = env.positions
     for i, agent in enumerate(env.possible_agents):
         info = last_info[agent]
         summary.append(
             {
                 "agent": agent,
-                "position": info["position"],
+                "position": int(final_positions[i]),
                 "finished": info["finished"],
                 "retired": info["out"],
                 "finish_time": info["finish_time"],

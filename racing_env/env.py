@@ -378,6 +378,13 @@ class RacingParallelEnv(ParallelEnv):
         return self._x.copy()
 
     @property
+    def positions(self) -> np.ndarray:
+        """Every car's race position after the last step, ``(N,)`` int (1 = leading; the
+        finished cars by finish time plus penalties), including the cars no longer racing,
+        whose last infos hold their position when they left (a copy)."""
+        return self._position.copy()
+
+    @property
     def active(self) -> np.ndarray:
         """Which cars are still racing, ``(N,)`` bool (a copy)."""
         return self._active.copy()
