@@ -62,13 +62,13 @@ def _random_action_rate(envs, num_envs: int, calls: int, repeats: int) -> tuple[
     rate, rates = _rate(step, calls, repeats)
     return rate, rates, compile_s
 
-def _vector_env(num_envs: int, opponents: list | None = None):
+def _vector_env(num_envs: int, opponents: list | None = None, **race: Any):
     import gymnasium
 
     import racing_env  # noqa: F401 - registers racing_env/Race-v0
 
     return gymnasium.make_vec("racing_env/Race-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
-                              opponents=opponents, **RACE)
+                              opponents=opponents, **RACE, **race)
 
 
 def _vector_env_on(num_envs: int, track: str, **race: Any):
@@ -179,6 +179,48 @@ def opponent_rows(num_envs: int = 64, calls: int = 30, opponents: tuple[str, ...
 SHORT_EPISODES = dict(race_distance=150.0, on_off_track="terminate")
 
 
+def _timed_in_turns(envs: dict[str, Any], actions: np.ndarray, repeats: int
+                    ) -> tuple[dict[str, list[float]], dict[str, float], dict[str, int]]:
+    """Step each of the vectorised ``envs`` (by name) through ``actions (calls, B, 2)`` in
+    turns, ``repeats`` times, after a warm-up of 50 steps from seed 0 (past the first
+    episodes' common length, so resets spread out): the seconds of each run, each env's first
+    step (its compile) [s] and the episodes that ended while timed."""
+    compile_s, ends = {}, {name: 0 for name in envs}
+    for name, env in envs.items():
+        env.reset(seed=0)
+        start = time.perf_counter()
+        env.step(actions[0])
+        compile_s[name] = time.perf_counter() - start
+        for a in actions[1:50]:
+            env.step(a)
+    seconds: dict[str, list[float]] = {name: [] for name in envs}
+    for _ in range(repeats):
+        for name, env in envs.items():
+            start = time.perf_counter()
+            for a in actions:
+                _, _, terminated, truncated, _ = env.step(a)
+                ends[name] += int(np.sum(terminated | truncated))
+            seconds[name].append(time.perf_counter() - start)
+    return seconds, compile_s, ends
+
+
+def contact_rows(num_envs: int = 1024, calls: int = 200, repeats: int = 3) -> Iterator[dict[str, Any]]:
+    """The vectorised env (:data:`RACE`, random learner actions against a coasting car) with
+    contact physics and the steward, and with ghost cars and no penalties (the race before
+    either existed), timed in turns: the physics row reports its rate against the ghost one
+    (target: at least 0.8 of it)."""
+    actions = np.random.default_rng(0).uniform(-1, 1, (calls, num_envs, 2))
+    seconds, compile_s, _ = _timed_in_turns({"physics": _vector_env(num_envs),
+                                             "ghost": _vector_env(num_envs, contact="ghost", penalties="none")},
+                                            actions, repeats)
+    rate = {name: num_envs * calls / float(np.median(times)) for name, times in seconds.items()}
+    for name in ("ghost", "physics"):
+        yield {"name": f"vector_env_B{num_envs}_contact_{name}", "races": num_envs, "contact": name,
+               "steps_per_s": rate[name], "compile_s": compile_s[name],
+               **({"vs_ghost": rate["physics"] / rate["ghost"], "target_vs_ghost": 0.8} if name == "physics" else {}),
+               "repeats": [round(num_envs * calls / t) for t in seconds[name]]}
+
+
 def short_episode_rows(num_envs: int = 1024, calls: int = 200, repeats: int = 3, track: str = "Monza"
                        ) -> Iterator[dict[str, Any]]:
     """The vectorised env on a real circuit against the lane keeper with random learner
@@ -188,25 +230,10 @@ def short_episode_rows(num_envs: int = 1024, calls: int = 200, repeats: int = 3,
     short row reports its rate against the endless one (target: at least half of it), the
     episode ends per step and the cost of one reset, ``(time per step, short - endless) /
     resets per step``."""
-    endless = _vector_env_on(num_envs, track, max_steps=10**9, laps=1000)
-    short = _vector_env_on(num_envs, track, **SHORT_EPISODES)
     actions = np.random.default_rng(0).uniform(-1, 1, (calls, num_envs, 2))
-    compile_s, ends = {}, {"endless": 0, "short": 0}
-    for name, envs in (("endless", endless), ("short", short)):
-        envs.reset(seed=0)
-        start = time.perf_counter()
-        envs.step(actions[0])
-        compile_s[name] = time.perf_counter() - start
-        for a in actions[1:50]:  # past the first episodes' common length: resets spread out
-            envs.step(a)
-    seconds: dict[str, list[float]] = {"endless": [], "short": []}
-    for _ in range(repeats):
-        for name, envs in (("endless", endless), ("short", short)):
-            start = time.perf_counter()
-            for a in actions:
-                _, _, terminated, truncated, _ = envs.step(a)
-                ends[name] += int(np.sum(terminated | truncated))
-            seconds[name].append(time.perf_counter() - start)
+    seconds, compile_s, ends = _timed_in_turns({"endless": _vector_env_on(num_envs, track, max_steps=10**9, laps=1000),
+                                                "short": _vector_env_on(num_envs, track, **SHORT_EPISODES)},
+                                               actions, repeats)
     rate = {name: num_envs * calls / float(np.median(times)) for name, times in seconds.items()}
     resets_per_step = ends["short"] / (repeats * calls)
     per_step = {name: float(np.median(times)) / calls for name, times in seconds.items()}
@@ -384,6 +411,7 @@ def bench_rl() -> Iterator[dict[str, Any]]:
     baseline = pettingzoo_row()
     yield baseline
     yield from vector_rows(baseline["steps_per_s"])
+    yield from contact_rows()
     yield from short_episode_rows()
     yield from gymnax_rows()
     yield from opponent_rows()

@@ -36,20 +36,25 @@ def run_demo(out: Path, track: str = "trefoil", laps: int = 1, seed: int = 0, gi
     console.print(f"[bold]racing demo[/]: {names[0]} vs {names[1]} on {env.track!r}, {length}")
     record = run_race(env, policies, seed=seed, render_every=gif_every, progress=True, labels=names)
     table = Table(title=f"result ({record.steps} steps of {env.config.dt} s)")
-    for column in ("pos", "car", "driver", "finish [s]", "mean speed [m/s]", "contact steps", "off track [s]"):
+    for column in ("pos", "car", "driver", "finish [s]", "penalty [s]", "mean speed [m/s]", "contact steps",
+                   "at fault", "off track [s]"):
         table.add_column(column)
     for row, name in sorted(zip(record.summary, names), key=lambda r: r[0]["position"]):
         table.add_row(
             str(row["position"]), row["agent"], name,
-            f"{row['finish_time']:.2f}" if row["finished"] else "DNF",
-            f"{row['mean_speed']:.2f}", str(row["collision_steps"]), f"{row['time_off_track']:.1f}",
+            f"{row['finish_time']:.2f}" if row["finished"] else "DNF", f"{row['penalty']:g}",
+            f"{row['mean_speed']:.2f}", str(row["collision_steps"]), str(row["faults"]), f"{row['time_off_track']:.1f}",
         )
+    for incident in record.incidents:
+        who = "nobody" if incident["at_fault"] is None else names[incident["at_fault"]]
+        console.print(f"incident at {incident['time']:.1f} s: {incident['verdict']}, {who} answers "
+                      f"(closing at {incident['closing_speed']:.1f} m/s)")
     console.print(table)
     gif = save_gif(record.frames, out / "race.gif", fps=10.0 / gif_every)
     plot = out / "trajectories.png"
     plot_race(env.track, record.xs, labels=[f"car_{i} ({n})" for i, n in enumerate(names)], title="racing demo", path=plot)
     result = {"track": env.track.name, "laps": laps, "race_distance": race_distance, "drivers": names,
-              "summary": record.summary, "steps": record.steps}
+              "summary": record.summary, "incidents": record.incidents, "steps": record.steps}
     (out / "result.json").write_text(json.dumps(result, indent=2))
     console.print(f"wrote {gif}, {plot} and {out / 'result.json'}")
     return result

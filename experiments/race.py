@@ -71,7 +71,26 @@ class RaceRecord:
         """What the frame of step ``k`` shows (:class:`racing_env.render.Scene`)."""
         return Scene(x=self.xs[k], time=k * self.dt, status=np.asarray(self.status[k], dtype=np.int8),
                      position=np.asarray(self.position[k], dtype=np.int16), labels=self.labels,
-                     plans=None if self.plans is None else self.plans[k])
+                     plans=None if self.plans is None else self.plans[k],
+                     notes=incident_notes(self.incidents, k, self.labels, self.dt))
+
+
+NOTE_SECONDS = 3.0
+"""[s] How long a frame shows an incident's verdict after it began."""
+
+
+def incident_notes(incidents: Sequence[dict[str, Any]], k: int, labels: Sequence[str], dt: float) -> list[str]:
+    """The verdicts a frame of step ``k`` shows: the incidents (:attr:`RaceRecord.incidents`)
+    begun in the last :data:`NOTE_SECONDS`, one line each."""
+    notes = []
+    for incident in incidents:
+        if 0 <= k - incident["step"] < NOTE_SECONDS / dt:
+            first, second = (labels[i] for i in incident["cars"])
+            fault = incident["at_fault"]
+            who = "nobody answers" if fault is None else f"{labels[fault]} answers"
+            notes.append(f"t {incident['time']:.1f} s  {first} / {second}: {incident['verdict']}, {who} "
+                         f"({incident['closing_speed']:.1f} m/s)")
+    return notes
 
 
 def plan_of(policy: Policy) -> np.ndarray | None:
@@ -130,6 +149,7 @@ def run_race(
     plans: bool = False,
     labels: Sequence[str] | None = None,
     batch_field: bool = True,
+    reset_options: dict[str, Any] | None = None,
 ) -> RaceRecord:
     """Race ``policies`` (one per car, ``policy(observation, joint_state) -> action``).
 
@@ -143,6 +163,7 @@ def run_race(
     With ``batch_field`` the re-plans of the game planners that play local games (a field
     larger than their rivals) are solved as one batch per step
     (:func:`planners.agents.field.solve_field`), each car's action time charged its share.
+    ``reset_options`` go to the env's reset (e.g. ``{"x0": start}``).
     """
     if len(policies) != env.num_cars:
         raise ValueError(f"need {env.num_cars} policies, got {len(policies)}")
@@ -150,7 +171,7 @@ def run_race(
     labels = tuple(env.possible_agents) if labels is None else tuple(str(label) for label in labels)
     if len(labels) != env.num_cars:
         raise ValueError(f"need {env.num_cars} labels, got {len(labels)}")
-    observations, infos = env.reset(seed=seed)
+    observations, infos = env.reset(seed=seed, options=reset_options)
     record = RaceRecord(xs=np.empty(0), summary=[], frames=[], steps=0, labels=labels, dt=env.config.dt,
                         plans=[] if plans else None)
     xs, status, position = [env.state()], [], []

@@ -24,6 +24,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from experiments.files import replace_atomically
+from experiments.race import incident_notes
 from racing_env.render import Renderer, Scene, save_video
 from racing_env.track import Track, get_track
 
@@ -65,6 +66,8 @@ class Replay:
             step ``k`` is ``plans[k, i]``, rows of NaN where its plan is shorter than ``H``
             or it had none (:attr:`racing_env.render.Scene.plans`).
         race: the race's index in its run's schedule (None outside a run); ``id``: its job id.
+        incidents: the race's contact incidents (:attr:`experiments.race.RaceRecord.incidents`),
+            whose verdicts the frames show for a few seconds after each began.
     """
 
     xs: np.ndarray
@@ -79,6 +82,7 @@ class Replay:
     plans: np.ndarray | None = None
     race: int | None = None
     id: str | None = None
+    incidents: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
     @property
     def steps(self) -> int:
@@ -94,7 +98,7 @@ class Replay:
                 rows = ~np.isnan(plan[:, 0, 0])
                 plans.append(plan[rows] if rows.any() else None)
         return Scene(x=self.xs[k], time=k * self.dt, status=self.status[k], position=self.position[k],
-                     labels=self.labels, plans=plans)
+                     labels=self.labels, plans=plans, notes=incident_notes(self.incidents, k, self.labels, self.dt))
 
     def renderer(self, size: int = 480, camera: str = "auto", plans: bool = True) -> Renderer:
         """A renderer of this race's track, cars and length."""
@@ -150,7 +154,8 @@ def replay_of(record: Any, env: Any, race: int | None = None, id: str | None = N
     return Replay(xs=np.asarray(record.xs, dtype=np.float64), status=np.asarray(record.status, np.int8),
                   position=np.asarray(record.position, np.int16), labels=tuple(record.labels), dt=float(record.dt),
                   track=track, cars=cars, laps=env.race_laps, finish_s=float(env.finish_s),
-                  plans=None if record.plans is None else pad_plans(record.plans, num), race=race, id=id)
+                  plans=None if record.plans is None else pad_plans(record.plans, num), race=race, id=id,
+                  incidents=list(record.incidents))
 
 
 def pad_plans(plans: Sequence[Sequence[np.ndarray | None]], num: int) -> np.ndarray:
@@ -168,7 +173,7 @@ def pad_plans(plans: Sequence[Sequence[np.ndarray | None]], num: int) -> np.ndar
 def save_replay(replay: Replay, path: Path) -> Path:
     """Write ``replay`` as a compressed ``.npz`` (replacing the file whole, never in part)."""
     meta = {"labels": list(replay.labels), "dt": replay.dt, "laps": replay.laps, "finish_s": replay.finish_s,
-            "race": replay.race, "id": replay.id, "version": 1}
+            "race": replay.race, "id": replay.id, "incidents": replay.incidents, "version": 1}
     arrays = {"xs": replay.xs, "status": replay.status, "position": replay.position,
               "car_length": replay.cars.length, "car_width": replay.cars.width}
     if isinstance(replay.track, Track):
@@ -200,7 +205,7 @@ def load_replay(path: Path) -> Replay:
                       labels=tuple(meta["labels"]), dt=float(meta["dt"]), track=track,
                       cars=CarSizes(length=data["car_length"], width=data["car_width"]), laps=meta["laps"],
                       finish_s=float(meta["finish_s"]), plans=data["plans"] if "plans" in data else None,
-                      race=meta["race"], id=meta["id"])
+                      race=meta["race"], id=meta["id"], incidents=meta.get("incidents", []))
 
 
 def recorded_races(out: Path) -> list[dict[str, Any]]:

@@ -16,6 +16,9 @@ a stable id that links may target:
   re-plans, mean solver iterations per re-plan, fallbacks, errors and certified share;
 - ``races``: every recorded race (schedule index K, id, lineup, winner, gap, overtakes,
   steps), linking to its replay where one is embedded;
+- ``incidents``: every contact incident the steward judged (race K, time, cars, verdict, the
+  car that answers, closing speed), each linking to its race's replay where one is embedded,
+  else to its race's row;
 - ``replays``: a few races drawn as animated GIFs (elements ``replay-K``), chosen as
   :func:`pick_replays` says, from the replays the run recorded (``replays/race-0000K.npz``).
 
@@ -41,7 +44,7 @@ from experiments.race_spec import RaceSpec
 from experiments.standings import wilson_interval
 
 REPORT = "report.html"
-SECTIONS = ("run", "leaderboard", "head-to-head", "solver-health", "races", "replays")
+SECTIONS = ("run", "leaderboard", "head-to-head", "solver-health", "races", "incidents", "replays")
 """The ids of the page's sections, in order."""
 TOURNAMENT_FILES = ("tournament.json", "results.jsonl", "summary.csv", "leaderboard.json", "head_to_head.png",
                     "race.gif")
@@ -186,6 +189,8 @@ class RaceRow:
         steps: env steps raced.
         replay: the race's recorded replay file, None if it has none (older records).
         point: the sweep point's parameters as text, "" in a tournament.
+        incidents: the race's contact incidents (:attr:`experiments.race.RaceRecord.incidents`;
+            none in records from before the steward).
     """
 
     index: int
@@ -196,6 +201,7 @@ class RaceRow:
     steps: int
     replay: Path | None
     point: str = ""
+    incidents: tuple[dict[str, Any], ...] = ()
 
     @property
     def winner(self) -> dict[str, Any]:
@@ -218,7 +224,8 @@ def _race_rows(out: Path, records: Sequence[dict[str, Any]], positions: dict[str
             replay = None
         rows.append(RaceRow(index=int(record.get("race", positions.get(record["id"], k))), id=record["id"],
                             cars=tuple(cars(record)), gap=record.get("gap"), overtakes=int(record["overtakes"]),
-                            steps=int(record["steps"]), replay=replay, point=point(record)))
+                            steps=int(record["steps"]), replay=replay, point=point(record),
+                            incidents=tuple(record.get("incidents", ()))))
     return sorted(rows, key=lambda race: race.index)
 
 
@@ -309,6 +316,35 @@ def _races_section(races: Sequence[RaceRow], embedded: set[int], scheduled: int,
     return (_note(f"{len(races)} of {scheduled} scheduled races recorded, in schedule order (K: the race's index "
                   "in the schedule)" + ("; a linked K has its replay below." if embedded else "."))
             + _table("races-table", columns, races, row_ids=lambda race: f"race-{race.index}"))
+
+
+def _incidents_section(races: Sequence[RaceRow], embedded: set[int]) -> str:
+    """The table of every contact incident, linked to its race's replay (embedded) or row."""
+    rows = [(race, incident) for race in races for incident in race.incidents]
+    if not rows:
+        return _note("No contact incident in the recorded races.")
+
+    def car(race: RaceRow, index: int | None) -> str:
+        return "nobody (racing incident)" if index is None else f"{race.cars[index]['agent']} ({race.cars[index]['car']})"
+
+    def where(row) -> _Html:
+        race, incident = row
+        target = f"replay-{race.index}" if race.index in embedded else f"race-{race.index}"
+        return _Html(f'<a href="#{target}">{race.index}</a>')
+
+    columns = [
+        _Column("race K", where, kind="num"),
+        _Column("time [s]", lambda row: f"{row[1]['time']:.1f}", kind="num"),
+        _Column("cars", lambda row: " / ".join(car(row[0], i) for i in row[1]["cars"]), kind="name"),
+        _Column("verdict", lambda row: row[1]["verdict"]),
+        _Column("answers", lambda row: car(row[0], row[1]["at_fault"]), kind="name"),
+        _Column("closing speed [m/s]", lambda row: f"{row[1]['closing_speed']:.1f}", kind="num"),
+    ]
+    faults = sum(incident["at_fault"] is not None for _, incident in rows)
+    return (_note(f"{len(rows)} contact incidents, {faults} with a car at fault (docs/rules.md); race K links to "
+                  "the race's replay where it is embedded, else to its row, and its frames show the verdict "
+                  "from the incident's time on.")
+            + _table("incidents-table", columns, rows))
 
 
 def _outcome(race: RaceRow) -> str:
@@ -433,6 +469,7 @@ def _write_page(out: Path, title: str, *, run: str, leaderboard: str, head_to_he
     sections = [_section("run", "Run", run), _section("leaderboard", "Leaderboard", leaderboard),
                 _section("head-to-head", *head_to_head), _section("solver-health", "Solver health", health),
                 _section("races", "Races", _races_section(races, embedded, scheduled, sweep)),
+                _section("incidents", "Incidents", _incidents_section(races, embedded)),
                 _section("replays", "Replays", replay_body)]
     nav = "".join(f'<a href="#{section}">{section.replace("-", " ")}</a>' for section in SECTIONS)
     page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
@@ -487,20 +524,22 @@ def write_tournament_report(out: Path, config: RaceSpec, board: dict[str, Any], 
     else:
         columns = [rank, agent, _value("rating", "rating", "{:.2f}"), _ratio("wins/races", "wins"),
                    *_ci_columns("win rate [95% CI]"), _ratio("finished", "finished"),
-                   _value("margin [s]", "mean_margin_s", "{:+.2f}"), _LIMIT, _ERRORS]
+                   _value("margin [s]", "mean_margin_s", "{:+.2f}"), _LIMIT,
+                   _value("contact steps", "collision_steps", "{:d}"),
+                   _Column("at fault", lambda row: str(row.get("faults", 0)), kind="num"), _ERRORS]
         note = ("Ranked by rating (Plackett-Luce mu - 3 sigma); win rates with 95% Wilson intervals; "
-                + _MARGIN_NOTE + _LIMIT_NOTE)
+                + _MARGIN_NOTE + _LIMIT_NOTE + " Contact steps: its cars' steps touching another car; at fault: the "
+                "contact incidents the steward found its cars to blame for (docs/rules.md).")
         if config.cars > 2:  # places say more than wins in a field
             columns[4:4] = [_value("mean place", "mean_place", "{:.2f}"),
                             _Column("rivals beaten [95% CI]", lambda row: _share_text(row.get("beaten_share"),
                                                                                    row.get("beaten_share_ci95")),
                                     kind="num"),
                             _Column("passes made/suffered", lambda row: f"{row.get('overtakes', 0)}/{row.get('overtaken', 0)}",
-                                    kind="num"),
-                            _value("contact steps", "collision_steps", "{:d}")]
+                                    kind="num")]
             note += (" With more than two cars per race: each agent's mean place, the share of the other agents' "
-                     "cars its cars beat (with a 95% Wilson interval over those pairs), its passes made and "
-                     "suffered, and its cars' steps in contact; the rating ranks each agent in a race by its "
+                     "cars its cars beat (with a 95% Wilson interval over those pairs) and its passes made and "
+                     "suffered; the rating ranks each agent in a race by its "
                      "cars' mean place.")
         names, wins = board["head_to_head"]["agents"], board["head_to_head"]["wins"]
         matrix = [_Column("row ahead of column", lambda i: names[i], kind="name"),

@@ -566,7 +566,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     places = config.cars > 2  # in a field, places say more than wins
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]",
                 *(("mean place", "rivals beaten [95% CI]", "passes made/suffered") if places else ()), "finished",
-                *(("retired",) if retire else ()), "margin [s]", *(("x limit",) if limits else ()), "errors", "contact steps", "at fault", "off track", "act [ms]",
+                *(("retired",) if retire else ()), "margin [s]", *(("x limit",) if limits else ()), "errors", "contacts", "at fault", "off track", "act [ms]",
                 "converged", *certified_header):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):

@@ -363,7 +363,9 @@ def serve_drive_throughs(x: jax.Array, x_next: jax.Array, serving: jax.Array, ga
 def steward_status(status: RaceStatus, verdicts: Verdicts, contact: jax.Array, steps: jax.Array, x: jax.Array,
                    x_next: jax.Array, steward: Steward) -> RaceStatus:
     """The status's steward fields after a step: this step's penalties and faults added, the
-    drive-throughs served (metres driven at or below pit speed), each pair's last contact."""
+    drive-throughs served by the metres driven in the step (at most the pit speed, by
+    :func:`serve_drive_throughs`, after the first step of braking down to it), each pair's
+    last contact."""
     dtype = status.penalty.dtype
     new_faults = jnp.sum(verdicts.fault, axis=1, dtype=jnp.int32)
     driven = jnp.where(status.serving > 0.0, x_next[:, S] - x[:, S], 0.0)

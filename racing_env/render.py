@@ -43,6 +43,7 @@ CAR_COLOURS = [
 ]
 GRASS, ASPHALT, LINE = (96, 140, 80), (70, 70, 74), (235, 235, 235)
 PANEL, PANEL_TEXT, GHOST = (24, 24, 28), (240, 240, 240), (200, 200, 200)
+NOTE_TEXT = (255, 190, 60)
 CAMERAS = ("auto", "follow", "track")
 FOLLOW_CARS = 4  # ``auto`` follows fields of at most this many cars
 TRACK_VIEW_MAX = 600.0  # [m] ``auto`` shows a bigger field whole on circuits at most this big
@@ -77,6 +78,7 @@ class Scene:
         labels: a name per car (None: ``car_i``).
         plans: per car, None or its plan ``(H, N, 2)`` of ``[s, n]`` [m]: row ``i`` the
             car's own plan, the other rows its prediction of the other cars.
+        notes: lines shown in a panel at the frame's foot (the steward's verdicts).
     """
 
     x: np.ndarray
@@ -85,6 +87,7 @@ class Scene:
     position: np.ndarray | None = None
     labels: Sequence[str] | None = None
     plans: Sequence[np.ndarray | None] | None = None
+    notes: Sequence[str] | None = None
 
 
 def car_polygons(track: Track, x: np.ndarray, vehicles: Any) -> np.ndarray:
@@ -274,6 +277,8 @@ class Renderer:
         for i, quad in enumerate(corners):
             self._tag(draw, labels[i], quad, car_colour(i))
         self._heads_up(draw, scene, labels, status)
+        if scene.notes:
+            self._notes(draw, scene.notes)
         if camera == "follow":
             self._paste_inset(image, x, status, centre, span)
         return np.asarray(image, dtype=np.uint8)
@@ -331,6 +336,16 @@ class Renderer:
             if k or not header:  # a swatch of the car's colour before its line
                 draw.rectangle([4, y + 3, 8, y + height - 3], fill=colour)
             draw.text((12 if (k or not header) else 6, y), text, font=font, fill=PANEL_TEXT)
+
+    def _notes(self, draw: ImageDraw.ImageDraw, notes: Sequence[str]) -> None:
+        """``notes`` in a panel at the frame's foot, one per line, in the steward's amber."""
+        font = self._fonts[11]
+        height = font.size + 4
+        width = min(max(draw.textlength(text, font=font) for text in notes) + 12, self.size)
+        top = self.size - height * len(notes) - 6
+        draw.rectangle([0, top, width, self.size], fill=PANEL)
+        for k, text in enumerate(notes):
+            draw.text((6, top + 3 + k * height), text, font=font, fill=NOTE_TEXT)
 
     def _draw_plans(self, draw: ImageDraw.ImageDraw, plans: Sequence[np.ndarray | None], centre: np.ndarray,
                     span: float) -> None:

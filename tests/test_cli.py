@@ -79,7 +79,8 @@ def test_tournament_incident_rules_from_the_command_line(tmp_path, capsys):
 
     assert INCIDENT_CHOICES == INCIDENT_MODES and set(SCENARIO_CHOICES) == set(SCENARIOS)
     args = ["tournament", "--agents", "lane-keeping:target_n=8", "lane-keeping", "--track", "straight",
-            "--race-distance", "120", "--grids", "1", "--no-gif", "--off-track", "terminate", "--out", str(tmp_path)]
+            "--race-distance", "120", "--grids", "1", "--no-gif", "--off-track", "terminate", "--contact", "ghost",
+            "--out", str(tmp_path)]
     assert main(args) == 0
     assert "retired" in capsys.readouterr().out
     retired = [car["retired"] for line in (tmp_path / "results.jsonl").read_text().splitlines()

@@ -234,3 +234,55 @@ def test_no_grid_starts_two_cars_closer_than_the_margin():
 def test_bad_contact_and_steward_settings_are_refused_with_the_allowed_values(field, value, message):
     with pytest.raises(ValueError, match=message):
         racing_env.RaceConfig(**{field: value})
+
+
+# --- the fuzz ---------------------------------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.parametrize("track, actions", [("Monza", "uniform"), ("Spa", "saturated"), ("Suzuka", "uniform")])
+def test_twenty_car_scenes_race_without_pass_through_and_every_incident_judged(track, actions):
+    """A third of 10^6 race-steps per case: 20-car close-quarters scenes (``anywhere``) on a
+    real circuit, 256 races of 1,300 steps, every car driven by uniform random actions in the
+    box or by saturated ones (each axis -1 or +1). Nothing becomes non-finite; no two racing
+    cars swap their order along the track while their footprints overlap across it at both
+    ends of the step (a pass-through); every contact that begins an incident is judged once,
+    with a verdict of :data:`VERDICTS` and at most one car at fault."""
+    from racing_env import race
+    from racing_env.steward import VERDICTS
+
+    env = racing_env.parallel_env(track=track, num_agents=20, scenario="anywhere", max_steps=10**6, laps=100)
+    params = env.params
+    races, steps, width = 256, 1300, float(VehicleParams().width)
+
+    def one_race(key):
+        key, x0, _, _ = race.next_start(key, params)
+        state, _, _ = race.start(x0, params)
+
+        def step(carry, k):
+            state, key = carry
+            key, k_act = jax.random.split(key)
+            raw = jax.random.uniform(k_act, (20, 2), minval=-1.0, maxval=1.0)
+            act = jnp.sign(raw) if actions == "saturated" else raw
+            new, _, reward, _, _, info = race.step(None, state, act, params)
+            racing = state.status.active[:, None] & state.status.active[None, :]
+            before = track_gap(state.x, params)
+            after = track_gap(new.x, params)
+            lateral = lambda x: jnp.abs(x[None, :, N_LAT] - x[:, None, N_LAT]) < 0.9 * width  # noqa: E731
+            through = racing & (jnp.sign(before) * jnp.sign(after) < 0) & lateral(state.x) & lateral(new.x) & (
+                jnp.abs(before) < 10.0)
+            v = info.incidents
+            judged = (~v.incident | (v.rule >= 0) & (v.rule < len(VERDICTS))).all() & (
+                (v.fault & v.fault.T) == 0).all() & (~v.fault | v.incident).all()
+            finite = jnp.isfinite(new.x).all() & jnp.isfinite(reward).all()
+            return (new, key), (through.sum(), judged, finite, v.incident.sum() // 2)
+
+        _, out = jax.lax.scan(step, (state, key), jnp.arange(steps))
+        return out
+
+    def track_gap(x, params):
+        return params.game.track.wrap_ds(x[None, :, S] - x[:, None, S])
+
+    through, judged, finite, incidents = jax.jit(jax.vmap(one_race))(jax.random.split(jax.random.key(0), races))
+    assert bool(finite.all())
+    assert int(through.sum()) == 0
+    assert bool(judged.all())
+    assert int(incidents.sum()) > 0

@@ -26,8 +26,9 @@ GAME, X0 = paper_game()  # the paper's scene: the opponent 10 m behind, 2 m to t
 def test_the_rollout_is_the_environments_trajectory():
     """Car 1 driven by the lane keeper, car 0 without a driver (zero jerk): the rollout
     from the env's start state equals 50 env steps with the same actions. Same physics
-    function, compiled in another program: equal up to rounding."""
-    env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=60)
+    function, compiled in another program: equal up to rounding. Ghost cars: contact is the
+    env's, not the car model's that a rollout predicts with."""
+    env = racing_env.parallel_env(track="trefoil", num_agents=2, max_steps=60, contact="ghost")
     env.reset(seed=3)
     game = env.game
     x0 = env.state()

@@ -216,6 +216,33 @@ def test_a_replay_of_a_race_on_a_track_object_keeps_the_track(tmp_path):
         np.testing.assert_array_equal(live, drawn)
 
 
+def test_a_replay_keeps_the_incidents_and_its_frames_show_the_verdicts(tmp_path):
+    """Two coasting cars, the one behind 5 m/s faster: a rear-end. The record and its replay
+    hold the incident; the frames drawn while the race ran and from the replay show its
+    verdict (they differ from the same frames without it) for a few seconds after it began."""
+    import dataclasses
+
+    from experiments.race import NOTE_SECONDS
+
+    env = racing_env.parallel_env(track=racing_env.track.straight(length=200.0), num_agents=2, race_distance=80.0)
+    x0 = np.zeros((2, 6))
+    x0[:, 0], x0[:, 1] = (10.0, 20.0), (20.0, 15.0)
+    coast = lambda observation, state: np.zeros(2)  # noqa: E731
+    record = run_race(env, [coast, coast], seed=0, render_every=1, labels=["behind", "ahead"],
+                      reset_options={"x0": x0})
+    [incident] = record.incidents
+    assert (incident["verdict"], incident["cars"], incident["at_fault"]) == ("rear-end", [0, 1], 0)
+    replay = load_replay(save_replay(replay_of(record, env), tmp_path / "race.npz"))
+    assert replay.incidents == record.incidents
+    k = incident["step"]
+    assert "behind / ahead: rear-end, behind answers" in replay.scene(k).notes[0]
+    assert not replay.scene(k - 1).notes and not replay.scene(k + round(NOTE_SECONDS / env.config.dt)).notes
+    renderer = replay.renderer(size=env.config.render_size)
+    np.testing.assert_array_equal(renderer.draw(replay.scene(k)), record.frames[k])
+    quiet = renderer.draw(dataclasses.replace(replay.scene(k), notes=None))
+    assert np.any(quiet != record.frames[k])
+
+
 def _tournament(out, **changes):
     from experiments.tournament import TournamentConfig, run_tournament
 

@@ -24,7 +24,7 @@ from experiments.report import write_sweep_report, write_tournament_report
 from experiments.sweep import SweepConfig
 from experiments.tournament import TournamentConfig, wilson_interval
 
-SECTION_IDS = ("run", "leaderboard", "head-to-head", "solver-health", "races", "replays")
+SECTION_IDS = ("run", "leaderboard", "head-to-head", "solver-health", "races", "incidents", "replays")
 SHORT = dict(track="straight", race_distance=120.0, grids=1, max_steps=400)
 PLANNER = "ilqr:max_iterations=8,replan_every=5"  # cheap; its re-plans converge in some races more often than in others
 
@@ -238,6 +238,33 @@ def test_tournament_report_sections_links_and_leaderboard(planner_run):
         assert_ci(shown["win rate [95% CI]"], bar, row["win_rate"], *row["win_rate_ci95"])  # the board's numbers
     plots = [src for _, src in page.images if src.startswith("data:image/png")]
     assert [image_bytes(src) for src in plots] == [(out / "head_to_head.png").read_bytes()]
+
+
+def test_incidents_table_lists_every_incident_with_a_link_to_its_race(planner_run, tmp_path):
+    """Every incident of the records, in race order, with its verdict, the car that answers
+    (nobody for a racing incident) and a link to its race's replay or row."""
+    config, out, board, records = planner_run
+    records = [dict(record, incidents=list(record.get("incidents", []))) for record in records]
+    records[0]["incidents"].append({"step": 12, "time": 1.2, "cars": [0, 1], "verdict": "rear-end", "at_fault": 1,
+                                    "closing_speed": 4.25})
+    records[-1]["incidents"].append({"step": 30, "time": 3.0, "cars": [0, 1], "verdict": "racing-incident",
+                                     "at_fault": None, "closing_speed": 0.5})
+    page = checked_page(out, write_tournament_report(out, config, board, records))
+    rows = page.rows("incidents-table")
+    expected = [(k, incident) for k, record in enumerate(records) for incident in record["incidents"]]
+    assert len(rows) == len(expected)
+    for shown, (k, incident) in zip(rows, expected):
+        cars = records[k]["cars"]
+        assert shown["time [s]"] == f"{incident['time']:.1f}"
+        assert shown["verdict"] == incident["verdict"]
+        fault = incident["at_fault"]
+        assert shown["answers"] == ("nobody (racing incident)" if fault is None else
+                                    f"{cars[fault]['agent']} ({cars[fault]['car']})")
+        assert shown["closing speed [m/s]"] == f"{incident['closing_speed']:.1f}"
+        index = records[k].get("race", k)
+        assert shown["race K"] == str(index)
+        # the link resolves (checked_page): to the embedded replay, or else to the race's row
+        assert ("href", f"#replay-{index}") in page.refs or ("href", f"#race-{index}") in page.refs
 
 
 def test_head_to_head_cells_are_the_boards(planner_run):

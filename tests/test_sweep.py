@@ -171,10 +171,11 @@ def test_agent_options_are_swept_through_the_agent_specs(tmp_path):
 
 def test_incident_rules_are_swept(tmp_path):
     """A car steering for a line beyond the track's edge retires under on_off_track =
-    "terminate" and finishes under "penalty"; the summary counts the retirements."""
+    "terminate" and finishes under "penalty"; the summary counts the retirements. Ghost
+    cars: on its way across the car does not bump into the other one."""
     path = tmp_path / "rules.toml"
     path.write_text('lineup = ["lane-keeping:target_n=8", "lane-keeping"]\ntrack = "straight"\nrace_distance = 120.0\n'
-                    'grids = 1\n[parameters]\non_off_track = ["penalty", "terminate"]\n')
+                    'contact = "ghost"\ngrids = 1\n[parameters]\non_off_track = ["penalty", "terminate"]\n')
     config = load_sweep(path)
     records = [sweep.run_job(config, job) for job in sweep.schedule(config)]
     rows = {(row["on_off_track"], row["agent"]): row for row in sweep.summarize(config, records)}

@@ -293,10 +293,11 @@ WANDERER, KEEPER = "lane-keeping:target_n=8", "lane-keeping"  # 8 m left: beyond
 def test_leaving_the_track_retires_the_car_under_terminate_rules_and_only_then(tmp_path):
     """A car steering for a line beyond the track's edge retires there under
     ``on_off_track="terminate"``: unfinished, placed behind the finisher. By default the
-    time off track is counted and it finishes. The incident rules reach the race."""
+    time off track is counted and it finishes. The incident rules reach the race. Ghost
+    cars: on its way across the wanderer does not bump into the keeper."""
     boards, records = {}, {}
     for rule in ("penalty", "terminate"):
-        config = tour.TournamentConfig(agents=(WANDERER, KEEPER), on_off_track=rule, **SHORT)
+        config = tour.TournamentConfig(agents=(WANDERER, KEEPER), on_off_track=rule, contact="ghost", **SHORT)
         assert tour.race_config(config).on_off_track == rule
         boards[rule] = {row["agent"]: row for row in
                         tour.run_tournament(config, tmp_path / rule, gif=False, progress=False)["rows"]}
@@ -315,7 +316,8 @@ def test_leaving_the_track_retires_the_car_under_terminate_rules_and_only_then(t
     assert "on_off_track" not in json.loads((tmp_path / "penalty" / tour.CONFIG).read_text())
     assert json.loads((tmp_path / "terminate" / tour.CONFIG).read_text())["on_off_track"] == "terminate"
     with pytest.raises(ValueError, match="different tournament configuration"):
-        tour.run_tournament(tour.TournamentConfig(agents=(WANDERER, KEEPER), **SHORT), tmp_path / "terminate",
+        tour.run_tournament(tour.TournamentConfig(agents=(WANDERER, KEEPER), contact="ghost", **SHORT),
+                            tmp_path / "terminate",
                             gif=False, progress=False)
 
 

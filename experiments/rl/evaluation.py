@@ -68,8 +68,10 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
     """The learner's results over ``(slot, race record)`` pairs: wins (a lone car wins the
     races it finishes), places, its mean finish time over the races it finished, its mean
     margin over the races every car finished (the others' mean finish time minus its own),
-    distance and incidents."""
+    distance and incidents (contact steps, and the contact incidents the steward found it caused:
+    ``faults``)."""
     places, margins, times, distances, contact, off_track, finished, errors = [], [], [], [], 0, 0.0, 0, []
+    faults = 0
     ratios = []
     for slot, record in races:
         me = record["cars"][slot]
@@ -77,6 +79,7 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
         places.append(me["place"])
         distances.append(me["distance"])
         contact += me["collision_steps"]
+        faults += me.get("faults", 0)  # records from before the steward: none
         off_track += me["time_off_track"]
         if me["finish_time"] is not None:
             finished += 1
@@ -100,7 +103,7 @@ def summarize_evaluation(races: list[tuple[int, dict[str, Any]]], timesteps: int
             # its finish time over the race's lap-time limit (racing_env.limits.race_limit), where one applies
             "mean_limit_ratio": float(np.mean(ratios)) if ratios else None,
             "mean_margin_s": float(np.mean(margins)) if margins else None,
-            "mean_distance": float(np.mean(distances)), "contact_steps": contact,
+            "mean_distance": float(np.mean(distances)), "contact_steps": contact, "faults": faults,
             "time_off_track_s": off_track, "errors": errors}
 
 
@@ -117,7 +120,7 @@ def evaluation_line(record: dict[str, Any]) -> str:
             f"(starting 1st, 2nd, ...: {by_start}), "
             f"finished {record['finished']}/{record['races']}, mean margin {margin}, "
             f"mean distance {record['mean_distance']:.0f} m, contact steps {record['contact_steps']}, "
-            f"off track {record['time_off_track_s']:.1f} s")
+            f"at fault {record.get('faults', 0)}, off track {record['time_off_track_s']:.1f} s")
     for label, part in record.get("by_opponent", {}).items():
         margin = or_dash(part["mean_margin_s"], "{:+.2f} s")
         line += f"\n  vs {label}: won {part['wins']}/{part['races']}, mean margin {margin}"
