@@ -79,7 +79,7 @@ from racing_env.single_agent import OpponentPool
 from racing_env.starts import fresh_key, key_from_seed
 
 __all__ = ["Box", "GYMNAX_INSTALLED", "GymnaxRace", "LEARNER_OFF_TRACK", "PlannedRace", "RaceVectorEnv", "SIX_VALUE_STEP", "coasting",
-           "make_opponent"]
+           "learner_action", "make_opponent"]
 
 JaxPolicy = Callable[[jax.Array], jax.Array]
 """A JAX driver: ``policy(x (N, 6)) -> action (2,)``, normalised, for one car of one race."""
@@ -615,6 +615,29 @@ def _is_jax_policy(policy: Any, state_shape: tuple[int, ...]) -> bool:
     return getattr(out, "shape", None) == (2,)
 
 
+def learner_action(action: Any) -> jax.Array:
+    """The learner's action of one race as a JAX array ``(2,)`` (normalised jerks ``[jx,
+    jy]``): checked when the step is traced, so a jitted or vmapped step refuses a wrong
+    action before it runs.
+
+    Raises:
+        TypeError: the action is not an array of real numbers (a bool, complex or string
+            dtype).
+        ValueError: its shape is not ``(2,)`` (a scalar is not broadcast; a batch of races
+            is stepped by ``vmap`` over the step).
+    """
+    dtype = getattr(action, "dtype", None)
+    if dtype is None:
+        dtype = np.asarray(action).dtype
+    if dtype == np.bool_ or not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
+        raise TypeError(f"the learner's action must be an array of real numbers of shape (2,) (normalised jerks "
+                        f"[jx, jy]), got dtype {dtype}")
+    if np.shape(action) != (2,):
+        raise ValueError(f"the learner's action must have shape (2,) (normalised jerks [jx, jy] of one race; "
+                         f"vmap the step over races), got shape {np.shape(action)}")
+    return jnp.asarray(action)
+
+
 #: What leaving the track does in a :class:`GymnaxRace` unless its config says otherwise: the
 #: learner's car is out (the rule ``racing train`` trains with).
 LEARNER_OFF_TRACK = "terminate"
@@ -636,7 +659,11 @@ class GymnaxRace(_Environment):
       ``obs`` is then the new race's (the race is reset within the step);
     * ``info`` holds ``terminated``, ``truncated`` and the learner's ``position`` (int32),
       ``finished``, ``out`` (retired), ``finish_time`` (float32 [s], NaN until finished),
-      and whether it ``collided`` or was ``off_track`` in the step;
+      whether it ``collided`` or was ``off_track`` in the step, and ``nonfinite_action``;
+    * the learner's action is one race's ``(2,)``, finite values clipped to ``[-1, 1]``; a
+      wrong shape or dtype is refused when the step is traced (:func:`learner_action`), and
+      an action with a NaN or inf is replaced by zero jerk, with ``info["nonfinite_action"]``
+      True (the race goes on as if the learner had not acted);
     * observations ``(O,)``, rewards and float info fields are float32 whatever
       ``jax_enable_x64`` says (the race itself runs in JAX's widest float: float64 with x64
       on, float32 with it off);
@@ -748,7 +775,11 @@ class GymnaxRace(_Environment):
         self._check_params(params)
         race_state, plans = (state.race, state.plans) if self._planners else (state, ())
         dtype = race_state.x.dtype
-        actions = jnp.zeros((self.num_cars, 2), dtype).at[self.learner].set(jnp.asarray(action).astype(dtype))
+        action = learner_action(action)
+        finite = jnp.all(jnp.isfinite(action))
+        # a non-finite action is no action: zero jerk, flagged in the info
+        action = jnp.where(finite, action, jnp.zeros_like(action))
+        actions = jnp.zeros((self.num_cars, 2), dtype).at[self.learner].set(action.astype(dtype))
         for car, policy in self._policies:
             actions = actions.at[car].set(policy(race_state.x).astype(dtype))
         planned = []
@@ -767,6 +798,7 @@ class GymnaxRace(_Environment):
             "finish_time": stepped.status.finish_time[self.learner].astype(jnp.float32),
             "collided": race_info.collided[self.learner],
             "off_track": race_info.off_track[self.learner],
+            "nonfinite_action": ~finite,
         }
         carried = PlannedRace(stepped, tuple(planned)) if self._planners else stepped
         return (obs[self.learner], carried, rewards[self.learner].astype(jnp.float32), info["terminated"],
