@@ -69,6 +69,7 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
         agents=tuple(split_spec_list(agents)), lineup=lineup,
         track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
         cars=args.cars, seed=args.seed, versus=args.versus, max_steps=args.max_steps, step_budget_s=args.step_budget,
+        enforce_budget=args.enforce_budget,
         on_collision=args.collision, on_off_track=args.off_track, scenario=args.scenario,
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
     )
@@ -424,7 +425,13 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--seed", type=int, default=0, help="tournament seed: it seeds the start grids (default: 0)")
     tour.add_argument("--max-steps", type=int, default=3000,
                       help="truncate races after this many steps of 0.1 s (default: 3000)")
-    tour.add_argument("--step-budget", type=float, default=1.0, help="per-step time budget of an agent [s] (default: 1)")
+    tour.add_argument("--step-budget", type=float, default=None, metavar="SECONDS",
+                      help="report the actions of each agent slower than this [s] (counted per car, printed after the "
+                      "leaderboard); the races go on as without it (default: no budget: a busy machine never "
+                      "decides a race)")
+    tour.add_argument("--enforce-budget", action="store_true",
+                      help="with --step-budget: an action slower than the budget (the first of a race exempt) loses "
+                      "the race, which stops there")
     tour.add_argument("--jerk-weight", type=float, default=None,
                       help="every car's jerk weight r (R = r I) in the race's game, which the planners plan with "
                       "(default: 0.01, racing_env.costs.RACING_JERK_WEIGHT, the env's own default for races; "

@@ -50,6 +50,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from experiments.backends import check_backend
+from experiments.budget import StepBudget, budget_line
 from experiments.files import one_writer
 from experiments.formatting import mean_or_none, or_dash, share_with_interval
 from experiments.jsonl import read_jsonl, settings_json
@@ -78,7 +79,7 @@ CAR_FIELDS = WEIGHT_FIELDS + VEHICLE_FIELDS  # what ``weights.``/``vehicles.`` a
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class SweepConfig(RaceSpec):
+class SweepConfig(StepBudget, RaceSpec):
     """A sweep: the lineup, the race (:class:`RaceSpec`), and the swept parameters with
     their values.
 
@@ -94,14 +95,15 @@ class SweepConfig(RaceSpec):
         grids: seeded start grids per point, each raced once per rotation of the slots (a
             field: once, its cars shuffled over the slots, :meth:`field_slots`).
         seed: seeds the grids.
-        step_budget_s: an action slower than this loses the race (None: no budget).
+        step_budget_s: an action slower than this [s] is counted in its car's record
+            (``over_budget_steps``) and printed; None (the default): no budget.
+        enforce_budget: such an action loses the race (:mod:`experiments.budget`).
     """
 
     lineup: tuple[str, ...]
     parameters: tuple[tuple[str, tuple[Any, ...]], ...]
     grids: int = 2
     seed: int = 0
-    step_budget_s: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.lineup, str) or not all(isinstance(entry, str) for entry in self.lineup):
@@ -113,11 +115,7 @@ class SweepConfig(RaceSpec):
             raise ValueError(f"grids must be an integer >= 1, got {self.grids!r}")
         if not _is_int(self.seed) or self.seed < 0:
             raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
-        budget = self.step_budget_s
-        if budget is not None and (not is_number(budget) or not budget > 0):
-            # a budget of 0 s would fault both cars at their second action
-            raise ValueError(f"step_budget_s must be a number of seconds > 0 (or left out: no budget), "
-                             f"got {budget!r}")
+        self.check_budget()
         if not self.parameters:
             raise ValueError("a sweep needs a [parameters] table with at least one parameter")
         for name, values in self.parameters:
@@ -326,7 +324,8 @@ def run_job(config: SweepConfig, job: dict[str, Any], plans: bool = False) -> di
     order = config.slot_agents(job)  # the agent index in each slot
     specs = config.lineup_specs(job["point"])
     record, _ = race_lineup(config.race_config(job["point"], slots=order), [specs[a] for a in order],
-                            job["seed"], step_budget_s=config.step_budget_s, plans=plans)
+                            job["seed"], step_budget_s=config.step_budget_s, enforce_budget=config.enforce_budget,
+                            plans=plans)
     if config.field:
         by_agent = [{**car, "slot": slot, "entry": agent} for slot, (car, agent) in enumerate(zip(record["cars"], order))]
     else:
@@ -432,14 +431,17 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
         RacingParallelEnv(config.race_config(point, rotation=0))
     console = Console(stderr=True, width=160)
     with one_writer(out, "sweep"):
-        log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG, settings=settings_json(config, ADDED_LATER),
-                     what="sweep", fresh=fresh)
+        log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG,
+                     settings=settings_json(config, config.added_later(ADDED_LATER)), what="sweep", fresh=fresh)
         log.announce(console)
         interrupted = log.run(functools.partial(run_job, config, plans=plans), backend, workers, address, progress=progress,
                               desc="sweep")
         records = log.records()
         rows = summarize(config, records)
         _write_summary(config, rows, out, console)
+        budget = budget_line([car for record in records for car in record["agents"]], config)
+        if budget is not None:
+            console.print(budget)
         if report:
             from experiments.report import write_sweep_report
 

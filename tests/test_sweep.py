@@ -280,6 +280,8 @@ def test_a_time_trial_sweep_races_one_car_alone(tmp_path, capsys):
     ('lineup = ["lane-keeping", "constant-speed"]\nstep_budget_s = -1.0\n[parameters]\nlaps = [1]', "step_budget_s must"),
     ('lineup = ["lane-keeping", "constant-speed"]\nstep_budget_s = 0.0\n[parameters]\nlaps = [1]', "step_budget_s must"),
     ('lineup = ["lane-keeping", "constant-speed"]\nstep_budget_s = "1"\n[parameters]\nlaps = [1]', "step_budget_s must"),
+    ('lineup = ["lane-keeping", "constant-speed"]\nenforce_budget = true\n[parameters]\nlaps = [1]',
+     "enforce_budget needs a step budget"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\ntrack = ["straight", 5]', "track values"),
     ('lineup = ["lane-keeping", "constant-speed"]\ntrack = 5\n[parameters]\nlaps = [1]', "track values"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\njerk_weight = ["x"]', "jerk_weight must be a number"),
