@@ -231,11 +231,12 @@ def _cmd_exploit(args: argparse.Namespace) -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from experiments.sweep import load_sweep, run_sweep
+    from experiments.sweep import load_sweep, run_sweep, sweep_path
 
-    config = load_sweep(Path(args.file))
+    path = sweep_path(args.file)
+    config = load_sweep(path)
     _check_ray(args.backend)
-    out = Path(args.out) if args.out else Path("runs/sweep") / Path(args.file).stem
+    out = Path(args.out) if args.out else Path("runs/sweep") / path.stem
     report = run_sweep(config, out, backend=args.backend, workers=args.workers, address=args.address,
                        fresh=args.fresh, plans=args.plans, report=args.report)
     return 130 if report["interrupted"] else 0
@@ -683,15 +684,16 @@ def build_parser() -> argparse.ArgumentParser:
         "sweep", parents=[cache, backends, recording],
         help="races over a grid of settings from a TOML file, on local worker processes or a Ray cluster",
         description="Race a lineup of agents at every combination of the parameters in a TOML file (its keys: "
-        "docs/sweeps.md; examples: docs/sweeps/*.toml), on --grids seeded grids per point, once per rotation "
+        "docs/sweeps.md), or in an example sweep shipped with the package, named by FILE (e.g. aggression; an "
+        "unknown name lists them), on --grids seeded grids per point, once per rotation "
         "of the starting slots (a lineup with counts, \"SPEC*K\" for K cars: one field per grid). Records go to OUT/results.jsonl as races end; rerunning the same command resumes. "
         "Prints a table per point and agent; writes summary.csv, summary.json, sweep.png, report.html and every "
         "race's replay (OUT/replays, for racing replay). Backends: local "
         "(--workers processes; 1 runs in this process) or ray (--address of a running cluster, or a local one "
         "with --workers CPUs).",
     )
-    sweep.add_argument("file", help="the sweep's TOML file")
-    sweep.add_argument("--out", default=None, help="output folder (default: runs/sweep/<file name>)")
+    sweep.add_argument("file", metavar="FILE", help="the sweep's TOML file, or the name of an example sweep")
+    sweep.add_argument("--out", default=None, help="output folder (default: runs/sweep/<file or example name>)")
     sweep.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")
     sweep.set_defaults(func=_cmd_sweep)
 

@@ -28,6 +28,10 @@ weight or a car parameter of its car, known to every planner in the race, or an 
 its agent spec such as ``max_iterations`` or ``trailing.c_collision``, see
 :mod:`planners.agents.registry`).
 
+The example sweeps ship with the package (``experiments/sweeps/*.toml``): ``racing sweep
+aggression`` names one (:func:`sweep_path`, :func:`example_sweeps`); any other file is given
+by its path.
+
 Each race is one job (:func:`run_job`, a pure function of the sweep and the job, so any
 process can run it). Backends: ``local`` (this process for one worker, else a pool of
 worker processes) and ``ray`` (tasks on a Ray cluster: ``address`` of a running one, or a
@@ -261,6 +265,32 @@ def check_parameter_name(name: str, lineup: tuple[str, ...]) -> None:
                      f"weights.<weight>, vehicles.<car> or agent<i>.<weight|car|option> (i < {cars}) with <weight> "
                      f"one of {list(WEIGHT_FIELDS)}, <car> one of {list(VEHICLE_FIELDS)} and <option> an option of "
                      f"agent i's spec (`racing agents` lists them)")
+
+
+EXAMPLES = Path(__file__).resolve().parent / "sweeps"
+"""The folder of the example sweeps shipped with the package (one TOML file each)."""
+
+
+def example_sweeps() -> list[str]:
+    """The names of the example sweeps (``racing sweep NAME``), sorted."""
+    return sorted(path.stem for path in EXAMPLES.glob("*.toml"))
+
+
+def sweep_path(name_or_path: str | Path) -> Path:
+    """The TOML file of a sweep: ``name_or_path`` if it is a file, else the example sweep of
+    that name (``"aggression"`` or ``"aggression.toml"``: :func:`example_sweeps`).
+
+    Raises:
+        ValueError: neither, naming the example sweeps.
+    """
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    example = EXAMPLES / (path.name if path.suffix == ".toml" else f"{path.name}.toml")
+    if path.parent == Path(".") and example.is_file():
+        return example
+    raise ValueError(f"no sweep file {str(name_or_path)!r}: give the path of a TOML file or the name of an example "
+                     f"sweep, one of {example_sweeps()}")
 
 
 def load_sweep(path: Path) -> SweepConfig:

@@ -315,6 +315,27 @@ def test_dotted_keys_need_no_quotes(tmp_path):
     assert load_sweep(dotted).lineup_specs({"agent0.target_speed": 25.0})[0] == "lane-keeping:target_speed=25.0"
 
 
+def test_the_example_sweeps_ship_with_the_package_and_load_by_name_or_path(tmp_path, capsys):
+    """`racing sweep NAME` finds an example sweep in the package (experiments/sweeps), every
+    one of which is a valid sweep; a path still names any file, and a name that is neither
+    is refused naming the examples."""
+    names = sweep.example_sweeps()
+    assert {"aggression", "overtaking", "time_trial"} <= set(names)
+    for name in names:
+        path = sweep.sweep_path(name)
+        assert path.parent == sweep.EXAMPLES and sweep.sweep_path(f"{name}.toml") == path
+        load_sweep(path)  # every value checked, as `racing sweep` does before its first race
+    mine = tmp_path / "aggression.toml"  # a file of the user's wins over the example of its name
+    mine.write_text(TINY_TOML)
+    assert sweep.sweep_path(mine) == mine
+    with pytest.raises(ValueError, match=r"no sweep file 'agression': .* one of \['aggression'"):
+        sweep.sweep_path("agression")
+    with pytest.raises(ValueError, match="no sweep file"):
+        sweep.sweep_path(tmp_path / "aggression.toml.missing")
+    assert main(["sweep", "agression"]) == 2
+    assert "the name of an example sweep" in capsys.readouterr().err
+
+
 def test_bad_command_lines_fail_before_any_race(tmp_path, capsys):
     path = tmp_path / "sweep.toml"
     path.write_text(TINY_TOML.replace('"constant-speed"', '"wizard"'))
