@@ -29,6 +29,10 @@ batched opponent).
 
 Specs and factories are made by the planners package, looked up by name, so that importing
 ``racing_env`` never imports it.
+
+The learner faces share one default of their own: a learner that leaves the track is out
+(:data:`LEARNER_OFF_TRACK`, the rule ``racing train`` trains with), where the PettingZoo env,
+tournaments and evaluations keep :class:`racing_env.RaceConfig`'s penalty.
 """
 
 from __future__ import annotations
@@ -50,6 +54,19 @@ RACE_KEYWORDS = tuple(field.name for field in dataclasses.fields(RaceConfig))
 
 LEARNER_KEYWORDS = ("opponents", "learner")
 """The keywords every learner face adds to the race's."""
+
+LEARNER_OFF_TRACK = "terminate"
+"""What leaving the track does in a learner face unless its config says otherwise: the
+learner's car is out of its race (the rule ``racing train`` trains with). Under
+``RaceConfig``'s ``penalty`` a learner that leaves the track is charged every step until
+``max_steps`` and a standard learner never learns to stay on (docs/rl.md, "The training
+race"); pass ``on_off_track="penalty"`` for the tournaments' rule."""
+
+
+def learner_config(config: dict[str, Any]) -> dict[str, Any]:
+    """``config`` (:class:`racing_env.RaceConfig` fields) with the learner faces' default:
+    ``on_off_track`` :data:`LEARNER_OFF_TRACK` unless given."""
+    return {"on_off_track": LEARNER_OFF_TRACK, **config}
 
 
 def planners_function(path: str) -> Callable:

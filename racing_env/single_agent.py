@@ -27,6 +27,7 @@ from racing_env.opponents import (
     is_agent,
     is_factory,
     is_spec_list,
+    learner_config,
     make_from_factory,
     opponent_cars,
     planners_function,
@@ -117,8 +118,11 @@ class RaceEnv(gymnasium.Env):
         learner: index of the learner's car.
         **config: ``RaceConfig`` fields (track, scenario, laps, reward, ...); without
             ``weights`` the game planner opponents plan with has the racing jerk weight
-            (:meth:`RaceConfig.game_weights`), as in :func:`racing_env.parallel_env`. Any
-            other keyword is refused (``TypeError``, naming the allowed ones).
+            (:meth:`RaceConfig.game_weights`), as in :func:`racing_env.parallel_env`. One
+            default differs from ``RaceConfig``'s: ``on_off_track`` is
+            :data:`racing_env.opponents.LEARNER_OFF_TRACK` (``terminate``: a learner that
+            leaves the track is out), the rule ``racing train`` trains with. Any other
+            keyword is refused (``TypeError``, naming the allowed ones).
 
     A spec or a factory makes an agent of its own for each car it drives. An agent (it has
     ``reset(seed, index, env_info)`` besides ``act``) is reset as its car at every
@@ -148,7 +152,7 @@ class RaceEnv(gymnasium.Env):
         agents = [p for p in drivers if is_agent(p)]
         if len({id(p) for p in agents}) != len(agents):
             raise ValueError(f"an agent object (with reset(seed, index, env_info)) drives one car; {SHARED_AGENT_HINT}")
-        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
+        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **learner_config(config)))
         self.render_mode = self.race.render_mode
         self.learner = agent_name(learner)
         self._opponents = {agent_name(car): policy for car, policy in policies.items()}

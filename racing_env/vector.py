@@ -63,11 +63,13 @@ from racing_env import race
 from racing_env.config import RaceConfig
 from racing_env.env import RacingParallelEnv, agent_name
 from racing_env.opponents import (
+    LEARNER_OFF_TRACK,
     SHARED_AGENT_HINT,
     check_keywords,
     is_agent,
     is_factory,
     is_spec_list,
+    learner_config,
     opponent_cars,
     planners_function,
 )
@@ -177,8 +179,10 @@ class RaceVectorEnv(VectorEnv):
             length is ``max_steps``.
         disable_env_checker: Gymnasium's keyword, accepted and without effect: ``make_vec``
             wraps no checker around a vector entry point.
-        **config: :class:`racing_env.RaceConfig` fields (``render_mode`` must be None); any
-            other keyword is refused (``TypeError``, naming the allowed ones).
+        **config: :class:`racing_env.RaceConfig` fields (``render_mode`` must be None); as in
+            :class:`racing_env.RaceEnv`, ``on_off_track`` defaults to :data:`LEARNER_OFF_TRACK`
+            (``terminate``). Any other keyword is refused (``TypeError``, naming the allowed
+            ones).
 
     ``infos`` hold, per race, the learner's ``s``, ``lap``, ``position``, ``collided``,
     ``off_track``, ``finished``, ``finish_time`` (NaN until finished), ``out`` and
@@ -212,7 +216,7 @@ class RaceVectorEnv(VectorEnv):
         self.metadata = {"autoreset_mode": self.autoreset_mode}
         num, drivers = opponent_cars(opponents, learner, config)
         # one race built the usual way: its checks, its game and its params serve every race
-        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
+        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **learner_config(config)))
         self.config, self.game, self.params = self.race.config, self.race.game, self.race.params
         self.learner = int(learner)
         self.num_cars = num
@@ -638,11 +642,6 @@ def learner_action(action: Any) -> jax.Array:
     return jnp.asarray(action)
 
 
-#: What leaving the track does in a :class:`GymnaxRace` unless its config says otherwise: the
-#: learner's car is out (the rule ``racing train`` trains with).
-LEARNER_OFF_TRACK = "terminate"
-
-
 class GymnaxRace(_Environment):
     """One learner against JAX opponents, as a gymnax environment.
 
@@ -696,8 +695,7 @@ class GymnaxRace(_Environment):
     def __init__(self, opponents: Sequence[Any] | None = None, learner: int = 0, **config: Any) -> None:
         check_keywords(config, "GymnaxRace")
         num, drivers = opponent_cars(opponents, learner, config)
-        config.setdefault("on_off_track", LEARNER_OFF_TRACK)
-        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
+        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **learner_config(config)))
         self.learner = int(learner)
         self._policies, self._planners = [], []
         for car, opponent in drivers:

@@ -42,14 +42,37 @@ def test_make_and_make_vec_race_the_same_with_the_same_arguments(opponents):
     obs_single, _ = single.reset(seed=4)
     obs_vector, _ = vector.reset(seed=4)
     np.testing.assert_array_equal(obs_vector[0], obs_single)  # the same start
+    ended, restarts = False, 0
     for action in np.random.default_rng(0).uniform(-1, 1, (100, 2)):
-        obs_single, reward_single, terminated, truncated, _ = single.step(action)
         obs_vector, reward_vector, terminated_v, truncated_v, _ = vector.step(action[None])
+        if ended:  # make_vec's autoreset step starts the race's next episode, as reset() does
+            obs_single, _ = single.reset()
+            reward_single, terminated, truncated = 0.0, False, False
+            restarts += 1
+        else:
+            obs_single, reward_single, terminated, truncated, _ = single.step(action)
         np.testing.assert_allclose(obs_vector[0], obs_single, rtol=2.0**-23, atol=0.0)
         np.testing.assert_allclose(reward_vector[0], reward_single, rtol=0.0, atol=1e-9)
         assert (terminated_v[0], truncated_v[0]) == (terminated, truncated)
-        if terminated or truncated:  # the next step of make_vec restarts the race: compare no further
-            break
+        ended = terminated or truncated
+    assert restarts >= 1  # random actions leave the track: the learner faces retire the learner
+
+
+def test_the_learner_faces_default_to_the_rule_a_learner_learns_with():
+    """Off the track a learner is out in every learner face (the rule `racing train` uses);
+    the PettingZoo env keeps the penalty; a rule given is the rule raced."""
+    from experiments.rl.config import TrainConfig
+    from racing_env import parallel_env
+    from racing_env.opponents import LEARNER_OFF_TRACK
+
+    assert LEARNER_OFF_TRACK == "terminate" == TrainConfig().on_off_track
+    faces = {"make": gymnasium.make(ID).unwrapped.race, "make_vec": _vector(2).unwrapped.race,
+             "gymnax": GymnaxRace().race}
+    assert {name: race.config.on_off_track for name, race in faces.items()} == dict.fromkeys(faces, "terminate")
+    assert all(race.config.on_collision == "penalty" for race in faces.values())
+    assert parallel_env().config.on_off_track == "penalty"
+    given = [gymnasium.make(ID, on_off_track="penalty").unwrapped.race, _vector(2, on_off_track="both").unwrapped.race]
+    assert [race.config.on_off_track for race in given] == ["penalty", "both"]
 
 
 def test_unknown_keywords_are_refused_with_the_allowed_names_and_gymnasiums_own_are_taken():
