@@ -179,6 +179,9 @@ class RaceEnv(gymnasium.Env):
         return info
 
     def step(self, action):
+        if self.learner not in self.race.agents:
+            raise RuntimeError("the learner is not racing (its episode ended, terminated or truncated, or none has "
+                               "started): call reset() before step()")
         state = self.race.state()
         actions = {self.learner: action}
         for agent in self.race.agents:

@@ -73,6 +73,15 @@ def test_the_learner_faces_default_to_the_rule_a_learner_learns_with():
     assert parallel_env().config.on_off_track == "penalty"
     given = [gymnasium.make(ID, on_off_track="penalty").unwrapped.race, _vector(2, on_off_track="both").unwrapped.race]
     assert [race.config.on_off_track for race in given] == ["penalty", "both"]
+    env = gymnasium.make(ID, track="trefoil")
+    env.reset(seed=0)
+    for _ in range(200):  # full left jerk: the learner leaves the track and is out
+        *_, terminated, truncated, info = env.step(np.array([0.0, 1.0], np.float32))
+        if terminated:
+            break
+    assert terminated and info["out"] and info["off_track"]
+    with pytest.raises(RuntimeError, match=r"call reset\(\) before step\(\)"):
+        env.step(np.zeros(2, np.float32))
 
 
 def test_unknown_keywords_are_refused_with_the_allowed_names_and_gymnasiums_own_are_taken():
