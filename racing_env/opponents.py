@@ -162,7 +162,8 @@ def opponent_cars(opponents: Sequence[Any] | None, learner: int, config: dict[st
     if len(opponents) == 1 and num > 2:
         opponents = opponents * (num - 1)
     if len(opponents) != num - 1:
-        raise ValueError(f"opponents must have {num - 1} entries for {num} cars (or one entry for all), "
+        entries = "entry" if num == 2 else "entries"
+        raise ValueError(f"opponents must have {num - 1} {entries} for {num} cars (or one entry for all), "
                          f"got {len(opponents)}")
     if not _is_index(learner) or not 0 <= learner < num:
         raise ValueError(f"learner must be a car index in [0, {num - 1}], got {learner!r}")

@@ -85,7 +85,7 @@ def test_wrong_number_of_opponent_policies_raises(trefoil):
     """A policy list that does not match the number of cars, or an entry of no known kind,
     is refused with ValueError."""
     coast = lambda obs, state: np.zeros(2)  # noqa: E731
-    with pytest.raises(ValueError, match="opponents must have 1 entries for 2 cars .*, got 2"):
+    with pytest.raises(ValueError, match="opponents must have 1 entry for 2 cars .*, got 2"):
         RaceEnv(opponents=[coast, coast], num_agents=2, track=trefoil)
     with pytest.raises(ValueError, match="opponents must have 3 entries for 4 cars .*, got 2"):
         gymnasium.make(ENV_ID, opponents=[coast, coast], num_agents=4, track=trefoil)
