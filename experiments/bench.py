@@ -70,7 +70,8 @@ def _gym_view_row(steps: int, repeats: int) -> dict[str, Any]:
 
     probe = RaceEnv(track="trefoil")
     rival = LaneKeeping(probe.race.track, index=1, vehicle=probe.race.game.vehicles.car(1))
-    env = RaceEnv(opponents=[rival], track="trefoil", max_steps=10**9, laps=1000)
+    # leaving the track penalised, not retiring the learner: random actions race on, unending
+    env = RaceEnv(opponents=[rival], track="trefoil", max_steps=10**9, laps=1000, on_off_track="penalty")
     actions = np.random.default_rng(0).uniform(-1, 1, size=(steps, 2)).astype(np.float32)
     env.reset(seed=0)
 

@@ -107,7 +107,7 @@ def vector_field_rows(cars: tuple[int, ...] = (2, 10), num_envs: int = 256, call
     first = None
     for count in cars:
         envs = gymnasium.make_vec("racing_env/Race-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
-                                  num_agents=count, track="trefoil")
+                                  num_agents=count, track="trefoil", on_off_track="penalty")  # as bench_rl's RACE
         rate, rates, compile_s = _random_action_rate(envs, num_envs, calls, repeats)
         first = first or rate
         yield {"name": f"vector_env_{count}_cars_B{num_envs}", "cars": count, "races": num_envs,

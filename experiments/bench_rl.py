@@ -23,8 +23,10 @@ from typing import Any, Iterator
 
 import numpy as np
 
-#: The race every row runs: two cars on the trefoil, a race long enough never to end while timed.
-RACE = dict(track="trefoil", max_steps=10**9, laps=1000)
+#: The race every row runs: two cars on the trefoil, a race long enough never to end while timed,
+#: leaving the track penalised (the learner faces' own default retires the learner: a race
+#: of random actions would then restart while timed).
+RACE = dict(track="trefoil", max_steps=10**9, laps=1000, on_off_track="penalty")
 #: Batch sizes of the random-action rows.
 BATCHES = (1, 64, 1024)
 #: Opponents of the opponent rows, and the re-plan intervals they are raced with.
@@ -231,7 +233,8 @@ def short_episode_rows(num_envs: int = 1024, calls: int = 200, repeats: int = 3,
     episode ends per step and the cost of one reset, ``(time per step, short - endless) /
     resets per step``."""
     actions = np.random.default_rng(0).uniform(-1, 1, (calls, num_envs, 2))
-    seconds, compile_s, ends = _timed_in_turns({"endless": _vector_env_on(num_envs, track, max_steps=10**9, laps=1000),
+    seconds, compile_s, ends = _timed_in_turns({"endless": _vector_env_on(num_envs, track, max_steps=10**9, laps=1000,
+                                                                       on_off_track="penalty"),
                                                 "short": _vector_env_on(num_envs, track, **SHORT_EPISODES)},
                                                actions, repeats)
     rate = {name: num_envs * calls / float(np.median(times)) for name, times in seconds.items()}
@@ -262,8 +265,8 @@ def _gymnax_scan(num_envs: int, steps: int, track: str):
 
     from racing_env.vector import GymnaxRace
 
-    # the vector env's rules (a penalty off the track, no retiring), so the rows race the same races
-    env = GymnaxRace(opponents=["lane-keeping"], **{**RACE, "track": track, "on_off_track": "penalty"})
+    # the vector env's rules (RACE: a penalty off the track, no retiring), so the rows race the same races
+    env = GymnaxRace(opponents=["lane-keeping"], **{**RACE, "track": track})
     params = env.default_params
     step = jax.vmap(env.race_step, in_axes=(0, 0, 0, None))
 
@@ -309,7 +312,8 @@ def gymnax_rows(num_envs: int = GYMNAX_RACES, steps: int = 200, repeats: int = 5
                "track": track, "x64": x64, "race_dtype": dtypes[x64],
                "steps_per_s": num_envs * steps / float(np.median(seconds[x64])), "compile_s": compile_s[x64],
                "repeats": [round(num_envs * steps / t) for t in seconds[x64]]}
-    envs = _vector_env_on(num_envs, track, max_steps=RACE["max_steps"], laps=RACE["laps"])
+    envs = _vector_env_on(num_envs, track, max_steps=RACE["max_steps"], laps=RACE["laps"],
+                          on_off_track=RACE["on_off_track"])
     rate, rates, compile_s = _random_action_rate(envs, num_envs, steps, repeats)
     yield {"name": f"vector_env_{track}_lane-keeping_B{num_envs}", "races": num_envs, "track": track,
            "steps_per_s": rate, "compile_s": compile_s, "repeats": [round(r) for r in rates]}

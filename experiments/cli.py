@@ -90,6 +90,7 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
         agents=tuple(split_spec_list(agents)), lineup=lineup,
         track=args.track, laps=args.laps, race_distance=args.race_distance, grids=args.grids,
         cars=args.cars, seed=args.seed, versus=args.versus, max_steps=args.max_steps, step_budget_s=args.step_budget,
+        enforce_budget=args.enforce_budget,
         on_collision=args.collision, on_off_track=args.off_track, scenario=args.scenario, **_contact_fields(args),
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
     )
@@ -252,11 +253,12 @@ def _cmd_exploit(args: argparse.Namespace) -> int:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from experiments.sweep import load_sweep, run_sweep
+    from experiments.sweep import load_sweep, run_sweep, sweep_path
 
-    config = load_sweep(Path(args.file))
+    path = sweep_path(args.file)
+    config = load_sweep(path)
     _check_ray(args.backend)
-    out = Path(args.out) if args.out else Path("runs/sweep") / Path(args.file).stem
+    out = Path(args.out) if args.out else Path("runs/sweep") / path.stem
     report = run_sweep(config, out, backend=args.backend, workers=args.workers, address=args.address,
                        fresh=args.fresh, plans=args.plans, report=args.report)
     return 130 if report["interrupted"] else 0
@@ -446,7 +448,13 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--seed", type=int, default=0, help="tournament seed: it seeds the start grids (default: 0)")
     tour.add_argument("--max-steps", type=int, default=3000,
                       help="truncate races after this many steps of 0.1 s (default: 3000)")
-    tour.add_argument("--step-budget", type=float, default=1.0, help="per-step time budget of an agent [s] (default: 1)")
+    tour.add_argument("--step-budget", type=float, default=None, metavar="SECONDS",
+                      help="report the actions of each agent slower than this [s] (counted per car, printed after the "
+                      "leaderboard); the races go on as without it (default: no budget: a busy machine never "
+                      "decides a race)")
+    tour.add_argument("--enforce-budget", action="store_true",
+                      help="with --step-budget: an action slower than the budget (the first of a race exempt) loses "
+                      "the race, which stops there")
     tour.add_argument("--jerk-weight", type=float, default=None,
                       help="every car's jerk weight r (R = r I) in the race's game, which the planners plan with "
                       "(default: 0.01, racing_env.costs.RACING_JERK_WEIGHT, the env's own default for races; "
@@ -701,15 +709,16 @@ def build_parser() -> argparse.ArgumentParser:
         "sweep", parents=[cache, backends, recording],
         help="races over a grid of settings from a TOML file, on local worker processes or a Ray cluster",
         description="Race a lineup of agents at every combination of the parameters in a TOML file (its keys: "
-        "docs/sweeps.md; examples: docs/sweeps/*.toml), on --grids seeded grids per point, once per rotation "
+        "docs/sweeps.md), or in an example sweep shipped with the package, named by FILE (e.g. aggression; an "
+        "unknown name lists them), on --grids seeded grids per point, once per rotation "
         "of the starting slots (a lineup with counts, \"SPEC*K\" for K cars: one field per grid). Records go to OUT/results.jsonl as races end; rerunning the same command resumes. "
         "Prints a table per point and agent; writes summary.csv, summary.json, sweep.png, report.html and every "
         "race's replay (OUT/replays, for racing replay). Backends: local "
         "(--workers processes; 1 runs in this process) or ray (--address of a running cluster, or a local one "
         "with --workers CPUs).",
     )
-    sweep.add_argument("file", help="the sweep's TOML file")
-    sweep.add_argument("--out", default=None, help="output folder (default: runs/sweep/<file name>)")
+    sweep.add_argument("file", metavar="FILE", help="the sweep's TOML file, or the name of an example sweep")
+    sweep.add_argument("--out", default=None, help="output folder (default: runs/sweep/<file or example name>)")
     sweep.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")
     sweep.set_defaults(func=_cmd_sweep)
 

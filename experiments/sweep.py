@@ -28,6 +28,10 @@ weight or a car parameter of its car, known to every planner in the race, or an 
 its agent spec such as ``max_iterations`` or ``trailing.c_collision``, see
 :mod:`planners.agents.registry`).
 
+The example sweeps ship with the package (``experiments/sweeps/*.toml``): ``racing sweep
+aggression`` names one (:func:`sweep_path`, :func:`example_sweeps`); any other file is given
+by its path.
+
 Each race is one job (:func:`run_job`, a pure function of the sweep and the job, so any
 process can run it). Backends: ``local`` (this process for one worker, else a pool of
 worker processes) and ``ray`` (tasks on a Ray cluster: ``address`` of a running one, or a
@@ -50,6 +54,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from experiments.backends import check_backend
+from experiments.budget import StepBudget, budget_line
 from experiments.files import one_writer
 from experiments.formatting import mean_or_none, or_dash, share_with_interval
 from experiments.jsonl import read_jsonl, settings_json
@@ -78,7 +83,7 @@ CAR_FIELDS = WEIGHT_FIELDS + VEHICLE_FIELDS  # what ``weights.``/``vehicles.`` a
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class SweepConfig(RaceSpec):
+class SweepConfig(StepBudget, RaceSpec):
     """A sweep: the lineup, the race (:class:`RaceSpec`), and the swept parameters with
     their values.
 
@@ -94,14 +99,15 @@ class SweepConfig(RaceSpec):
         grids: seeded start grids per point, each raced once per rotation of the slots (a
             field: once, its cars shuffled over the slots, :meth:`field_slots`).
         seed: seeds the grids.
-        step_budget_s: an action slower than this loses the race (None: no budget).
+        step_budget_s: an action slower than this [s] is counted in its car's record
+            (``over_budget_steps``) and printed; None (the default): no budget.
+        enforce_budget: such an action loses the race (:mod:`experiments.budget`).
     """
 
     lineup: tuple[str, ...]
     parameters: tuple[tuple[str, tuple[Any, ...]], ...]
     grids: int = 2
     seed: int = 0
-    step_budget_s: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.lineup, str) or not all(isinstance(entry, str) for entry in self.lineup):
@@ -113,11 +119,7 @@ class SweepConfig(RaceSpec):
             raise ValueError(f"grids must be an integer >= 1, got {self.grids!r}")
         if not _is_int(self.seed) or self.seed < 0:
             raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
-        budget = self.step_budget_s
-        if budget is not None and (not is_number(budget) or not budget > 0):
-            # a budget of 0 s would fault both cars at their second action
-            raise ValueError(f"step_budget_s must be a number of seconds > 0 (or left out: no budget), "
-                             f"got {budget!r}")
+        self.check_budget()
         if not self.parameters:
             raise ValueError("a sweep needs a [parameters] table with at least one parameter")
         for name, values in self.parameters:
@@ -265,6 +267,32 @@ def check_parameter_name(name: str, lineup: tuple[str, ...]) -> None:
                      f"agent i's spec (`racing agents` lists them)")
 
 
+EXAMPLES = Path(__file__).resolve().parent / "sweeps"
+"""The folder of the example sweeps shipped with the package (one TOML file each)."""
+
+
+def example_sweeps() -> list[str]:
+    """The names of the example sweeps (``racing sweep NAME``), sorted."""
+    return sorted(path.stem for path in EXAMPLES.glob("*.toml"))
+
+
+def sweep_path(name_or_path: str | Path) -> Path:
+    """The TOML file of a sweep: ``name_or_path`` if it is a file, else the example sweep of
+    that name (``"aggression"`` or ``"aggression.toml"``: :func:`example_sweeps`).
+
+    Raises:
+        ValueError: neither, naming the example sweeps.
+    """
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    example = EXAMPLES / (path.name if path.suffix == ".toml" else f"{path.name}.toml")
+    if path.parent == Path(".") and example.is_file():
+        return example
+    raise ValueError(f"no sweep file {str(name_or_path)!r}: give the path of a TOML file or the name of an example "
+                     f"sweep, one of {example_sweeps()}")
+
+
 def load_sweep(path: Path) -> SweepConfig:
     """Read a sweep TOML file (see the module docstring)."""
     try:
@@ -326,7 +354,8 @@ def run_job(config: SweepConfig, job: dict[str, Any], plans: bool = False) -> di
     order = config.slot_agents(job)  # the agent index in each slot
     specs = config.lineup_specs(job["point"])
     record, _ = race_lineup(config.race_config(job["point"], slots=order), [specs[a] for a in order],
-                            job["seed"], step_budget_s=config.step_budget_s, plans=plans)
+                            job["seed"], step_budget_s=config.step_budget_s, enforce_budget=config.enforce_budget,
+                            plans=plans)
     if config.field:
         by_agent = [{**car, "slot": slot, "entry": agent} for slot, (car, agent) in enumerate(zip(record["cars"], order))]
     else:
@@ -432,14 +461,17 @@ def run_sweep(config: SweepConfig, out: Path, backend: str = "local", workers: i
         RacingParallelEnv(config.race_config(point, rotation=0))
     console = Console(stderr=True, width=160)
     with one_writer(out, "sweep"):
-        log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG, settings=settings_json(config, ADDED_LATER),
-                     what="sweep", fresh=fresh)
+        log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG,
+                     settings=settings_json(config, config.added_later(ADDED_LATER)), what="sweep", fresh=fresh)
         log.announce(console)
         interrupted = log.run(functools.partial(run_job, config, plans=plans), backend, workers, address, progress=progress,
                               desc="sweep")
         records = log.records()
         rows = summarize(config, records)
         _write_summary(config, rows, out, console)
+        budget = budget_line([car for record in records for car in record["agents"]], config)
+        if budget is not None:
+            console.print(budget)
         if report:
             from experiments.report import write_sweep_report
 

@@ -13,9 +13,10 @@ the field, in an order shuffled per grid; an explicit ``lineup`` (``"SPEC*K"``: 
 spec, :func:`expand_lineup`) races that field on every grid, shuffled the same way. The
 leaderboard then rates the agents by their cars' places (:func:`experiments.standings.standings`).
 
-An agent that raises, or whose action takes longer than ``step_budget_s`` (the first
-action of a race is exempt: it may compile), loses that race: it is placed last, the error
-is recorded, and the tournament goes on.
+An agent that raises loses that race: it is placed last, the error is recorded, and the
+tournament goes on. Races do not depend on the machine's speed: a step budget
+(``step_budget_s``) is reported, each car's actions over it counted, and decides races only
+when enforced (``enforce_budget``: an action over it loses the race; :mod:`experiments.budget`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from experiments.backends import check_backend
+from experiments.budget import StepBudget, budget_line, over_budget
 from experiments.files import one_writer
 from experiments.formatting import or_dash, share_with_interval
 from experiments.jsonl import read_jsonl, settings_json
@@ -47,10 +49,11 @@ RESULTS = "results.jsonl"
 CONFIG = "tournament.json"
 GIF = "race.gif"
 ADDED_LATER = ("on_collision", "on_off_track", "scenario", "lineup")  # left out of tournament.json at their defaults
+# (enforce_budget too, without a budget: StepBudget.added_later)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class TournamentConfig(RaceSpec):
+class TournamentConfig(StepBudget, RaceSpec):
     """What a tournament races: the agents, and the race (:class:`RaceSpec`: ``track``,
     ``laps`` or ``race_distance`` [m], ``max_steps``, ``jerk_weight``, ``on_collision``,
     ``on_off_track``) on ``grids`` seeded starts of ``cars`` cars.
@@ -83,13 +86,16 @@ class TournamentConfig(RaceSpec):
     (:data:`racing_env.config.INCIDENT_MODES`). By default only the env's reward counts them,
     which no race result uses; ``terminate`` (or ``both``) retires the car, which then places
     behind every finisher by distance covered.
+
+    ``step_budget_s`` / ``enforce_budget``: a wall-clock budget of an agent's action [s],
+    reported (each car's ``over_budget_steps``) unless enforced (:mod:`experiments.budget`);
+    default: none.
     """
 
     agents: tuple[str, ...] = ()
     grids: int = 2
     cars: int | None = None
     seed: int = 0
-    step_budget_s: float = 1.0
     versus: str | None = None
     scenario: str = "grid"
     lineup: tuple[str, ...] | None = None
@@ -129,8 +135,7 @@ class TournamentConfig(RaceSpec):
             if not same:
                 raise ValueError(f"versus must be one of the agents {list(self.agents)}, got {self.versus!r}")
             object.__setattr__(self, "versus", same[0])
-        if not self.step_budget_s > 0:
-            raise ValueError(f"step_budget_s must be > 0 seconds, got {self.step_budget_s}")
+        self.check_budget()
 
     def _set_lineup(self) -> None:
         """Check ``lineup`` and set the fields it decides: the lineup expanded, each spec as
@@ -310,8 +315,8 @@ def race_config(config: TournamentConfig) -> RaceConfig:
 
 
 def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: float | None = None,
-                render_every: int = 0, plans: bool = False,
-                replay: bool = True) -> tuple[dict[str, Any], list[np.ndarray]]:
+                render_every: int = 0, plans: bool = False, replay: bool = True,
+                enforce_budget: bool = False) -> tuple[dict[str, Any], list[np.ndarray]]:
     """Race agent specs (one per starting slot) on grid ``seed``; returns ``(record, frames)``.
 
     The record holds the finishing ``order`` (specs), the ``gap`` to the second car (None
@@ -321,10 +326,12 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     (``faults``), distance, mean speed, contact
     steps, time off track and its steps (``off_track_steps``), its passes made and suffered (``overtakes``, ``overtaken``), whether an incident rule ``retired`` it, action times, solver
     failures, its re-plans' iterations (mean, median, 95th percentile), the shares of its re-plans that converged and (a game agent with ``certify``
-    on; else None) that were certified local Nash equilibria (``certified_share``), and the
-    ``error`` of a car that faulted; and the race's ``incidents``
+    on; else None) that were certified local Nash equilibria (``certified_share``), its
+    actions slower than ``step_budget_s`` (``over_budget_steps``; None without a budget),
+    the ``error`` of a car that faulted; and the race's ``incidents``
     (:attr:`experiments.race.RaceRecord.incidents`).
-    Faults are recorded, never raised: a car that raises or blows ``step_budget_s`` is last.
+    Faults are recorded, never raised: a car that raises, or with ``enforce_budget`` acts
+    slower than ``step_budget_s``, is last.
     With ``replay`` the record's ``"replay"`` is the race's :class:`experiments.replay.Replay`
     (with the planners' plans when ``plans``), which :class:`experiments.runner.JobLog`
     writes beside the records; frames (every ``render_every``-th step) are labelled with the
@@ -347,7 +354,9 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             agent = None
             policies.append(_failed_setup(f"setup: {type(err).__name__}: {err}"))
         agents.append(agent)
-    result = run_race(env, policies, seed=seed, render_every=render_every, step_budget_s=step_budget_s,
+    budget = StepBudget(step_budget_s=step_budget_s, enforce_budget=enforce_budget)
+    budget.check_budget()
+    result = run_race(env, policies, seed=seed, render_every=render_every, step_budget_s=budget.enforced_budget_s,
                       catch_errors=True, plans=plans, labels=lineup)
     xs, faults = result.xs, result.faults
     final_s = xs[-1, :, 0]
@@ -389,6 +398,7 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             "retired": car["retired"],
             "act_time_mean_s": float(np.mean(times)) if times else float("nan"),
             "act_time_max_s": float(np.max(times)) if times else float("nan"),
+            "over_budget_steps": over_budget(times, step_budget_s),
             "solver_failures": int(summary.get("fallbacks", 0)),
             "solver_converged_fraction": summary.get("converged_fraction"),
             "solver_iterations_mean": summary.get("iterations_mean"),
@@ -410,8 +420,8 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
 def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0, plans: bool = False):
     """Race one scheduled lineup; returns ``(record, frames)`` (the record with its replay,
     with the planners' plans when ``plans``). Faults are recorded, never raised."""
-    record, frames = race_lineup(race_config(config), race["lineup"], race["seed"],
-                                 step_budget_s=config.step_budget_s, render_every=render_every, plans=plans)
+    record, frames = race_lineup(race_config(config), race["lineup"], race["seed"], step_budget_s=config.step_budget_s,
+                                 enforce_budget=config.enforce_budget, render_every=render_every, plans=plans)
     return {"id": race["id"], "grid": race["grid"], "seed": race["seed"], **record}, frames
 
 
@@ -525,7 +535,8 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     # track file it cannot read) fails before anything is written
     RacingParallelEnv(race_config(config))
     with one_writer(out, "tournament"):
-        log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG, settings=settings_json(config, ADDED_LATER),
+        log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG,
+                     settings=settings_json(config, config.added_later(ADDED_LATER)),
                      what="tournament configuration", fresh=fresh, outputs=(GIF,))
         log.announce(console)
         # with no race recorded a GIF here is not this run's (e.g. results.jsonl deleted by hand): draw it
@@ -556,8 +567,11 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
 
             written.append(write_tournament_report(out, config, board, records))
     retire = config.on_collision in RETIRING_MODES or config.on_off_track in RETIRING_MODES
+    budget = budget_line([car for record in records for car in record["cars"]], config)
     if config.cars == 1:
         console.print(_time_trial_table(board, records, config, retire))
+        if budget is not None:
+            console.print(budget)
         console.print(f"wrote {', '.join(map(str, written))}")
         return board
     table = Table(title=f"leaderboard: {len(records)} races on {config.track}")
@@ -584,5 +598,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
                       f"{1e3 * row['mean_act_time_s']:.1f}",
                       or_dash(row["converged_fraction"], "{:.0%}"), *certified[k - 1])
     console.print(table)
+    if budget is not None:
+        console.print(budget)
     console.print(f"wrote {', '.join(map(str, written))}")
     return board

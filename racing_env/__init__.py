@@ -9,10 +9,17 @@ XLA:CPU kernel, and single-device CPU computations on the calling thread. Call i
 (``racing_env.configure_for_racing()``) at the top of a script, before the first JAX
 computation, to run as the commands do (docs/performance.md, "XLA settings and dispatch").
 
-The envs: :func:`parallel_env` (PettingZoo) and :class:`RaceEnv` (Gymnasium, registered as
-``racing_env/Race-v0``), configured by :class:`RaceConfig`. Guides: docs/env.md (envs,
+The envs: :func:`parallel_env` (PettingZoo's parallel API), :func:`env` (PettingZoo's AEC
+API, the same race with the cars acting in turn) and :class:`RaceEnv` (Gymnasium,
+registered as ``racing_env/Race-v0``), configured by :class:`RaceConfig`. As in PettingZoo's
+own environments, ``racing_env.env`` is the AEC factory; the module of the parallel env is
+imported by name (``from racing_env.env import RacingParallelEnv``). Guides: docs/env.md (envs,
 rewards, incidents, scenarios) and docs/model.md (car model, game, costs, tracks).
 """
+
+from typing import Any
+
+from pettingzoo import AECEnv
 
 from racing_env.config import RaceConfig, RewardConfig
 from racing_env.costs import CostWeights
@@ -25,6 +32,18 @@ from racing_env.xla_setup import configure_for_racing
 
 register()
 
+
+def env(**config: Any) -> AECEnv:
+    """The race as a PettingZoo AEC env (PettingZoo's ``env()`` beside ``parallel_env()``):
+    :func:`parallel_env` with ``config`` (:class:`RaceConfig` fields), turned into turns by
+    ``pettingzoo.utils.conversions.parallel_to_aec``. The cars act one after another and the
+    race steps once all have acted, so an AEC episode is the parallel env's, step for step;
+    ``env.unwrapped`` is the :class:`RacingParallelEnv` (its ``state()`` and ``game``)."""
+    from pettingzoo.utils.conversions import parallel_to_aec
+
+    return parallel_to_aec(parallel_env(**config))
+
+
 __all__ = [
     "CostWeights",
     "OpponentPool",
@@ -36,5 +55,6 @@ __all__ = [
     "Track",
     "VehicleParams",
     "configure_for_racing",
+    "env",
     "parallel_env",
 ]

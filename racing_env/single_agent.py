@@ -1,10 +1,12 @@
-"""Gymnasium view of a race: one learner against opponent policies.
+"""Gymnasium view of a race: one learner against opponents.
 
-The opponents are callables ``policy(observation, joint_state) -> action`` (a normalised
-action in ``[-1, 1]^2``), so planners and trained models can be plugged in. The env is
-registered as ``racing_env/Race-v0``::
+The opponents are agent specs, agent factories, agents or callables
+``policy(observation, joint_state) -> action`` (a normalised action in ``[-1, 1]^2``), so
+planners, scripted drivers and trained models can be plugged in
+(:mod:`racing_env.opponents`: the entries every learner face takes). The env is registered
+as ``racing_env/Race-v0``::
 
-    env = gymnasium.make("racing_env/Race-v0", opponents=[my_policy], track="trefoil")
+    env = gymnasium.make("racing_env/Race-v0", opponents=["lane-keeping"], track="trefoil")
 
 Guide: docs/env.md.
 """
@@ -18,6 +20,18 @@ import numpy as np
 
 from racing_env.config import RaceConfig
 from racing_env.env import RacingParallelEnv, agent_name
+from racing_env.opponents import (
+    MAKE_AGENT,
+    SHARED_AGENT_HINT,
+    check_keywords,
+    is_agent,
+    is_factory,
+    is_spec_list,
+    learner_config,
+    make_from_factory,
+    opponent_cars,
+    planners_function,
+)
 
 OpponentPolicy = Callable[[np.ndarray, np.ndarray], Any]
 
@@ -27,9 +41,25 @@ def coasting_policy(observation: np.ndarray, joint_state: np.ndarray) -> np.ndar
     return np.zeros(2, dtype=np.float32)
 
 
-def _is_agent(policy: OpponentPolicy) -> bool:
-    """Whether an opponent follows the agent protocol (resettable as a car of a race)."""
-    return callable(getattr(policy, "reset", None)) and callable(getattr(policy, "act", None))
+def _opponent_policy(entry: Any, car: int) -> OpponentPolicy:
+    """The driver of car ``car`` from an ``opponents`` entry (:mod:`racing_env.opponents`):
+    specs and factories make an agent of their own for the car."""
+    if entry is None:
+        return coasting_policy
+    if isinstance(entry, OpponentPool):
+        return entry
+    if isinstance(entry, str):
+        return planners_function(MAKE_AGENT)(entry)
+    if is_spec_list(entry):
+        make_agent = planners_function(MAKE_AGENT)
+        return OpponentPool([make_agent(spec) for spec in entry], names=list(entry))
+    if is_factory(entry):
+        return make_from_factory(entry, car)
+    if callable(entry):
+        return entry
+    raise ValueError(f"opponent {entry!r} of car {car} must be None (coasting), an agent spec (str), a list of specs "
+                     "(a pool), an OpponentPool, an agent factory (e.g. an agent class) or a callable "
+                     "policy(observation, joint_state) -> action")
 
 
 class OpponentPool:
@@ -74,24 +104,31 @@ class OpponentPool:
 
 
 class RaceEnv(gymnasium.Env):
-    """One learner (``car_<learner>``) against ``N - 1`` opponent policies.
+    """One learner (``car_<learner>``) against ``N - 1`` opponents.
 
     Args:
-        opponents: one policy per opponent (in car order, skipping the learner), or an
-            :class:`OpponentPool` that draws the car's driver every episode; default: one
-            coasting car (one per opponent when ``num_agents`` is given, none for a lone
-            learner). Their number fixes N = len(opponents) + 1 unless ``num_agents`` is
-            given, in which case a single policy is reused for every opponent.
+        opponents: one entry per opponent (in car order, skipping the learner), or one
+            entry for all: ``None`` (coasting), an agent spec (``"lane-keeping"``), a list
+            of specs (a pool), an :class:`OpponentPool`, an agent factory (an agent class,
+            a ``functools.partial`` of one, a zero-argument callable), an agent object or a
+            callable ``policy(observation, joint_state) -> action``
+            (:mod:`racing_env.opponents`). Default: coasting cars (one when ``num_agents``
+            is not given, none for a lone learner). Their number fixes N = len(opponents) + 1
+            unless ``num_agents`` is given.
         learner: index of the learner's car.
         **config: ``RaceConfig`` fields (track, scenario, laps, reward, ...); without
             ``weights`` the game planner opponents plan with has the racing jerk weight
-            (:meth:`RaceConfig.game_weights`), as in :func:`racing_env.parallel_env`.
+            (:meth:`RaceConfig.game_weights`), as in :func:`racing_env.parallel_env`. One
+            default differs from ``RaceConfig``'s: ``on_off_track`` is
+            :data:`racing_env.opponents.LEARNER_OFF_TRACK` (``terminate``: a learner that
+            leaves the track is out), the rule ``racing train`` trains with. Any other
+            keyword is refused (``TypeError``, naming the allowed ones).
 
-    An opponent that follows the agent protocol of :mod:`planners.agents` (it has
-    ``reset(seed, index, env_info)`` besides being callable) is reset as its car at every
+    A spec or a factory makes an agent of its own for each car it drives. An agent (it has
+    ``reset(seed, index, env_info)`` besides ``act``) is reset as its car at every
     ``reset``, with the episode's seed, so planners take this env's game and start each
-    episode without a previous plan. Such an agent drives one car only: reusing it for
-    several opponents is refused.
+    episode without a previous plan. An agent object drives one car only: reusing it for
+    several opponents is refused (give its spec or a factory instead).
 
     The episode ends (terminated) when the learner finishes or retires, and is truncated
     at ``max_steps``. ``info`` is the learner's PettingZoo info.
@@ -101,37 +138,25 @@ class RaceEnv(gymnasium.Env):
 
     def __init__(
         self,
-        opponents: Sequence[OpponentPolicy] | None = None,
+        opponents: Sequence[Any] | None = None,
         learner: int = 0,
         **config: Any,
     ) -> None:
-        opponents = None if opponents is None else list(opponents)
-        num = int(config.pop("num_agents", 2 if opponents is None else len(opponents) + 1))
-        if opponents is None:
-            opponents = [coasting_policy] * (num - 1)  # one coasting car per opponent
-        if len(opponents) == 1 and num > 2:
-            opponents = opponents * (num - 1)
-        if len(opponents) != num - 1:
-            raise ValueError(f"need {num - 1} opponent policies for {num} cars, got {len(opponents)}")
-        if not all(callable(p) for p in opponents):
-            raise ValueError("every opponent must be a callable policy(observation, joint_state) -> action")
-        drivers = [d for p in opponents for d in (p.policies if isinstance(p, OpponentPool) else [p])]
-        agents = [p for p in drivers if _is_agent(p)]
-        pools = [p for p in opponents if isinstance(p, OpponentPool)]
+        check_keywords(config, "racing_env/Race-v0 (RaceEnv)")
+        num, entries = opponent_cars(opponents, learner, config)
+        pools = [entry for _, entry in entries if isinstance(entry, OpponentPool)]
         if len({id(p) for p in pools}) != len(pools):
             raise ValueError("an opponent pool drives one car: give one pool per opponent")
+        policies = {car: _opponent_policy(entry, car) for car, entry in entries}
+        drivers = [d for p in policies.values() for d in (p.policies if isinstance(p, OpponentPool) else [p])]
+        agents = [p for p in drivers if is_agent(p)]
         if len({id(p) for p in agents}) != len(agents):
-            raise ValueError("an agent (with reset(seed, index, env_info)) drives one car: give one agent object "
-                             "per opponent")
-        if not 0 <= learner < num:
-            raise ValueError(f"learner must be a car index in [0, {num - 1}], got {learner}")
-        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
+            raise ValueError(f"an agent object (with reset(seed, index, env_info)) drives one car; {SHARED_AGENT_HINT}")
+        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **learner_config(config)))
         self.render_mode = self.race.render_mode
         self.learner = agent_name(learner)
-        self._opponents = {
-            a: p for a, p in zip([x for x in self.race.possible_agents if x != self.learner], opponents)
-        }
-        self._has_pool = bool(pools)  # the learner's info then names the drawn drivers
+        self._opponents = {agent_name(car): policy for car, policy in policies.items()}
+        self._has_pool = any(isinstance(p, OpponentPool) for p in policies.values())  # info names the drawn drivers
         self.observation_space = self.race.observation_space(self.learner)
         self.action_space = self.race.action_space(self.learner)
         self._observations: dict[str, np.ndarray] = {}
@@ -143,7 +168,7 @@ class RaceEnv(gymnasium.Env):
             if isinstance(policy, OpponentPool):
                 policy.draw(self.np_random)
                 policy = policy.driver
-            if _is_agent(policy):
+            if is_agent(policy):
                 policy.reset(seed, self.race.possible_agents.index(agent), self.race)
         return self._observations[self.learner], self._with_opponents(infos[self.learner])
 
@@ -154,6 +179,9 @@ class RaceEnv(gymnasium.Env):
         return info
 
     def step(self, action):
+        if self.learner not in self.race.agents:
+            raise RuntimeError("the learner is not racing (its episode ended, terminated or truncated, or none has "
+                               "started): call reset() before step()")
         state = self.race.state()
         actions = {self.learner: action}
         for agent in self.race.agents:

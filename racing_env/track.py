@@ -810,9 +810,14 @@ def get_track(name_or_path: str | os.PathLike | Track) -> Track:
 
     Raises:
         ValueError: for a string that is none of these, listing the known names.
+        TypeError: for anything else (None, a number, ...), listing what a track may be.
     """
     if isinstance(name_or_path, Track):
         return name_or_path
+    if not isinstance(name_or_path, (str, os.PathLike)):
+        raise TypeError(f"track must be a Track, a builtin track name {sorted(BUILTIN_TRACKS)}, a shipped circuit's "
+                        f"name (any case, e.g. 'Monza': `racing tracks` lists them) or the path of a TUMFTM .csv file; "
+                        f"got {name_or_path!r}")
     key = os.fspath(name_or_path)
     if key in BUILTIN_TRACKS:
         return BUILTIN_TRACKS[key]()

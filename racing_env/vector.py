@@ -13,13 +13,17 @@ normalised jerks (clipped to ``[-1, 1]``), rewards ``(B,)`` and the flags ``(B,)
 
 Opponents, one per opponent car (in car order, skipping the learner; one entry is reused for
 every opponent car; an agent's actions are rounded to float32, as the single agents round
-theirs): ``None`` (a coasting car), an agent spec (``"lane-keeping"``,
-``"ilqgame-fb:replan_every=5"``, ``"rl:PATH"``, ...), a list of specs (a pool: each race draws
-its driver at every reset), or an object with the batched opponent interface
+theirs): the entries of :mod:`racing_env.opponents`, as ``gymnasium.make`` takes them
+(``None``: a coasting car; an agent spec such as ``"lane-keeping"``,
+``"ilqgame-fb:replan_every=5"``, ``"rl:PATH"``; a list of specs: a pool, each race draws its
+driver at every reset; an agent factory such as ``FeedbackGameAgent``; a plain callable
+policy), or an object with the batched opponent interface
 (:class:`planners.agents.batched.BatchedOpponent`). Specs are made by
-:func:`planners.agents.batched.make_batched_opponent`: the scripted drivers become JAX
+:func:`planners.agents.batched.make_batched_opponent` and factories by
+:func:`planners.agents.batched.batched_from_factory`: the scripted drivers become JAX
 functions inside the compiled step, the planners one batched, warm-started solve per
-re-plan for all races, before it.
+re-plan for all races, before it. An agent object keeps one race's state: it is refused in
+more than one race.
 
 Autoreset (Gymnasium 1.x): ``autoreset_mode="next_step"`` (the default,
 :attr:`gymnasium.vector.AutoresetMode.NEXT_STEP`): the step after a race ended resets it,
@@ -46,7 +50,6 @@ JAX learners".
 from __future__ import annotations
 
 import functools
-import importlib
 from typing import Any, Callable, NamedTuple, Sequence
 
 import gymnasium
@@ -59,20 +62,33 @@ from gymnasium.vector.utils import batch_space
 from racing_env import race
 from racing_env.config import RaceConfig
 from racing_env.env import RacingParallelEnv, agent_name
+from racing_env.opponents import (
+    LEARNER_OFF_TRACK,
+    SHARED_AGENT_HINT,
+    check_keywords,
+    is_agent,
+    is_factory,
+    is_spec_list,
+    learner_config,
+    opponent_cars,
+    planners_function,
+)
 from racing_env.packing import pack, unpack
 from racing_env.precision import default_float, require_x64
 from racing_env.race import RaceParams, RaceState
 from racing_env.referee import REWARD_TERMS
+from racing_env.single_agent import OpponentPool
 from racing_env.starts import fresh_key, key_from_seed
 
 __all__ = ["Box", "GYMNAX_INSTALLED", "GymnaxRace", "LEARNER_OFF_TRACK", "PlannedRace", "RaceVectorEnv", "SIX_VALUE_STEP", "coasting",
-           "make_opponent"]
+           "learner_action", "make_opponent"]
 
 JaxPolicy = Callable[[jax.Array], jax.Array]
 """A JAX driver: ``policy(x (N, 6)) -> action (2,)``, normalised, for one car of one race."""
 
 _AUTORESET = {"next_step": AutoresetMode.NEXT_STEP, "same_step": AutoresetMode.SAME_STEP}
 _OPPONENT_FACTORY = "planners.agents.batched:make_batched_opponent"
+_FROM_FACTORY = "planners.agents.batched:batched_from_factory"
 
 
 def coasting(x: jax.Array) -> jax.Array:
@@ -113,44 +129,41 @@ class _LoopedCallable:
 
 def make_opponent(opponent: Any, game, index: int, num_races: int):
     """The batched driver of car ``index`` in ``num_races`` races from an ``opponents`` entry
-    of :class:`RaceVectorEnv` (see the module docstring)."""
+    of :class:`RaceVectorEnv` (see the module docstring and :mod:`racing_env.opponents`).
+
+    Raises ``ValueError`` for an agent object in more than one race (it keeps one race's
+    state: a spec or a factory makes one per race) and for an entry of no known kind."""
     if opponent is None:
         return _JaxOpponent(coasting, index, num_races)
-    if isinstance(opponent, str) or (isinstance(opponent, (list, tuple)) and opponent
-                                     and all(isinstance(o, str) for o in opponent)):
-        module, _, name = _OPPONENT_FACTORY.partition(":")
+    if isinstance(opponent, str) or is_spec_list(opponent):
         # specs name the planners' agents: made by the planners package, looked up by name so
         # that importing racing_env never imports it
-        factory = getattr(importlib.import_module(module), name)
-        return factory(list(opponent) if not isinstance(opponent, str) else opponent, game, index, num_races)
+        return planners_function(_OPPONENT_FACTORY)(list(opponent) if not isinstance(opponent, str) else opponent,
+                                                    game, index, num_races)
     if callable(getattr(opponent, "act", None)) and callable(getattr(opponent, "reset", None)) \
             and hasattr(opponent, "num_races"):
         if opponent.num_races != num_races or opponent.index != index:
             raise ValueError(f"a batched opponent for car {opponent.index} of {opponent.num_races} races cannot "
                              f"drive car {index} of {num_races} races")
         return opponent
+    if is_factory(opponent):
+        return planners_function(_FROM_FACTORY)(opponent, game, index, num_races)
+    if is_agent(opponent):
+        if num_races > 1:
+            raise ValueError(f"the agent object {opponent!r} of car {index} keeps the state of one race and cannot "
+                             f"drive {num_races}; {SHARED_AGENT_HINT}")
+        return planners_function(_FROM_FACTORY)(lambda: opponent, game, index, num_races)
+    if isinstance(opponent, OpponentPool):
+        raise ValueError("an OpponentPool is the single env's; a batch of races takes a list of specs as its pool, "
+                         "e.g. [\"lane-keeping\", \"ilqgame-fb\"]")
     if callable(opponent):
         return _LoopedCallable(opponent, index, num_races)
     raise ValueError(f"an opponent must be None, an agent spec (str), a list of specs (a pool), a batched "
-                     f"opponent or a callable policy(observation, joint_state); got {opponent!r}")
+                     f"opponent, an agent factory or a callable policy(observation, joint_state); got {opponent!r}")
 
 
-def _opponent_cars(opponents: Sequence[Any] | None, learner: int, config: dict[str, Any]
-                   ) -> tuple[int, list[tuple[int, Any]]]:
-    """The number of cars N (``config``'s ``num_agents``, popped, else one more than the
-    opponents) and ``(car, opponent entry)`` for every car but the learner's, in car order:
-    one entry per opponent car, one entry for all, or None (coasting cars)."""
-    opponents = None if opponents is None else list(opponents)
-    num = int(config.pop("num_agents", 2 if opponents is None else len(opponents) + 1))
-    if opponents is None:
-        opponents = [None] * (num - 1)
-    if len(opponents) == 1 and num > 2:
-        opponents = opponents * (num - 1)
-    if len(opponents) != num - 1:
-        raise ValueError(f"need {num - 1} opponents for {num} cars, got {len(opponents)}")
-    if not 0 <= learner < num:
-        raise ValueError(f"learner must be a car index in [0, {num - 1}], got {learner}")
-    return num, list(zip([j for j in range(num) if j != learner], opponents))
+VECTOR_KEYWORDS = ("num_envs", "autoreset_mode", "max_episode_steps", "disable_env_checker")
+"""The keywords :class:`RaceVectorEnv` takes besides the learner faces' (:mod:`racing_env.opponents`)."""
 
 
 class RaceVectorEnv(VectorEnv):
@@ -164,7 +177,12 @@ class RaceVectorEnv(VectorEnv):
         autoreset_mode: ``"next_step"`` (default) or ``"same_step"`` (module docstring).
         max_episode_steps: accepted from ``gymnasium.make_vec`` only when None: a race's
             length is ``max_steps``.
-        **config: :class:`racing_env.RaceConfig` fields (``render_mode`` must be None).
+        disable_env_checker: Gymnasium's keyword, accepted and without effect: ``make_vec``
+            wraps no checker around a vector entry point.
+        **config: :class:`racing_env.RaceConfig` fields (``render_mode`` must be None); as in
+            :class:`racing_env.RaceEnv`, ``on_off_track`` defaults to :data:`LEARNER_OFF_TRACK`
+            (``terminate``). Any other keyword is refused (``TypeError``, naming the allowed
+            ones).
 
     ``infos`` hold, per race, the learner's ``s``, ``lap``, ``position``, ``collided``,
     ``off_track``, ``finished``, ``finish_time`` (NaN until finished), ``out`` and
@@ -180,8 +198,10 @@ class RaceVectorEnv(VectorEnv):
         learner: int = 0,
         autoreset_mode: str | AutoresetMode = "next_step",
         max_episode_steps: int | None = None,
+        disable_env_checker: bool | None = None,
         **config: Any,
     ) -> None:
+        check_keywords(config, "racing_env/Race-v0 (RaceVectorEnv)", own=VECTOR_KEYWORDS)
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         if max_episode_steps is not None:
@@ -194,9 +214,9 @@ class RaceVectorEnv(VectorEnv):
         self.num_envs = int(num_envs)
         self.autoreset_mode = modes[autoreset_mode]
         self.metadata = {"autoreset_mode": self.autoreset_mode}
-        num, drivers = _opponent_cars(opponents, learner, config)
+        num, drivers = opponent_cars(opponents, learner, config)
         # one race built the usual way: its checks, its game and its params serve every race
-        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
+        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **learner_config(config)))
         self.config, self.game, self.params = self.race.config, self.race.game, self.race.params
         self.learner = int(learner)
         self.num_cars = num
@@ -602,9 +622,27 @@ def _is_jax_policy(policy: Any, state_shape: tuple[int, ...]) -> bool:
     return getattr(out, "shape", None) == (2,)
 
 
-#: What leaving the track does in a :class:`GymnaxRace` unless its config says otherwise: the
-#: learner's car is out (the rule ``racing train`` trains with).
-LEARNER_OFF_TRACK = "terminate"
+def learner_action(action: Any) -> jax.Array:
+    """The learner's action of one race as a JAX array ``(2,)`` (normalised jerks ``[jx,
+    jy]``): checked when the step is traced, so a jitted or vmapped step refuses a wrong
+    action before it runs.
+
+    Raises:
+        TypeError: the action is not an array of real numbers (a bool, complex or string
+            dtype).
+        ValueError: its shape is not ``(2,)`` (a scalar is not broadcast; a batch of races
+            is stepped by ``vmap`` over the step).
+    """
+    dtype = getattr(action, "dtype", None)
+    if dtype is None:
+        dtype = np.asarray(action).dtype
+    if dtype == np.bool_ or not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
+        raise TypeError(f"the learner's action must be an array of real numbers of shape (2,) (normalised jerks "
+                        f"[jx, jy]), got dtype {dtype}")
+    if np.shape(action) != (2,):
+        raise ValueError(f"the learner's action must have shape (2,) (normalised jerks [jx, jy] of one race; "
+                         f"vmap the step over races), got shape {np.shape(action)}")
+    return jnp.asarray(action)
 
 
 class GymnaxRace(_Environment):
@@ -623,7 +661,11 @@ class GymnaxRace(_Environment):
       ``obs`` is then the new race's (the race is reset within the step);
     * ``info`` holds ``terminated``, ``truncated`` and the learner's ``position`` (int32),
       ``finished``, ``out`` (retired), ``finish_time`` (float32 [s], NaN until finished),
-      and whether it ``collided`` or was ``off_track`` in the step;
+      whether it ``collided`` or was ``off_track`` in the step, and ``nonfinite_action``;
+    * the learner's action is one race's ``(2,)``, finite values clipped to ``[-1, 1]``; a
+      wrong shape or dtype is refused when the step is traced (:func:`learner_action`), and
+      an action with a NaN or inf is replaced by zero jerk, with ``info["nonfinite_action"]``
+      True (the race goes on as if the learner had not acted);
     * observations ``(O,)``, rewards and float info fields are float32 whatever
       ``jax_enable_x64`` says (the race itself runs in JAX's widest float: float64 with x64
       on, float32 with it off);
@@ -654,13 +696,13 @@ class GymnaxRace(_Environment):
     """
 
     def __init__(self, opponents: Sequence[Any] | None = None, learner: int = 0, **config: Any) -> None:
-        num, drivers = _opponent_cars(opponents, learner, config)
-        config.setdefault("on_off_track", LEARNER_OFF_TRACK)
-        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **config))
+        check_keywords(config, "GymnaxRace")
+        num, drivers = opponent_cars(opponents, learner, config)
+        self.race = RacingParallelEnv(RaceConfig(num_agents=num, **learner_config(config)))
         self.learner = int(learner)
         self._policies, self._planners = [], []
         for car, opponent in drivers:
-            if isinstance(opponent, str):
+            if isinstance(opponent, str) or is_factory(opponent) or is_agent(opponent):
                 opponent = make_opponent(opponent, self.race.game, car, 1)
             planner = getattr(opponent, "jax_planner", None) if getattr(opponent, "jax_policy", None) is None else None
             if planner is not None:
@@ -734,7 +776,11 @@ class GymnaxRace(_Environment):
         self._check_params(params)
         race_state, plans = (state.race, state.plans) if self._planners else (state, ())
         dtype = race_state.x.dtype
-        actions = jnp.zeros((self.num_cars, 2), dtype).at[self.learner].set(jnp.asarray(action).astype(dtype))
+        action = learner_action(action)
+        finite = jnp.all(jnp.isfinite(action))
+        # a non-finite action is no action: zero jerk, flagged in the info
+        action = jnp.where(finite, action, jnp.zeros_like(action))
+        actions = jnp.zeros((self.num_cars, 2), dtype).at[self.learner].set(action.astype(dtype))
         for car, policy in self._policies:
             actions = actions.at[car].set(policy(race_state.x).astype(dtype))
         planned = []
@@ -755,6 +801,7 @@ class GymnaxRace(_Environment):
             "off_track": race_info.off_track[self.learner],
             "faults": stepped.status.faults[self.learner],
             "penalty": stepped.status.penalty[self.learner].astype(jnp.float32),
+            "nonfinite_action": ~finite,
         }
         carried = PlannedRace(stepped, tuple(planned)) if self._planners else stepped
         return (obs[self.learner], carried, rewards[self.learner].astype(jnp.float32), info["terminated"],

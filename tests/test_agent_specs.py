@@ -115,6 +115,19 @@ def test_bad_options_are_refused_when_the_agent_is_made(spec, message):
         make_agent(spec)
 
 
+@pytest.mark.parametrize("spec", ["rl:{}/nonexistent.zip", "rl:sac:{}/nonexistent.zip", "rl:{}/nonexistent"])
+def test_a_missing_model_file_is_named_once_as_given(tmp_path, spec):
+    """One error naming the path the user gave (not the path with .zip added, once per algorithm)."""
+    pytest.importorskip("stable_baselines3")
+    spec = spec.format(tmp_path)
+    path = spec.rpartition(":")[2]
+    with pytest.raises(ValueError) as raised:
+        make_agent(spec)
+    message = str(raised.value)
+    assert message.startswith(f"no model file at {path} ") and message.count(path) == 1
+    assert ".zip.zip" not in message
+
+
 def test_own_weights_are_private_to_the_agent():
     env = racing_env.parallel_env(track="trefoil", num_agents=3)
     agent = make_agent("ilqr:c_collision=50,c_gap=0")

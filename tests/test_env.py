@@ -7,7 +7,7 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from pettingzoo.test import parallel_api_test, parallel_seed_test
+from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test
 
 import racing_env
 from racing_env import track as tr
@@ -86,6 +86,30 @@ def test_pettingzoo_parallel_api_test(trefoil, num_agents):
     # warning; nothing else may warn (e.g. "Live agent was not given ...").
     messages = [str(w.message) for w in caught]
     assert all("ignoring unknown reset options ['options']" in m for m in messages), messages
+
+
+def test_the_aec_env_passes_pettingzoos_api_test_and_races_the_parallel_env(trefoil):
+    """``racing_env.env()`` is PettingZoo's AEC form of the race: PettingZoo's own api_test
+    passes, and cars acting in turn race what the parallel env races with the same actions,
+    bit for bit (the race steps once every car has acted)."""
+    aec = racing_env.env(track=trefoil, num_agents=3, max_steps=40)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the API test's unknown reset options (see the parallel test)
+        api_test(aec, num_cycles=50)
+    assert isinstance(aec.unwrapped, racing_env.RacingParallelEnv)
+    parallel = racing_env.parallel_env(track=trefoil, num_agents=3, max_steps=40)
+    aec.reset(seed=4)
+    parallel.reset(seed=4)
+    actions = np.random.default_rng(0).uniform(-1, 1, (12, 3, 2))
+    for step in actions:
+        for agent in parallel.agents:
+            assert aec.agent_selection == agent
+            aec.step(step[int(agent.split("_")[1])])
+        observations, rewards, *_ = parallel.step({agent: step[int(agent.split("_")[1])] for agent in parallel.agents})
+        assert aec.state().tobytes() == parallel.state().tobytes()
+        for agent in parallel.agents:
+            assert aec.observe(agent).tobytes() == observations[agent].tobytes()
+            assert aec.rewards[agent] == rewards[agent]
 
 
 def test_pettingzoo_parallel_seed_test(trefoil):

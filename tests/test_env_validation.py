@@ -67,7 +67,7 @@ def test_a_grid_that_reaches_the_finish_line_is_refused_at_reset(straight):
 
 
 def test_every_race_length_of_the_repository_validates():
-    """The race lengths the tests, docs/sweeps and tournaments use are accepted."""
+    """The race lengths the tests, the example sweeps and tournaments use are accepted."""
     for track, distance in (("trefoil", 500.0), ("trefoil", 60.0), ("straight", 120.0), ("straight", 150.0),
                             ("straight", None), ("straight", 300.0)):
         for num in (1, 2, 3):

@@ -20,7 +20,8 @@ import pytest
 from racing_env.vector import GYMNAX_INSTALLED, LEARNER_OFF_TRACK, SIX_VALUE_STEP, Box, GymnaxRace
 
 ROOT = Path(__file__).resolve().parents[1]
-INFO_KEYS = {"terminated", "truncated", "position", "finished", "out", "finish_time", "collided", "off_track"}
+INFO_KEYS = {"terminated", "truncated", "position", "finished", "out", "finish_time", "collided", "off_track",
+             "nonfinite_action"}
 
 
 @pytest.fixture(scope="module")
@@ -108,6 +109,40 @@ def test_params_of_another_race_are_refused(env):
                   GymnaxRace(opponents=["lane-keeping"], track="straight")):
         with pytest.raises(ValueError, match="params of another race"):
             env.reset(jax.random.key(0), other.default_params)
+
+
+@pytest.mark.parametrize("action, error", [
+    (jnp.float32(0.5), ValueError),  # a scalar is not broadcast to both jerks
+    (jnp.zeros(3, jnp.float32), ValueError),
+    (jnp.zeros((1, 2), jnp.float32), ValueError),
+    (jnp.array([True, False]), TypeError),
+])
+def test_an_action_of_another_shape_or_dtype_is_refused_when_the_step_is_traced(env, action, error):
+    params = env.default_params
+    _, state = env.reset(jax.random.key(0), params)
+    for step in (env.step, env.race_step):
+        with pytest.raises(error, match=r"learner's action must .*shape \(2,\)"):
+            jax.jit(step)(jax.random.key(1), state, action, params)
+    batch = jnp.broadcast_to(action, (4,) + jnp.shape(action))  # each race's action is the bad one
+    states = jax.tree_util.tree_map(lambda leaf: jnp.broadcast_to(leaf, (4,) + jnp.shape(leaf)), state)
+    with pytest.raises(error, match=r"shape \(2,\)"):
+        jax.vmap(env.race_step, in_axes=(0, 0, 0, None))(jax.random.split(jax.random.key(1), 4), states, batch, params)
+
+
+def test_a_nonfinite_action_is_zero_jerk_and_flagged(env):
+    """A NaN or inf in the learner's action steps the race as zero jerk does, bit for bit,
+    with ``info["nonfinite_action"]``; the race stays finite."""
+    params = env.default_params
+    _, state = env.reset(jax.random.key(0), params)
+    step = jax.jit(env.race_step)
+    zero = step(jax.random.key(1), state, jnp.zeros(2, jnp.float32), params)
+    assert not bool(zero[4]["nonfinite_action"])
+    for bad in ([jnp.nan, 0.3], [0.2, jnp.inf], [-jnp.inf, jnp.nan]):
+        out = step(jax.random.key(1), state, jnp.array(bad, jnp.float32), params)
+        assert bool(out[4]["nonfinite_action"])
+        for got, expected in zip(jax.tree_util.tree_leaves(out[:4]), jax.tree_util.tree_leaves(zero[:4])):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(expected))
+        assert bool(jnp.isfinite(out[0]).all()) and bool(jnp.isfinite(out[2]))
 
 
 @pytest.mark.skipif(not GYMNAX_INSTALLED, reason="gymnax is not installed (pip install racing-games[jaxrl])")

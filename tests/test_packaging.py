@@ -1,5 +1,5 @@
-"""The built distribution holds every package of the source tree (subpackages included) and
-the shipped circuits; a wheel installed outside the source tree loads every circuit by name,
+"""The built distribution holds every package of the source tree (subpackages included), the
+shipped circuits and the example sweeps; a wheel installed outside the source tree loads every circuit by name,
 and installed alone into a fresh virtual environment imports and races."""
 
 from __future__ import annotations
@@ -58,6 +58,15 @@ def test_the_wheel_holds_the_circuits_unmodified_with_their_license(wheel):
         assert set(shipped) <= names
         for name in shipped:
             assert archive.read(name) == (ROOT / name).read_bytes()
+
+
+def test_the_wheel_holds_the_example_sweeps(wheel):
+    """`racing sweep aggression` works from an installed package: the TOML files are in it."""
+    sweeps = sorted((ROOT / "experiments" / "sweeps").glob("*.toml"))
+    assert len(sweeps) >= 7
+    with zipfile.ZipFile(wheel) as archive:
+        for path in sweeps:
+            assert archive.read(path.relative_to(ROOT).as_posix()) == path.read_bytes()
 
 
 def test_an_installed_wheel_loads_every_circuit_by_name(wheel, tmp_path):

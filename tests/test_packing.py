@@ -41,3 +41,21 @@ def test_equal_shapes_give_equal_layouts():
 def test_leaves_float64_cannot_hold_exactly_are_refused():
     with pytest.raises(TypeError, match="int64"):
         pack({"big": np.array([2**60], dtype=np.int64)})
+
+
+def test_with_x64_off_the_vector_is_float32_and_jax_warns_of_no_dtype():
+    """With ``jax_enable_x64`` off (JAX's default, a script's first race) the constants pack
+    into float32 and unpack to the dtypes JAX has, without JAX's "float64 requested ...
+    truncated" warning; an integer float32 cannot hold exactly is refused."""
+    import warnings
+
+    tree = {"track": np.linspace(0.0, 1.5, 5), "index": np.arange(3, dtype=np.int32), "flag": np.array([True])}
+    with jax.enable_x64(False), warnings.catch_warnings():
+        warnings.simplefilter("error")  # any warning fails the test
+        flat, layout = pack(tree)
+        unpacked = jax.jit(unpack, static_argnames="layout")(flat, layout=layout)
+        assert flat.dtype == jnp.float32
+        assert [leaf.dtype for leaf in jax.tree_util.tree_leaves(unpacked)] == [np.bool_, np.int32, np.float32]
+        np.testing.assert_array_equal(unpacked["track"], np.linspace(0.0, 1.5, 5).astype(np.float32))
+        with pytest.raises(TypeError, match="beyond float32's integers"):
+            pack({"steps": np.int32(2**24 + 1)})

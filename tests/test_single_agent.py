@@ -82,14 +82,17 @@ def test_opponents_are_called_with_observation_and_joint_state(trefoil):
 
 
 def test_wrong_number_of_opponent_policies_raises(trefoil):
-    """A policy list that does not match the number of cars is refused with ValueError."""
+    """A policy list that does not match the number of cars, or an entry of no known kind,
+    is refused with ValueError."""
     coast = lambda obs, state: np.zeros(2)  # noqa: E731
-    with pytest.raises(ValueError, match="need 1 opponent policies for 2 cars, got 2"):
+    with pytest.raises(ValueError, match="opponents must have 1 entry for 2 cars .*, got 2"):
         RaceEnv(opponents=[coast, coast], num_agents=2, track=trefoil)
-    with pytest.raises(ValueError, match="need 3 opponent policies for 4 cars, got 2"):
+    with pytest.raises(ValueError, match="opponents must have 3 entries for 4 cars .*, got 2"):
         gymnasium.make(ENV_ID, opponents=[coast, coast], num_agents=4, track=trefoil)
+    with pytest.raises(ValueError, match="unknown agent spec 'not a spec'"):
+        RaceEnv(opponents=["not a spec"], track=trefoil)
     with pytest.raises(ValueError, match="callable"):
-        RaceEnv(opponents=["not a policy"], track=trefoil)
+        RaceEnv(opponents=[3.0], track=trefoil)
     with pytest.raises(ValueError, match="learner must be a car index"):
         RaceEnv(opponents=[coast], learner=2, track=trefoil)
 
@@ -123,7 +126,7 @@ def test_agent_opponents_are_reset_as_their_cars_every_episode(trefoil):
     assert not any(h["fallback"] for h in first.history + second.history)
     env.reset(seed=5)
     assert first.history == [] and first.seed == 5
-    with pytest.raises(ValueError, match="one agent object per opponent"):
+    with pytest.raises(ValueError, match="drives one car; pass its spec string .* or a zero-argument factory"):
         RaceEnv(opponents=[first], num_agents=3, track=trefoil)
 
 
@@ -176,7 +179,7 @@ def test_bad_opponent_pools_are_refused(trefoil):
     with pytest.raises(ValueError, match="one pool per opponent"):
         RaceEnv(opponents=[pool], num_agents=3, track=trefoil)
     shared = LaneKeepingAgent()
-    with pytest.raises(ValueError, match="one agent object per opponent"):
+    with pytest.raises(ValueError, match="drives one car; pass its spec string .* or a zero-argument factory"):
         RaceEnv(opponents=[OpponentPool([shared]), OpponentPool([shared])], track=trefoil)
 
 

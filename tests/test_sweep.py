@@ -281,6 +281,8 @@ def test_a_time_trial_sweep_races_one_car_alone(tmp_path, capsys):
     ('lineup = ["lane-keeping", "constant-speed"]\nstep_budget_s = -1.0\n[parameters]\nlaps = [1]', "step_budget_s must"),
     ('lineup = ["lane-keeping", "constant-speed"]\nstep_budget_s = 0.0\n[parameters]\nlaps = [1]', "step_budget_s must"),
     ('lineup = ["lane-keeping", "constant-speed"]\nstep_budget_s = "1"\n[parameters]\nlaps = [1]', "step_budget_s must"),
+    ('lineup = ["lane-keeping", "constant-speed"]\nenforce_budget = true\n[parameters]\nlaps = [1]',
+     "enforce_budget needs a step budget"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\ntrack = ["straight", 5]', "track values"),
     ('lineup = ["lane-keeping", "constant-speed"]\ntrack = 5\n[parameters]\nlaps = [1]', "track values"),
     ('lineup = ["lane-keeping", "constant-speed"]\n[parameters]\njerk_weight = ["x"]', "jerk_weight must be a number"),
@@ -312,6 +314,27 @@ def test_dotted_keys_need_no_quotes(tmp_path):
     dotted.write_text(head + 'agent0.target_speed = [20.0, 25.0]\nweights = {c_gap = [1.0]}\nlaps = [1]')
     assert load_sweep(dotted) == load_sweep(quoted)
     assert load_sweep(dotted).lineup_specs({"agent0.target_speed": 25.0})[0] == "lane-keeping:target_speed=25.0"
+
+
+def test_the_example_sweeps_ship_with_the_package_and_load_by_name_or_path(tmp_path, capsys):
+    """`racing sweep NAME` finds an example sweep in the package (experiments/sweeps), every
+    one of which is a valid sweep; a path still names any file, and a name that is neither
+    is refused naming the examples."""
+    names = sweep.example_sweeps()
+    assert {"aggression", "overtaking", "time_trial"} <= set(names)
+    for name in names:
+        path = sweep.sweep_path(name)
+        assert path.parent == sweep.EXAMPLES and sweep.sweep_path(f"{name}.toml") == path
+        load_sweep(path)  # every value checked, as `racing sweep` does before its first race
+    mine = tmp_path / "aggression.toml"  # a file of the user's wins over the example of its name
+    mine.write_text(TINY_TOML)
+    assert sweep.sweep_path(mine) == mine
+    with pytest.raises(ValueError, match=r"no sweep file 'agression': .* one of \['aggression'"):
+        sweep.sweep_path("agression")
+    with pytest.raises(ValueError, match="no sweep file"):
+        sweep.sweep_path(tmp_path / "aggression.toml.missing")
+    assert main(["sweep", "agression"]) == 2
+    assert "the name of an example sweep" in capsys.readouterr().err
 
 
 def test_bad_command_lines_fail_before_any_race(tmp_path, capsys):

@@ -375,6 +375,17 @@ def test_a_cached_circuit_loads_in_under_50_ms() -> None:
     assert time.perf_counter() - start < 0.05
 
 
+@pytest.mark.parametrize("track", [None, 3, ["trefoil"]])
+def test_a_track_of_no_kind_is_refused_naming_what_a_track_may_be(track) -> None:
+    import racing_env
+
+    allowed = r"track must be a Track, a builtin track name \[.*'trefoil'.*\], a shipped circuit's name .* \.csv file"
+    with pytest.raises(TypeError, match=allowed):
+        tr.get_track(track)
+    with pytest.raises(TypeError, match=allowed):
+        racing_env.parallel_env(track=track)
+
+
 def test_an_unknown_track_name_lists_the_known_ones() -> None:
     with pytest.raises(ValueError, match=r"unknown track 'Monzza'.*'trefoil'.*'Monza'.*'Zandvoort'"):
         tr.get_track("Monzza")

@@ -12,7 +12,7 @@ import pytest
 
 from experiments.rl import ppo_jax
 from experiments.rl.train import TrainConfig, run_training
-from experiments.rl.train_jax import compiled_races, latest_state, ppo_settings
+from experiments.rl.train_jax import compiled_races, latest_state, make_races, ppo_settings
 from planners.agents import make_agent
 from planners.agents.jax_policy import JaxPolicyAgent, ObsNormalizer, load_model
 from tests.interrupting import ctrl_c_when, start_racing
@@ -33,6 +33,7 @@ def test_a_tiny_run_is_deterministic_for_a_seed_and_differs_across_seeds(tmp_pat
                for name, seed in (("a", 0), ("b", 0), ("c", 1))]
     assert [r["status"] for r in reports] == ["completed"] * 3
     assert reports[0]["races"] == "compiled" and reports[0]["timesteps"] == 384
+    assert reports[0]["learn"]["nonfinite_actions"] == 0
     a, b, c = (_params(tmp_path / name) for name in "abc")
     for x, y in zip(a[0], b[0]):
         np.testing.assert_array_equal(x, y)
@@ -188,6 +189,27 @@ def test_planner_opponents_train_on_the_host_races(tmp_path):
     run_training(TrainConfig(timesteps=128, **tiny), tmp_path / "straight", progress=False)
     for x, y in zip(_params(tmp_path / "resumed")[0], _params(tmp_path / "straight")[0]):
         np.testing.assert_array_equal(x, y)
+
+
+# the compiled races (TINY's: the update the tests above compiled); the host races (two scenarios)
+@pytest.mark.parametrize("start", ["grid", pytest.param("mixed", marks=pytest.mark.slow)])
+def test_a_policy_whose_actions_are_not_finite_is_counted_and_the_races_stay_finite(start):
+    """A policy with NaN parameters acts NaN in every race and step: each action is raced as
+    zero jerk and counted in the update's metrics (train.json's ``learn.nonfinite_actions``),
+    and the races' observations stay finite."""
+    # the anywhere scenes of mixed starts lie at least 100 m before the finish
+    config = TrainConfig(timesteps=128, **{**TINY, "start": start, **({"race_distance": 160.0} if start == "mixed" else {})})
+    settings = ppo_settings(config)
+    races = make_races(config, settings)
+    assert races.kind == ("compiled" if start == "grid" else "host")
+    learner = ppo_jax.init_learner(jax.random.PRNGKey(0), races.observation_size, config.envs, settings)
+    learner, in_flight = races.start(learner, 0)
+    broken = learner._replace(params=jax.tree_util.tree_map(lambda a: jnp.full_like(a, jnp.nan), learner.params))
+    _, in_flight, _, metrics = races.update(broken, in_flight)
+    assert metrics["nonfinite_actions"] == settings.n_steps * config.envs  # every action of the update
+    obs = in_flight.obs if start == "grid" else in_flight["obs"]  # normalised: NaN where the race's were
+    assert bool(jnp.isfinite(obs).all())
+    races.close()
 
 
 def test_the_jax_learner_refuses_what_it_cannot_do(tmp_path):

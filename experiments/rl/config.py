@@ -21,6 +21,7 @@ import numpy as np
 from experiments.race_spec import RaceSpec
 from planners.agents import SB3_ALGOS
 from racing_env.config import RaceConfig, RewardConfig, check_incident_rules
+from racing_env.opponents import LEARNER_OFF_TRACK
 
 CONFIG = "train.json"
 EPISODES = "episodes.jsonl"
@@ -131,7 +132,7 @@ class TrainConfig(RaceSpec):
     vector: bool = True
     subprocesses: bool = False
     normalize: bool = True
-    on_off_track: str = "terminate"
+    on_off_track: str = LEARNER_OFF_TRACK
     eval_off_track: str | None = None
     checkpoint_every: int = 20_000
     eval_every: int = 50_000

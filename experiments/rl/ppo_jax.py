@@ -125,10 +125,13 @@ class Rollout(NamedTuple):
     done: jax.Array
 
 
-EPISODE_FIELDS = ("done", "return", "length", "finished", "position", "out", "finish_time", "truncated")
+EPISODE_FIELDS = ("done", "return", "length", "finished", "position", "out", "finish_time", "truncated",
+                  "nonfinite_action")
 """Per step and race in a compiled update's episode log ``(T, B)`` each: whether an episode
 ended there, and its raw return, length [steps], whether the learner finished, its place,
-whether it retired, its finish time [s] (NaN if not finished), and whether the step limit cut it."""
+whether it retired, its finish time [s] (NaN if not finished), whether the step limit cut it,
+and whether the policy's action was not finite (NaN or inf: the race took it as zero jerk,
+:class:`racing_env.vector.GymnaxRace`)."""
 
 
 def optimizer(settings: PPOSettings) -> optax.GradientTransformation:
@@ -292,7 +295,7 @@ def compiled_update(env, settings: PPOSettings):
         log = {"done": done, "return": episode_return, "length": episode_length, "finished": info["finished"],
                "position": info["position"], "out": info["out"],
                "finish_time": jnp.where(info["finished"], info["finish_time"], jnp.nan),
-               "truncated": info["truncated"]}
+               "truncated": info["truncated"], "nonfinite_action": info["nonfinite_action"]}
         races = RaceCarry(state, obs, jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length))
         return (learner, races), (Rollout(obs_before, action, log_prob, value, scaled, done), log)
 

@@ -136,9 +136,12 @@ class _Compiled:
                                    self.num_envs)
 
     def update(self, learner: ppo_jax.Learner, races):
-        """One update; returns ``(learner, races, episode records (step, race, car, fields), metrics)``."""
+        """One update; returns ``(learner, races, episode records (step, race, car, fields),
+        metrics)``, the metrics with ``nonfinite_actions``: the policy's actions in the update
+        that were not finite (raced as zero jerk)."""
         learner, races, log, metrics = self.update_fn(learner, races)
         log = {name: np.asarray(value) for name, value in log.items()}
+        metrics = {**metrics, "nonfinite_actions": int(log["nonfinite_action"].sum())}
         episodes = []
         for t, b in zip(*np.nonzero(log["done"])):
             episodes.append((int(t), int(b), 0, {
@@ -192,11 +195,18 @@ class _Host:
         return {"races": self.venv.get_state() if self.venv.exact_state else None, "obs": obs}
 
     def update(self, learner: ppo_jax.Learner, races):
+        """One update, as :meth:`_Compiled.update`: a policy's action that is not finite is
+        raced as zero jerk and counted, as :class:`racing_env.vector.GymnaxRace` does."""
         steps, episodes = [], []
         obs = races["obs"]
+        nonfinite = 0
         for t in range(self.settings.n_steps):
             learner, action, log_prob, value = self._act(learner, obs)
-            raw, reward, done, infos = self.venv.step(np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0))
+            env_action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+            bad = ~np.isfinite(env_action).all(axis=1)
+            env_action[bad] = 0.0
+            nonfinite += int(bad.sum())
+            raw, reward, done, infos = self.venv.step(env_action)
             learner, next_obs, scaled = self._after(learner, jnp.asarray(raw), jnp.asarray(reward, jnp.float64),
                                                     jnp.asarray(done))
             steps.append(ppo_jax.Rollout(obs, action, log_prob, value, scaled, jnp.asarray(done)))
@@ -206,7 +216,7 @@ class _Host:
                     episodes.append((t, int(b), int(b) % self.cars, episode_fields(infos[b])))
         rollout = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *steps)
         learner, metrics = self._fit(learner, rollout, obs)
-        return learner, self._snapshot(obs), episodes, metrics
+        return learner, self._snapshot(obs), episodes, {**metrics, "nonfinite_actions": nonfinite}
 
     def saved(self, races) -> Any:
         return None if races["races"] is None else {"races": races["races"], "obs": np.asarray(races["obs"])}
@@ -305,15 +315,17 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
     next_checkpoint = next_multiple(point.timesteps, config.checkpoint_every)
     next_eval = next_multiple(point.timesteps, config.eval_every)
     first_update_s = fit_s = evaluations_s = 0.0
+    nonfinite = 0  # the policy's actions that were not finite (raced as zero jerk)
     first = point.updates
     started = time.perf_counter()
     bar = _progress(progress, config, point.timesteps)
     try:
         while point.timesteps < config.timesteps:
             t0 = time.perf_counter()
-            learner, in_flight, episodes, _ = races.update(point.learner, point.races)
+            learner, in_flight, episodes, metrics = races.update(point.learner, point.races)
             jax.block_until_ready(learner.params)
             elapsed = time.perf_counter() - t0
+            nonfinite += metrics["nonfinite_actions"]
             for t, b, car, fields in episodes:
                 append_jsonl(out / EPISODES, {"timesteps": point.timesteps + (t + 1) * config.envs, "env": b,
                                               "car": car, **fields})
@@ -353,7 +365,11 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
     report["learn"] = {"steps": trained, "updates": point.updates - first, "wall_s": wall, "setup_s": started - began,
                        "first_update_s": first_update_s, "fit_s": fit_s,
                        "checkpoints_evaluations_s": evaluations_s,
-                       "steps_per_s": (trained - per_update) / fit_s if fit_s > 0 else None}
+                       "steps_per_s": (trained - per_update) / fit_s if fit_s > 0 else None,
+                       "nonfinite_actions": nonfinite}
+    if nonfinite:
+        console.print(f"[yellow]{nonfinite:,} of the policy's {trained:,} actions were not finite (NaN or inf) and "
+                      "raced as zero jerk: its parameters have diverged (see train.json's learn.nonfinite_actions)")
     finish_report(config, out, report, out / JAX_MODEL, "PPO (JAX)", console)
     return report
 

@@ -36,8 +36,9 @@ hand an env the very numbers a single agent would).
 
 from __future__ import annotations
 
+import functools
 import warnings
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import jax
 import numpy as np
@@ -62,6 +63,7 @@ __all__ = [
     "LoopedOpponent",
     "SCRIPTED_AGENTS",
     "batched_from_agent",
+    "batched_from_factory",
     "empty_diagnostics",
     "make_batched_opponent",
 ]
@@ -282,16 +284,21 @@ class LoopedOpponent(BatchedOpponent):
     racing flags from its observation, as in the PettingZoo env.
 
     Args:
-        spec: an agent spec (:func:`planners.agents.make_agent`).
+        spec: an agent spec (:func:`planners.agents.make_agent`), or with ``factory`` the
+            agents' name.
         game, index, num_races: as :class:`BatchedOpponent`.
         env_info: what the agents are reset with (default: the game); an env lets an
             ``rl:`` agent check its observation space.
+        factory: a zero-argument callable that makes the agents (one call per race)
+            instead of the registry from ``spec``.
     """
 
-    def __init__(self, spec: str, game: Any, index: int, num_races: int, env_info: Any = None) -> None:
+    def __init__(self, spec: str, game: Any, index: int, num_races: int, env_info: Any = None,
+                 factory: Callable[[], Any] | None = None) -> None:
         super().__init__(spec, game, index, num_races)
         self.env_info = self.game if env_info is None else env_info
-        self.agents = [make_agent(spec) for _ in range(self.num_races)]
+        make = factory if factory is not None else functools.partial(make_agent, spec)
+        self.agents = [make() for _ in range(self.num_races)]
 
     def _reset_rows(self, rows, seeds):
         for row, seed in zip(rows, seeds):
@@ -303,7 +310,7 @@ class LoopedOpponent(BatchedOpponent):
         for r, row in enumerate(rows):
             agent = self.agents[row]
             actions[r] = agent.act(observations[r], x[r])
-            record = agent.diagnostics()
+            record = agent.diagnostics() if hasattr(agent, "diagnostics") else {}  # an agent outside planners
             diagnostics["replanned"][r] = bool(record.get("replanned"))
             diagnostics["converged"][r] = bool(record.get("converged"))
             diagnostics["iterations"][r] = int(record.get("iterations") or 0)
@@ -354,15 +361,18 @@ def make_batched_opponent(spec: str | Sequence[str], game: Any, index: int, num_
 
 def batched_from_agent(agent: BaseAgent, spec: str, game: Any, index: int, num_races: int, *,
                        batching: str = "auto", devices: Sequence[Any] | None = None,
-                       solve_sizes: Sequence[int] | None = None) -> BatchedOpponent:
-    """The batched form of a single ``agent`` made from ``spec`` (see :func:`make_batched_opponent`)."""
+                       solve_sizes: Sequence[int] | None = None,
+                       factory: Callable[[], Any] | None = None) -> BatchedOpponent:
+    """The batched form of a single ``agent`` made from ``spec`` (see :func:`make_batched_opponent`);
+    ``factory``: what makes more such agents where they race one per race (the looped
+    fallback), instead of the registry from ``spec``."""
     from planners.agents import batched_planners
 
     if isinstance(agent, SCRIPTED_AGENTS):
         return BatchedScripted(agent, game, index, num_races, spec=spec)
     if isinstance(agent, RandomAgent):
         return BatchedRandom(agent, game, index, num_races, spec=spec)
-    if spec.strip().lower().startswith(f"{RL}:"):
+    if spec.strip().lower().startswith(f"{RL}:") or getattr(agent, "spec", None) == RL:
         return BatchedSB3(agent, game, index, num_races, spec=spec)
     reason = batched_planners.unbatchable(agent)
     if reason is None:
@@ -370,4 +380,23 @@ def batched_from_agent(agent: BaseAgent, spec: str, game: Any, index: int, num_r
                                                devices=devices, solve_sizes=solve_sizes)
     warnings.warn(f"{spec!r}: {reason}; it races as a LoopedOpponent, one single agent per race (slow)",
                   stacklevel=3)
-    return LoopedOpponent(spec, game, index, num_races)
+    return LoopedOpponent(spec, game, index, num_races, factory=factory)
+
+
+def batched_from_factory(factory: Callable[[], Any], game: Any, index: int, num_races: int,
+                         **options: Any) -> BatchedOpponent:
+    """The batched opponent of the agents a zero-argument ``factory`` makes (an agent class
+    such as :class:`planners.agents.FeedbackGameAgent`, a ``functools.partial`` of one, a
+    lambda): the kinds of :func:`batched_from_agent` from one agent it makes, or, for an
+    agent they cannot batch, one agent per race (``factory`` called once per race, a
+    :class:`LoopedOpponent`). ``options``: as :func:`make_batched_opponent`'s.
+
+    Raises:
+        TypeError: ``factory()`` made something that is not an agent (``reset`` and ``act``).
+    """
+    agent = factory()
+    if not (callable(getattr(agent, "reset", None)) and callable(getattr(agent, "act", None))):
+        raise TypeError(f"an opponent factory must make an agent (with reset(seed, index, env_info) and act); "
+                        f"{factory!r} made {agent!r}")
+    spec = str(getattr(agent, "spec", None) or type(agent).__name__)
+    return batched_from_agent(agent, spec, game, index, num_races, factory=factory, **options)

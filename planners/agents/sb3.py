@@ -68,6 +68,9 @@ class SB3Agent(BaseAgent):
         self.path = str(path)
         if algo is not None and algo.lower() not in SB3_ALGOS:
             raise ValueError(f"algo must be one of {SB3_ALGOS}, got {algo!r}")
+        if not (Path(self.path).is_file() or Path(self.path + ".zip").is_file()):  # SB3 adds .zip when missing
+            raise ValueError(f"no model file at {self.path} (a stable-baselines3 model saved by model.save, "
+                             "e.g. runs/ppo/model.zip)")
         candidates = [algo.lower()] if algo else list(SB3_ALGOS)
         errors = []
         self.model = None
