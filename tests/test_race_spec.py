@@ -94,13 +94,15 @@ def test_settings_files_keep_their_flat_keys():
     """tournament.json and sweep.json hold the same flat keys as before the race spec, so
     runs written then resume (a tournament's default step budget is none now, where it was
     an enforced 1 s: a run written under that default starts afresh); enforce_budget is
-    left out while there is no budget."""
+    left out while there is no budget. The contact and the steward's penalties are named
+    (a run written before cars collided, whose races ran with ghost cars, starts afresh)."""
     config = tournament.TournamentConfig(agents=("lane-keeping", "constant-speed"))
     assert json.loads(settings_json(config, config.added_later(tournament.ADDED_LATER))) == {
         "agents": ["lane-keeping", "constant-speed"], "cars": 2, "grids": 2, "jerk_weight": RACING_JERK_WEIGHT,
         "laps": 1, "max_steps": 3000, "race_distance": None, "seed": 0, "step_budget_s": None, "track": "trefoil",
-        "versus": None}
+        "versus": None, "contact": "physics", "penalties": "time", "penalty_seconds": 5.0}
     config = sweep.SweepConfig(lineup=("lane-keeping",), parameters=(("laps", (1,)),))
     assert json.loads(settings_json(config, config.added_later(sweep.ADDED_LATER))) == {
         "lineup": ["lane-keeping"], "parameters": [["laps", [1]]], "grids": 2, "jerk_weight": RACING_JERK_WEIGHT,
-        "laps": 1, "max_steps": 3000, "race_distance": None, "seed": 0, "step_budget_s": None, "track": "trefoil"}
+        "laps": 1, "max_steps": 3000, "race_distance": None, "seed": 0, "step_budget_s": None, "track": "trefoil",
+        "contact": "physics", "penalties": "time", "penalty_seconds": 5.0}

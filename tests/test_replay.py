@@ -224,7 +224,7 @@ def test_a_replay_keeps_the_incidents_and_its_frames_show_the_verdicts(tmp_path)
 
     from experiments.race import NOTE_SECONDS
 
-    env = racing_env.parallel_env(track=racing_env.track.straight(length=200.0), num_agents=2, race_distance=80.0)
+    env = racing_env.parallel_env(track=racing_env.track.straight(length=200.0), num_agents=2, race_distance=150.0)
     x0 = np.zeros((2, 6))
     x0[:, 0], x0[:, 1] = (10.0, 20.0), (20.0, 15.0)
     coast = lambda observation, state: np.zeros(2)  # noqa: E731
