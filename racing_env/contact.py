@@ -110,6 +110,7 @@ class Sweep(NamedTuple):
         axis: which separating axis the normal is: 0/1 car i's length/width axis, 2/3 car
             j's (int32).
         closing: the speed [m/s] at which the two approach along the normal, ``>= 0``.
+        kappa: the centreline's curvature [1/m] at the pair, the local frame's.
     """
 
     touch: jax.Array
@@ -117,34 +118,45 @@ class Sweep(NamedTuple):
     normal: jax.Array
     axis: jax.Array
     closing: jax.Array
+    kappa: jax.Array
 
 
-def _pair_frame(x: jax.Array, track: Track) -> tuple[jax.Array, jax.Array]:
+def _pair_kappa(x: jax.Array, track: Track) -> jax.Array:
+    """The centreline's curvature ``(N, N)`` [1/m] at every pair's mean arc length."""
+    ds = track.wrap_ds(x[None, :, S] - x[:, None, S])
+    return track.kappa_at(x[:, None, S] + 0.5 * ds)
+
+
+def _pair_frame(x: jax.Array, track: Track, kappa: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Car j's position relative to car i in the local frame at the pair, ``(N, N)`` each:
-    ``dx`` along the centreline (scaled by ``1 - n kappa`` at the pair's mean) and ``dy``."""
+    ``dx`` along the centreline (scaled by ``1 - n kappa`` at the pair's mean, ``kappa``
+    from :func:`_pair_kappa`) and ``dy``."""
     ds = track.wrap_ds(x[None, :, S] - x[:, None, S])
     n_mean = 0.5 * (x[None, :, N_LAT] + x[:, None, N_LAT])
-    kappa = track.kappa_at(x[:, None, S] + 0.5 * ds)
     return ds * (1.0 - n_mean * kappa), x[None, :, N_LAT] - x[:, None, N_LAT]
 
 
 def _axes_and_reach(chi: jax.Array, vehicles: VehicleParams) -> tuple[jax.Array, jax.Array]:
-    """The four separating axes of every pair (angles ``(N, N, 4)`` from the tangent: car
-    i's length and width axes, then car j's) and the sum of the two footprints' half
-    extents along each, ``(N, N, 4)``."""
+    """The four separating axes of every pair as unit vectors ``(N, N, 4, 2)`` in the local
+    frame (car i's length and width axes, then car j's) and the sum of the two footprints'
+    half extents along each, ``(N, N, 4)``. Trigonometry per car only: the footprints' own
+    axes are ``(cos chi, sin chi)`` and ``(-sin chi, cos chi)``."""
     num = chi.shape[0]
-    chi_i = jnp.broadcast_to(chi[:, None], (num, num))
-    chi_j = jnp.broadcast_to(chi[None, :], (num, num))
-    axes = jnp.stack([chi_i, chi_i + jnp.pi / 2, chi_j, chi_j + jnp.pi / 2], axis=-1)
+    cos, sin = jnp.cos(chi), jnp.sin(chi)
+    along = jnp.stack([cos, sin], axis=-1)  # (N, 2): each car's length axis
+    across = jnp.stack([-sin, cos], axis=-1)  # its width axis
+    own = jnp.stack([along, across], axis=1)  # (N, 2, 2)
+    axes = jnp.concatenate([jnp.broadcast_to(own[:, None], (num, num, 2, 2)),
+                            jnp.broadcast_to(own[None, :], (num, num, 2, 2))], axis=2)  # (N, N, 4, 2)
     half_l = 0.5 * jnp.broadcast_to(jnp.asarray(vehicles.length), (num,))
     half_w = 0.5 * jnp.broadcast_to(jnp.asarray(vehicles.width), (num,))
 
-    def radius(half_length, half_width, heading):
-        rel = heading[..., None] - axes
-        return half_length * jnp.abs(jnp.cos(rel)) + half_width * jnp.abs(jnp.sin(rel))
+    def extent(car_along, car_across, half_length, half_width):  # a footprint's half extent along each axis
+        return (half_length * jnp.abs(jnp.sum(axes * car_along, axis=-1))
+                + half_width * jnp.abs(jnp.sum(axes * car_across, axis=-1)))
 
-    reach = radius(half_l[:, None, None], half_w[:, None, None], chi_i) + radius(
-        half_l[None, :, None], half_w[None, :, None], chi_j)
+    reach = (extent(along[:, None, None], across[:, None, None], half_l[:, None, None], half_w[:, None, None])
+             + extent(along[None, :, None], across[None, :, None], half_l[None, :, None], half_w[None, :, None]))
     return axes, reach
 
 
@@ -158,16 +170,27 @@ def pairs_racing(racing: jax.Array) -> jax.Array:
     return racing[:, None] & racing[None, :] & ~jnp.eye(racing.shape[0], dtype=bool)
 
 
+def _project(dx: jax.Array, dy: jax.Array, axes: jax.Array) -> jax.Array:
+    """The pairs' relative positions along each of their axes, ``(N, N, 4)``."""
+    return dx[..., None] * axes[..., 0] + dy[..., None] * axes[..., 1]
+
+
+def _pick(values: jax.Array, axis: jax.Array) -> jax.Array:
+    """``values[i, j, axis[i, j]]`` of ``(N, N, 4, ...)`` values."""
+    index = axis.reshape(axis.shape + (1,) * (values.ndim - 2))
+    return jnp.take_along_axis(values, index, axis=2)[:, :, 0]
+
+
 def sweep(x0: jax.Array, x1: jax.Array, racing: jax.Array, vehicles: VehicleParams, track: Track) -> Sweep:
     """Where the footprints of every pair first meet while the cars move from ``x0`` to
     ``x1`` (joint states ``(N, 6)``), the pair's relative position moving linearly and the
-    headings held at ``x1``'s. Pure JAX."""
-    dx0, dy0 = _pair_frame(x0, track)
-    dx1, dy1 = _pair_frame(x1, track)
+    headings held at ``x1``'s (the local frame's curvature too). Pure JAX."""
+    kappa = _pair_kappa(x1, track)
+    dx0, dy0 = _pair_frame(x0, track, kappa)
+    dx1, dy1 = _pair_frame(x1, track, kappa)
     axes, reach = _axes_and_reach(x1[:, CHI], vehicles)
-    cos, sin = jnp.cos(axes), jnp.sin(axes)
-    p0 = dx0[..., None] * cos + dy0[..., None] * sin
-    p1 = dx1[..., None] * cos + dy1[..., None] * sin
+    p0 = _project(dx0, dy0, axes)
+    p1 = _project(dx1, dy1, axes)
     slope = p1 - p0
     still = jnp.abs(slope) < _TINY
     safe = jnp.where(still, 1.0, slope)
@@ -181,13 +204,12 @@ def sweep(x0: jax.Array, x1: jax.Array, racing: jax.Array, vehicles: VehiclePara
     toi = jnp.where(touch, enter, 1.0)
     p_toi = p0 + toi[..., None] * slope
     axis = jnp.argmin(reach - jnp.abs(p_toi), axis=-1).astype(jnp.int32)
-    angle = jnp.take_along_axis(axes, axis[..., None], axis=-1)[..., 0]
-    side = jnp.where(jnp.take_along_axis(p_toi, axis[..., None], axis=-1)[..., 0] < 0.0, -1.0, 1.0)
-    normal = side[..., None] * jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)
+    side = jnp.where(_pick(p_toi, axis) < 0.0, -1.0, 1.0)
+    normal = side[..., None] * _pick(axes, axis)
     velocity = _velocity(x1)
     approach = jnp.sum((velocity[None, :, :] - velocity[:, None, :]) * normal, axis=-1)
     closing = jnp.where(touch, jnp.maximum(-approach, 0.0), 0.0)
-    return Sweep(touch, toi, normal, axis, closing)
+    return Sweep(touch, toi, normal, axis, closing, kappa)
 
 
 def _upper(num: int) -> jax.Array:
@@ -242,25 +264,25 @@ def collide(x0: jax.Array, x1: jax.Array, hit: Sweep, vehicles: VehicleParams, m
     resolved = x1.at[:, S].set(moved[:, S]).at[:, N_LAT].set(moved[:, N_LAT]).at[:, V].set(speed).at[:, CHI].set(
         heading)
     x = jnp.where(hit_any[:, None], resolved.astype(dtype), x1)
-    return separate(x, hit.touch, vehicles, model, track)
+    return separate(x, hit.touch, hit.kappa, vehicles, model, track)
 
 
-def separate(x: jax.Array, pairs: jax.Array, vehicles: VehicleParams, model: ContactModel, track: Track
-             ) -> jax.Array:
+def separate(x: jax.Array, pairs: jax.Array, kappa: jax.Array, vehicles: VehicleParams, model: ContactModel,
+             track: Track) -> jax.Array:
     """Push apart the footprints of the ``pairs (N, N)`` that overlap in ``x``, along each
     pair's axis of least penetration, by the overlap plus ``model.gap``, each car's share
-    in inverse proportion to its mass. Cars of no such pair keep ``x`` bit for bit."""
+    in inverse proportion to its mass; ``kappa (N, N)``: the local frames' curvature (the
+    sweep's: the cars moved a step at most). Cars of no such pair keep ``x`` bit for bit."""
     num = x.shape[0]
-    dx, dy = _pair_frame(x, track)
+    dx, dy = _pair_frame(x, track, kappa)
     axes, reach = _axes_and_reach(x[:, CHI], vehicles)
-    p = dx[..., None] * jnp.cos(axes) + dy[..., None] * jnp.sin(axes)
+    p = _project(dx, dy, axes)
     depth = reach - jnp.abs(p)
     overlapping = jnp.all(depth >= 0.0, axis=-1) & pairs & _upper(num)
     axis = jnp.argmin(depth, axis=-1)
-    angle = jnp.take_along_axis(axes, axis[..., None], axis=-1)[..., 0]
-    side = jnp.where(jnp.take_along_axis(p, axis[..., None], axis=-1)[..., 0] < 0.0, -1.0, 1.0)
+    side = jnp.where(_pick(p, axis) < 0.0, -1.0, 1.0)
     push = (jnp.min(depth, axis=-1) + model.gap) * side
-    direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)
+    direction = _pick(axes, axis)
     inv = _inverse_masses(vehicles, num)
     share = inv[:, None] / (inv[:, None] + inv[None, :])  # car i's share of pair (i, j)
     # the pair's push as a vector acting on the second car; each car moves by its share
