@@ -164,6 +164,8 @@ _LOOP_HELP = {
     "require_converged": "treat a re-plan that did not converge as a failure (previous plan, else brake)",
     "recovery_track_scale": f"factor on own c_track from a standstill (< {STOPPED_SPEED} m/s) until "
                             f"{RECOVERED_SPEED} m/s, to rejoin across the edge (0: no track term then; 1: off)",
+    "responsibility": ("the collision weight every car carries towards a car ahead of it over that towards a car "
+                       "behind, judged at each re-plan's start (finite, >= 1; 1: the paper's symmetric cost)"),
 }
 
 _GAME_HELP = {
