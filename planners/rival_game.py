@@ -43,8 +43,8 @@ from racing_env.dynamics import S, STATE_DIM
 
 Array = jax.Array
 
-__all__ = ["LocalGame", "RivalParams", "batch_axes", "check_rivals", "field_orders", "local_game", "local_games", "local_problem",
-           "nearest_rivals", "ordered_game", "stack_params", "to_field", "to_field_batch"]
+__all__ = ["LocalGame", "RivalParams", "batch_axes", "check_rivals", "field_orders", "game_axes", "local_game",
+           "local_games", "local_problem", "nearest_rivals", "ordered_game", "stack_params", "to_field", "to_field_batch"]
 
 
 def check_rivals(rivals) -> int:
@@ -85,7 +85,7 @@ def field_orders(track, x, egos, k: int, racing=None):
     index = xp.broadcast_to(xp.arange(N), (R, N))
     is_ego = index == xp.asarray(egos)[:, None]
     ego_s = xp.sum(xp.where(is_ego, x[:, :, S], 0.0), axis=1)
-    gaps = xp.where(is_ego, -xp.inf, xp.abs(_wrapped_gaps(track, x[:, :, S] - ego_s[:, None], xp)))
+    gaps = xp.where(is_ego, -xp.inf, xp.abs(track.wrap_ds_in(x[:, :, S] - ego_s[:, None], xp)))
     out = xp.zeros((R, N), dtype=int) if racing is None else (~xp.asarray(racing, dtype=bool)).astype(int)
     rank = xp.where(is_ego, -1, out)
     # lexsort sorts by its last key first: ego, then racing before ghosts, then distance, then index
@@ -93,16 +93,6 @@ def field_orders(track, x, egos, k: int, racing=None):
     chosen = xp.any(players[:, :, None] == xp.arange(N), axis=1)
     others = xp.argsort(chosen, axis=1, stable=True)[:, : N - k - 1]  # the rest in index order
     return xp.concatenate([players, others], axis=1)
-
-
-def _wrapped_gaps(track, ds, xp=np):
-    """:meth:`racing_env.Track.wrap_ds` in ``xp`` (in NumPy the same operations, without a
-    device dispatch)."""
-    if not track.closed:
-        return ds
-    length = float(track.length)
-    r = xp.mod(ds + 0.5 * length, length)
-    return xp.where(r >= length, r - length, r) - 0.5 * length
 
 
 class RivalParams(NamedTuple):
@@ -124,10 +114,14 @@ class RivalParams(NamedTuple):
 
 
 def ordered_game(params: RivalParams):
-    """The field's game with its cars in ``params.order`` (JAX gathers: traceable)."""
+    """The field's game with its cars in ``params.order`` (JAX gathers: traceable); the
+    collision scale, where the game has one, in that order along both axes."""
     game, order = params.game, params.order
     take = lambda fields: jax.tree_util.tree_map(lambda leaf: jnp.broadcast_to(leaf, order.shape)[order], fields)
-    return game.replace(vehicles=take(game.vehicles), weights=take(game.weights), racing=game.racing[order])
+    scale = game.collision_scale
+    scale = None if scale is None else jnp.asarray(scale)[order][:, order]
+    return game.replace(vehicles=take(game.vehicles), weights=take(game.weights), racing=game.racing[order],
+                        collision_scale=scale)
 
 
 class LocalGame(NamedTuple):
@@ -271,10 +265,17 @@ def local_games(game, x0s: np.ndarray, egos: np.ndarray, rivals: int, inits: np.
 
 def batch_axes(local: LocalGame) -> RivalParams:
     """The ``params_axes`` of :func:`planners.ilq_batch.solve_batch` for local games stacked by
-    :func:`stack_params`: the weights, racing flags, orders and predictions batched, the
-    track and the cars' parameters shared."""
-    game = local.problem.params.game
-    return RivalParams(game=game.replace(track=None, vehicles=None, weights=0, racing=0), order=0, predicted=0)
+    :func:`stack_params`: the weights, racing flags, collision scales (where the games have
+    them), orders and predictions batched, the track and the cars' parameters shared."""
+    return RivalParams(game=game_axes(local.problem.params.game), order=0, predicted=0)
+
+
+def game_axes(game):
+    """The batch axes of games stacked along a new leading axis that share their track and
+    cars' parameters: the weights, racing flags and collision scale (where the games have one)
+    batched (a pytree of :class:`racing_env.RaceGame`'s shape for ``solve_batch``)."""
+    scale = None if game.collision_scale is None else 0
+    return game.replace(track=None, vehicles=None, weights=0, racing=0, collision_scale=scale)
 
 
 def stack_params(locals_: list[LocalGame]) -> RivalParams:
@@ -285,8 +286,9 @@ def stack_params(locals_: list[LocalGame]) -> RivalParams:
     N = first.num_players
     weights = {f.name: np.stack([np.broadcast_to(np.asarray(getattr(p.game.weights, f.name)), (N,)) for p in params])
                for f in dataclasses.fields(first.weights)}
+    scale = None if first.collision_scale is None else np.stack([p.game.collision_scale for p in params])
     game = first.replace(weights=dataclasses.replace(first.weights, **weights),
-                         racing=np.stack([p.game.racing for p in params]))
+                         racing=np.stack([p.game.racing for p in params]), collision_scale=scale)
     return RivalParams(game=game, order=np.stack([p.order for p in params]),
                        predicted=np.stack([p.predicted for p in params]))
 

@@ -1,6 +1,6 @@
 """Scripted baseline drivers: a lane-keeping controller, a constant-speed cruiser and a
 racing-line driver (:class:`RacelineDriver`: the circuit's racing line at the speed profile of
-its lap-time limit).
+its lap-time limit, with the rules in traffic of :mod:`planners.traffic`).
 
 They read the joint state (full information, like the planners) and return normalised
 jerk actions in ``[-1, 1]^2``. These are the control laws alone, callables
@@ -16,12 +16,15 @@ vmapped over the races of a batch (:mod:`planners.agents.batched`).
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+from planners import traffic
 from planners.methods import CONSTANT_SPEED, LANE_KEEPING
+from planners.traffic import RACELINE_STANDSTILL, RACELINE_TIME_GAP
 from racing_env.precision import default_float
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
@@ -238,18 +241,42 @@ RACELINE_MARGIN = 1.25  # [m] the line is kept this far inside the boundaries (h
 RACELINE_ERROR_CAP = 2.0  # [m] the lateral error the stiffness acts on is capped here (the start, a pass)
 
 
-def check_raceline_options(pace: float = 1.0, margin: float = RACELINE_MARGIN, line: str = "raceline") -> None:
-    """Refuse a pace outside ``(0, 1]``, a negative or non-finite margin [m] and an unknown line."""
+def check_raceline_options(pace: float = 1.0, margin: float = RACELINE_MARGIN, line: str = "raceline",
+                           yielding: bool = True, time_gap: float = RACELINE_TIME_GAP,
+                           standstill: float = RACELINE_STANDSTILL) -> None:
+    """Refuse a pace outside ``(0, 1]``, a negative or non-finite margin [m], an unknown line,
+    a ``yielding`` that is not a bool, a time gap [s] that is not finite and >= 0 and a
+    standstill gap [m] that is not finite and > 0."""
     if not 0.0 < float(pace) <= 1.0:
         raise ValueError(f"pace must be in (0, 1] (a fraction of the limit's speed), got {pace!r}")
     if not (np.isfinite(float(margin)) and float(margin) >= 0.0):
         raise ValueError(f"margin must be a finite distance >= 0 m, got {margin!r}")
     if line not in ("raceline", "centerline"):
         raise ValueError(f"line must be 'raceline' or 'centerline', got {line!r}")
+    if not isinstance(yielding, (bool, np.bool_)):
+        raise ValueError(f"yield must be true (the rules: keep a gap, pass where clear) or false (drive the line "
+                         f"whoever is on it), got {yielding!r}")
+    if not (np.isfinite(float(time_gap)) and float(time_gap) >= 0.0):
+        raise ValueError(f"time_gap must be a finite time >= 0 s (the gap kept to a car ahead), got {time_gap!r}")
+    if not (np.isfinite(float(standstill)) and float(standstill) > 0.0):
+        raise ValueError(f"standstill must be a finite distance > 0 m (the gap kept behind a car ahead at rest), "
+                         f"got {standstill!r}")
+
+
+class _LineTables(NamedTuple):
+    """The line on the track's grid ``(M,)``: offset ``n`` [m], heading ``chi`` [rad],
+    curvature ``kappa`` [1/m], speed ``v`` [m/s] and acceleration ``ax`` [m/s^2] (pace applied)."""
+
+    n: jax.Array
+    chi: jax.Array
+    kappa: jax.Array
+    v: jax.Array
+    ax: jax.Array
 
 
 class RacelineDriver:
-    """Follows a racing line at the speed profile of its lap-time limit, scaled by ``pace``.
+    """Follows a racing line at the speed profile of its lap-time limit, scaled by ``pace``, and
+    (``yielding``, the default) keeps to the rules of :mod:`planners.traffic` in traffic.
 
     The line is the circuit's shipped racing line (``line="raceline"``; the centre line on
     tracks that ship none: the built-in ones), its points kept ``margin`` [m] inside the
@@ -257,34 +284,49 @@ class RacelineDriver:
     it (:func:`racing_env.limits.speed_profile`), times ``pace`` (accelerations times
     ``pace**2``). The law, in JAX (:meth:`jax_law`):
 
-    * lateral: ``ay = kappa_line(s') V^2 - k_p (n - n_ref(s)) - k_d V (sin chi - sin chi_ref(s))``,
-      the line's curvature read ``RACELINE_PREVIEW`` ahead (``s' = s + V * preview``);
-    * longitudinal: ``ax = ax_ref(s') + k_v (v_ref(s') - V)``, within ``ax_max(V)`` and the gg
-      room the lateral demand leaves (the lateral acceleration comes first);
+    * lateral: ``ay = kappa_line(s') V^2 - k_p (n - n_target) - k_d V (sin chi - sin chi_ref(s))``,
+      the line's curvature read ``RACELINE_PREVIEW`` ahead (``s' = s + V * preview``); the
+      target is the line ``n_ref(s)`` unless the rules say otherwise;
+    * longitudinal: ``ax = ax_ref(s') + k_v (v_ref(s') - V)``, at most what the adaptive
+      cruise allows, within ``ax_max(V)`` and the gg room the lateral demand leaves (the
+      lateral acceleration comes first);
     * jerks ``gain * (a_desired - a)``, normalised by the car's jerk limits and clipped to
       ``[-1, 1]``: the controller never asks for more jerk than the car has.
 
-    It does not avoid other cars: it drives its line whoever is on it (a baseline, not a
-    planner).
+    The rules (:mod:`planners.traffic`): behind a car on its path it keeps ``standstill`` [m]
+    plus ``time_gap`` [s] of its speed, braking within its own limits; it passes a slower car
+    on its line only on a side with room where no other car is; it never moves across into a
+    car alongside. With no car near they change nothing: alone it drives exactly the line.
+    ``yielding=False`` is the driver without them, which drives its line whoever is on it
+    (robustness tests of the planners: a rival that does not avoid them).
 
     Args:
         track: the track raced on.
         index: the car this controller drives (row of the joint state).
         vehicle: that car's parameters.
         pace: fraction of the limit's speed, in ``(0, 1]``.
-        margin: how far inside the boundaries the line is kept [m].
+        margin: how far inside the boundaries the line (and a pass) is kept [m].
         line: ``"raceline"`` or ``"centerline"``.
+        yielding: keep to the rules (True) or drive the line whoever is on it (False).
+        time_gap: the time gap [s] kept to a car ahead on its path, >= 0.
+        standstill: the bumper-to-bumper gap [m] kept behind a car ahead, > 0.
+        fleet: every car's parameters, stacked ``(N,)`` fields (the footprints of the others);
+            None: every car is the size of this one.
     """
 
     name = "raceline"
 
     def __init__(self, track: Track, index: int, vehicle: VehicleParams = VehicleParams(), pace: float = 1.0,
-                 margin: float = RACELINE_MARGIN, line: str = "raceline") -> None:
+                 margin: float = RACELINE_MARGIN, line: str = "raceline", yielding: bool = True,
+                 time_gap: float = RACELINE_TIME_GAP, standstill: float = RACELINE_STANDSTILL,
+                 fleet: VehicleParams | None = None) -> None:
         from racing_env import limits
 
-        check_raceline_options(pace, margin, line)
+        check_raceline_options(pace, margin, line, yielding, time_gap, standstill)
         self.track, self.index, self.vehicle = track, int(index), vehicle
         self.pace, self.margin = float(pace), float(margin)
+        self.yielding, self.time_gap, self.standstill = bool(yielding), float(time_gap), float(standstill)
+        self.fleet = fleet
         use_raceline = line == "raceline" and limits.has_raceline(track)
         self.line_name = "raceline" if use_raceline else "centerline"
         racing_line = limits.get_line(track, self.line_name, margin=self.margin) if use_raceline else \
@@ -302,45 +344,88 @@ class RacelineDriver:
         self._jerk_max = np.array([float(vehicle.jx_max), float(vehicle.jy_max)])
         self._law = None
 
-    def jax_law(self) -> Callable[[jnp.ndarray], jnp.ndarray]:
-        """The law as a pure JAX function ``policy(x (N, 6)) -> action (2,)``: normalised jerks
-        in ``[-1, 1]``, float64 (float32 with ``jax_enable_x64`` off); :data:`BRAKE_ACTION` where the car's own state is not finite.
-        Jit it, ``vmap`` it over races."""
+    def _footprints(self, num_cars: int, dtype) -> tuple[jax.Array, jax.Array]:
+        """Every car's length and width ``(N,)`` [m]: the fleet's, or this car's for all."""
+        source = self.vehicle if self.fleet is None else self.fleet
+        return tuple(jnp.broadcast_to(jnp.asarray(getattr(source, k), dtype), (num_cars,)) for k in ("length", "width"))
+
+    def _rules(self, x: jax.Array, racing: jax.Array | None, tables: _LineTables, s: jax.Array, n: jax.Array,
+               speed: jax.Array, n_ref: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The lateral target [m] and the largest longitudinal acceleration [m/s^2] the rules
+        of :mod:`planners.traffic` allow at the joint state ``x (N, 6)``: the line ``n_ref`` and
+        ``+inf`` exactly when no car is near."""
+        track, margin, standstill = self.track, self.margin, self.standstill
+        lengths, widths = self._footprints(x.shape[0], x.dtype)
+        cars = traffic.traffic(x, self.index, track, lengths, widths, racing)
+        look = traffic.reach(speed, standstill, lengths[self.index])
+        s_cars = s + cars.ds
+        line_at_cars = track._interp(tables.n, s_cars)
+        on_line = traffic.on_path(cars, traffic.path_offsets(cars, n, n_ref, line_at_cars, speed), look)
+        decision = traffic.pass_target(cars, on_line, track._interp(tables.v, s_cars), s, n, look, track, margin,
+                                       standstill)
+        side = traffic.alongside(cars, n, standstill)
+        wanted = jnp.where(decision.passing, decision.n, n_ref)
+        held = jnp.minimum(jnp.maximum(wanted, side.lower), side.upper)
+        on_track = jnp.clip(held, -(track.width_right_at(s) - margin), track.width_left_at(s) - margin)
+        adjusted = decision.passing | jnp.any(side.beside)
+        n_target = jnp.where(adjusted, on_track, n_ref)
+        # the path: the target held beside the cars alongside, the pass or the line elsewhere
+        target_at_cars = jnp.where(side.beside, n_target, jnp.where(decision.passing, decision.n, line_at_cars))
+        ahead = traffic.on_path(cars, traffic.path_offsets(cars, n, n_target, target_at_cars, speed), look)
+        return n_target, traffic.following_acceleration(cars, ahead, speed, self.time_gap, standstill)
+
+    def jax_law(self) -> Callable[..., jnp.ndarray]:
+        """The law as a pure JAX function ``policy(x (N, 6), racing=None) -> action (2,)``:
+        normalised jerks in ``[-1, 1]``, float64 (float32 with ``jax_enable_x64`` off);
+        :data:`BRAKE_ACTION` where the car's own state is not finite. ``racing (N,)`` bool
+        marks the cars still racing (None: all; the env freezes a car out of the race, and
+        nobody collides with it). Jit it, ``vmap`` it over races."""
         track, index, vehicle = self.track, self.index, self.vehicle
-        arrays = (("n", self._n_ref), ("chi", self._chi_ref), ("kappa", self._kappa), ("v", self._v_ref),
-                  ("ax", self._ax_ref))
+        arrays = _LineTables(n=self._n_ref, chi=self._chi_ref, kappa=self._kappa, v=self._v_ref, ax=self._ax_ref)
         jx_max, jy_max = (float(j) for j in self._jerk_max)
 
-        def policy(x):
+        def policy(x, racing=None):
             # JAX's widest float when traced: float64 with jax_enable_x64 on, float32 with it off
             dtype = default_float()
-            tables = {k: jnp.asarray(v, dtype) for k, v in arrays}
+            tables = _LineTables(*(jnp.asarray(v, dtype) for v in arrays))
             brake = jnp.asarray(BRAKE_ACTION, dtype=dtype)
-            s, v, n, chi, ax, ay = (jnp.asarray(x, dtype=dtype)[index, k] for k in range(6))
+            x = jnp.asarray(x, dtype=dtype)
+            s, v, n, chi, ax, ay = (x[index, k] for k in range(6))
             v_pos = jnp.maximum(v, 0.0)
             ahead = s + v_pos * RACELINE_PREVIEW
             ahead_v = s + v_pos * RACELINE_SPEED_PREVIEW
-            n_ref = track._interp(tables["n"], s)
-            chi_ref = track._interp(tables["chi"], s)
-            lateral_error = jnp.clip(n - n_ref, -RACELINE_ERROR_CAP, RACELINE_ERROR_CAP)
+            n_ref = track._interp(tables.n, s)
+            chi_ref = track._interp(tables.chi, s)
+            n_target = n_ref
+            if self.yielding:
+                n_target, ax_cap = self._rules(x, racing, tables, s, n, v_pos, n_ref)
+            lateral_error = jnp.clip(n - n_target, -RACELINE_ERROR_CAP, RACELINE_ERROR_CAP)
             error_rate = v * (jnp.sin(chi) - jnp.sin(chi_ref))
-            ay_des = (track._interp(tables["kappa"], ahead) * v**2 - RACELINE_LATERAL_STIFFNESS * lateral_error
+            ay_des = (track._interp(tables.kappa, ahead) * v**2 - RACELINE_LATERAL_STIFFNESS * lateral_error
                       - RACELINE_LATERAL_DAMPING * error_rate)
             rho = vehicle.rho(v_pos)
             ay_des = jnp.clip(ay_des, -rho, rho)
-            room = jnp.sqrt(jnp.maximum(rho**2 - ay_des**2, 0.0))
-            ax_des = track._interp(tables["ax"], ahead_v) + RACELINE_SPEED_GAIN * (track._interp(tables["v"], ahead_v) - v)
+            # (rho - |ay|)(rho + |ay|), not rho^2 - ay^2: at the gg limit the factor is exactly 0,
+            # where the difference of squares leaves a rounding error (with or without a fused
+            # multiply-add) whose square root is ~1e-7 m/s^2
+            room = jnp.sqrt(jnp.maximum((rho - jnp.abs(ay_des)) * (rho + jnp.abs(ay_des)), 0.0))
+            ax_des = track._interp(tables.ax, ahead_v) + RACELINE_SPEED_GAIN * (track._interp(tables.v, ahead_v) - v)
+            if self.yielding:
+                ax_des = jnp.minimum(ax_des, ax_cap)
             ax_des = jnp.clip(ax_des, -room, jnp.minimum(room, vehicle.ax_max(v_pos)))
             jx = RACELINE_ACCEL_GAIN * (ax_des - ax) / jx_max
             jy = RACELINE_ACCEL_GAIN * (ay_des - ay) / jy_max
             action = jnp.clip(jnp.stack([jx, jy]), -1.0, 1.0)
             return jnp.where(jnp.all(jnp.isfinite(action)), action, brake)
 
+        policy.takes_racing = True  # the vectorised env hands it the race's racing flags
         return policy
 
-    def __call__(self, observation: np.ndarray | None, joint_state: np.ndarray) -> np.ndarray:
+    def __call__(self, observation: np.ndarray | None, joint_state: np.ndarray,
+                 racing: np.ndarray | None = None) -> np.ndarray:
+        """The action ``(2,)`` float32 at ``joint_state (N, 6)``, the cars still racing ``racing
+        (N,)`` bool (None: all); the observation is not read."""
         if self._law is None:
-            import jax
-
             self._law = jax.jit(self.jax_law())
-        return np.asarray(self._law(np.asarray(joint_state, dtype=np.float64)), dtype=np.float32)
+        racing = np.ones(np.shape(joint_state)[0], dtype=bool) if racing is None else np.asarray(racing, dtype=bool)
+        return np.asarray(self._law(np.asarray(joint_state, dtype=np.float64), racing), dtype=np.float32)

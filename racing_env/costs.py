@@ -31,6 +31,13 @@ linear in the arc lengths (:func:`terminal_weights`).
 
 Cars out of the race (``racing``, bool ``(N,)``; ``None``: all race) are ghosts: the collision
 terms of every pair with such a car are zero, and its ``s_K`` leaves the others' sums.
+
+Responsibility (not in the paper's cost, after its remark that the trailing car bears the
+greater responsibility for avoiding a collision): ``collision_scale (N, N)`` multiplies
+player i's collision weight towards car j, ``c_c^i * collision_scale[i, j]`` (``None``: 1,
+the paper's symmetric cost). :func:`responsibility_scale` builds it from the cars' arc lengths
+at the start of a plan, so it is a constant of the game: the cost, its Gauss-Newton form and
+the Nash certificates (``jax.grad`` of the cost) all see the same weights.
 """
 
 from __future__ import annotations
@@ -135,6 +142,53 @@ def racing_flags(racing: jax.Array | None, num_cars: int, dtype) -> jax.Array:
     return jnp.asarray(racing).astype(dtype)
 
 
+RESPONSIBILITY_BLEND = 1.0
+"""Half-width of the blend of :func:`responsibility_scale`, in mean car lengths: a car more than
+this far ahead carries the full ratio, one more than this far behind none, one alongside half."""
+
+
+def check_responsibility(ratio) -> float:
+    """``ratio`` as a float, refused unless it is a finite number >= 1 (the weight a car carries
+    towards a car ahead of it over the weight towards a car behind it; 1: symmetric)."""
+    if isinstance(ratio, bool) or not isinstance(ratio, (int, float, np.integer, np.floating)):
+        raise ValueError(f"responsibility must be a finite number >= 1, got {ratio!r}")
+    value = float(ratio)
+    if not (np.isfinite(value) and value >= 1.0):
+        raise ValueError(f"responsibility must be a finite number >= 1 (the ratio of a car's collision weight "
+                         f"towards a car ahead to that towards a car behind; 1: the symmetric cost), got {ratio!r}")
+    return value
+
+
+def responsibility_scale(track: Track, s, lengths, ratio, xp=np):
+    """``(..., N, N)`` factors on the collision weights: car i's towards car j is ``ratio_i``
+    where j is ahead of i, 1 where j is behind, blended smoothly in between.
+
+    With the wrapped gap ``ds_ij = s_j - s_i`` and the mean length ``l_ij`` of the two cars,
+    ``z = ds_ij / (RESPONSIBILITY_BLEND l_ij)`` and the smoothstep
+    ``h = t^2 (3 - 2 t)``, ``t = clip((z + 1) / 2, 0, 1)``, the factor is
+    ``1 + (ratio_i - 1) h``: ``ratio_i`` for a car more than a car's length ahead, 1 for one
+    more than a car's length behind, ``(1 + ratio_i) / 2`` for a car alongside (both carry
+    the same), and continuous, so that a car that moves from behind to alongside between two
+    plans does not flip its weight.
+
+    Args:
+        track: the track (gaps wrapped on a closed one).
+        s: the cars' arc lengths ``(..., N)`` [m] at the start of the plan: a constant of the
+            game, never the planned states (the solvers treat weights as constants).
+        lengths: the cars' lengths ``(N,)`` [m] (or a scalar).
+        ratio: the ratio ``(N,)`` of each car (or one for all), >= 1.
+        xp: ``np`` on the host (no device dispatch), ``jax.numpy`` under ``jit``.
+    """
+    s = xp.asarray(s)
+    num = s.shape[-1]
+    lengths = xp.broadcast_to(xp.asarray(lengths, dtype=s.dtype), (num,))
+    ratio = xp.broadcast_to(xp.asarray(ratio, dtype=s.dtype), (num,))
+    gap = track.wrap_ds_in(s[..., None, :] - s[..., :, None], xp)  # [i, j] = s_j - s_i
+    mean_length = 0.5 * (lengths[:, None] + lengths[None, :])
+    t = xp.clip((gap / (RESPONSIBILITY_BLEND * mean_length) + 1.0) * 0.5, 0.0, 1.0)
+    return 1.0 + (ratio[:, None] - 1.0) * (t * t * (3.0 - 2.0 * t))
+
+
 def racing_pairs(racing: jax.Array | None, num_cars: int, dtype) -> jax.Array:
     """``(N, N)`` weights of the pairs of distinct cars that are both racing (1), else 0."""
     flags = racing_flags(racing, num_cars, dtype)
@@ -153,8 +207,8 @@ class StageResiduals(NamedTuple):
     Attributes:
         proximity: ``(N,)`` ``a_ij = (ds_ij / l_ij)^2 + (dn_ij / w_ij)^2`` to every car j;
             ``rho(a) = c exp(2 (1 - a))`` (the paper's ``c exp(1 - a)^2``).
-        collision_weights: ``(N,)`` ``c_c^i`` for the rivals racing with i, 0 for i
-            itself and for pairs with a car out of the race.
+        collision_weights: ``(N,)`` ``c_c^i`` (times the pair's ``collision_scale``) for the
+            rivals racing with i, 0 for i itself and for pairs with a car out of the race.
         limits: ``(6,)`` the excesses ``z`` of :data:`LIMITS` (track left and right, ax
             limit, gg limit, turn limit, reversing); ``rho(z) = c max(z, 0)^2``.
         limit_weights: ``(6,)`` ``c_w, c_w, c_ax, c_a, c_a, c_r`` of player i.
@@ -187,8 +241,10 @@ def stage_residuals(
     weights: CostWeights,
     track: Track,
     racing: jax.Array | None = None,
+    collision_scale: jax.Array | None = None,
 ) -> StageResiduals:
-    """Player ``i``'s stage-cost residuals at joint state ``x (N, 6)`` with its input ``u_i``."""
+    """Player ``i``'s stage-cost residuals at joint state ``x (N, 6)`` with its input ``u_i``;
+    ``collision_scale (N, N)`` factors on the collision weights (None: 1; module docstring)."""
     N = x.shape[0]
     s, v, n = x[:, S], x[:, V], x[:, N_LAT]
     ds = track.wrap_ds(s - s[i])
@@ -199,6 +255,8 @@ def stage_residuals(
     width = 0.5 * (widths[i] + widths)
     proximity = (ds / length) ** 2 + (dn / width) ** 2  # a_ii = 0
     rivals = _of_player(weights.c_collision, i, N) * racing_pairs(racing, N, x.dtype)[i]
+    if collision_scale is not None:
+        rivals = rivals * jnp.asarray(collision_scale, x.dtype)[i]
     half_width = 0.5 * widths[i]
     ax_i, ay_i = x[i, AX], x[i, AY]
     limits = jnp.stack(
@@ -253,11 +311,13 @@ def state_cost_terms(
     weights: CostWeights,
     track: Track,
     racing: jax.Array | None = None,
+    collision_scale: jax.Array | None = None,
 ) -> dict[str, jax.Array]:
     """The input-independent stage-cost terms of every player, each of shape ``(N,)`` (the
     input enters only the jerk term, :func:`input_cost`, so any input will do here)."""
     def player(i):
-        return _state_terms(stage_residuals(i, x, jnp.zeros(2, x.dtype), vehicles, weights, track, racing))
+        return _state_terms(stage_residuals(i, x, jnp.zeros(2, x.dtype), vehicles, weights, track, racing,
+                                            collision_scale))
 
     return jax.vmap(player)(jnp.arange(x.shape[0]))
 
@@ -274,10 +334,11 @@ def stage_costs(
     weights: CostWeights,
     track: Track,
     racing: jax.Array | None = None,
+    collision_scale: jax.Array | None = None,
 ) -> jax.Array:
     """Stage cost of every player: ``x (N, 6)``, ``u (N, 2)`` -> ``(N,)``."""
     def player(i, u_i):
-        return player_stage_cost(stage_residuals(i, x, u_i, vehicles, weights, track, racing))
+        return player_stage_cost(stage_residuals(i, x, u_i, vehicles, weights, track, racing, collision_scale))
 
     return jax.vmap(player)(jnp.arange(x.shape[0]), u)
 

@@ -32,6 +32,10 @@ class RaceGame:
             it, and its progress is not in the others' terminal costs. It keeps its own
             dynamics and costs, so the game keeps its N players and a planner its compiled
             solver when a car drops out. Set it with :meth:`with_racing`.
+        collision_scale: ``(N, N)`` factors on the collision weights, player i's towards car
+            j ``c_c^i * collision_scale[i, j]``; ``None`` (the default): 1, the paper's
+            symmetric cost. Constants of the game, never functions of the planned states:
+            :meth:`with_responsibility` sets them from the start of a plan.
 
     Arrays: joint state ``x (N, 6)``, joint input ``u (N, 2)``, input sequences
     ``U (K, N, 2)``, state trajectories ``xs (K + 1, N, 6)``. All functions are pure JAX.
@@ -43,6 +47,7 @@ class RaceGame:
     dt: float = 0.1
     horizon: int = 50
     racing: jax.Array | None = None
+    collision_scale: jax.Array | None = None
 
     @staticmethod
     def create(
@@ -107,6 +112,23 @@ class RaceGame:
             )
         return self.replace(racing=flags)
 
+    def with_responsibility(self, x0: np.ndarray, ratio: float | np.ndarray) -> "RaceGame":
+        """The game whose collision weights follow responsibility from the joint state ``x0
+        (N, 6)`` a plan starts from: each player carries ``ratio`` (>= 1; one for all or
+        ``(N,)``) times its collision weight towards a car ahead of it at ``x0``, its weight
+        towards a car behind (:func:`racing_env.costs.responsibility_scale`). A ratio of 1 for
+        every car is the symmetric cost (``collision_scale=None``, bit for bit)."""
+        ratio = np.broadcast_to(np.asarray(ratio, dtype=np.float64), (self.num_players,))
+        if np.all(ratio == 1.0):
+            return self.replace(collision_scale=None)
+        if not np.all(np.isfinite(ratio) & (ratio >= 1.0)):
+            _costs.check_responsibility(float(ratio[~(np.isfinite(ratio) & (ratio >= 1.0))][0]))  # raises, naming it
+        x0 = np.asarray(x0, dtype=np.float64)
+        if x0.shape != (self.num_players, STATE_DIM):
+            raise ValueError(f"x0 must have shape ({self.num_players}, {STATE_DIM}), got {x0.shape}")
+        scale = _costs.responsibility_scale(self.track, x0[:, 0], np.asarray(self.vehicles.length), ratio)
+        return self.replace(collision_scale=scale)
+
     # --- dynamics ---------------------------------------------------------------------
     def step(self, x: jax.Array, u: jax.Array) -> jax.Array:
         """Joint RK4 step: ``x (N, 6)``, ``u (N, 2)`` [m/s^3] -> ``(N, 6)``."""
@@ -125,7 +147,7 @@ class RaceGame:
     # --- costs ------------------------------------------------------------------------
     def stage_costs(self, x: jax.Array, u: jax.Array) -> jax.Array:
         """Stage cost of every player, ``(N,)``."""
-        return _costs.stage_costs(x, u, self.vehicles, self.weights, self.track, self.racing)
+        return _costs.stage_costs(x, u, self.vehicles, self.weights, self.track, self.racing, self.collision_scale)
 
     def stage_cost(self, i: int, x: jax.Array, u_i: jax.Array) -> jax.Array:
         """Stage cost g^i of player ``i`` at joint state ``x (N, 6)`` with its input ``u_i (2,)``.
@@ -138,7 +160,8 @@ class RaceGame:
     def stage_residuals(self, i: int, x: jax.Array, u_i: jax.Array) -> _costs.StageResiduals:
         """Player ``i``'s stage cost as residuals (:class:`racing_env.costs.StageResiduals`),
         the form its cost and the solvers' Gauss-Newton terms are both computed from."""
-        return _costs.stage_residuals(i, x, u_i, self.vehicles, self.weights, self.track, self.racing)
+        return _costs.stage_residuals(i, x, u_i, self.vehicles, self.weights, self.track, self.racing,
+                                      self.collision_scale)
 
     def terminal_costs(self, x: jax.Array) -> jax.Array:
         """Terminal cost of every player, ``(N,)``."""
@@ -156,6 +179,6 @@ class RaceGame:
 
 jax.tree_util.register_dataclass(
     RaceGame,
-    data_fields=["track", "vehicles", "weights", "racing"],
+    data_fields=["track", "vehicles", "weights", "racing", "collision_scale"],
     meta_fields=["dt", "horizon"],
 )

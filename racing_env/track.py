@@ -172,6 +172,16 @@ class Track:
         r = jnp.where(r >= self.length, r - self.length, r)
         return r - half
 
+    def wrap_ds_in(self, ds, xp=np):
+        """:meth:`wrap_ds` in the array module ``xp``: in NumPy (``np``, the default) the same
+        operations on the host, without a device dispatch; ``jax.numpy`` under ``jit``. For
+        code that runs in the agents' host loops and inside compiled races alike."""
+        if not self.closed:
+            return ds
+        length = float(self.length)
+        r = xp.mod(ds + 0.5 * length, length)
+        return xp.where(r >= length, r - length, r) - 0.5 * length
+
     def _interp(self, values: ArrayLike, s: ArrayLike) -> jax.Array:
         """Piecewise-linear interpolation of grid ``values`` (M,) at ``s`` (any shape)."""
         values = jnp.asarray(values)

@@ -91,6 +91,15 @@ _OPPONENT_FACTORY = "planners.agents.batched:make_batched_opponent"
 _FROM_FACTORY = "planners.agents.batched:batched_from_factory"
 
 
+def policy_action(policy: JaxPolicy, x: jax.Array, active: jax.Array) -> jax.Array:
+    """A JAX driver's action ``(2,)`` at the joint state ``x (N, 6)``: a policy marked
+    ``takes_racing`` (the racing-line driver's law, whose rules ignore the cars out of the
+    race) is also handed the race's ``active (N,)`` flags, any other ``policy(x)`` alone."""
+    if getattr(policy, "takes_racing", False):
+        return policy(x, active)
+    return policy(x)
+
+
 def coasting(x: jax.Array) -> jax.Array:
     """The coasting driver as a JAX policy: zero jerk (keeps its accelerations)."""
     return jnp.zeros(2, x.dtype)
@@ -513,7 +522,8 @@ def _compile_step(policies: tuple, cars: tuple[int, ...], learner: int, same_ste
         params = unpack(constants, layout)
         for policy, car in zip(policies, cars):
             # rounded to float32, as the single agents round their actions
-            actions = actions.at[:, car].set(jax.vmap(policy)(state.x).astype(jnp.float32).astype(actions.dtype))
+            own = jax.vmap(functools.partial(policy_action, policy))(state.x, state.status.active)
+            actions = actions.at[:, car].set(own.astype(jnp.float32).astype(actions.dtype))
         stepped, obs_all, rewards, terms, truncs, info = jax.vmap(race.step, in_axes=(None, 0, 0, None))(
             None, state, actions, params)
         terminated = terms[:, learner] & state.status.active[:, learner]
@@ -782,7 +792,7 @@ class GymnaxRace(_Environment):
         action = jnp.where(finite, action, jnp.zeros_like(action))
         actions = jnp.zeros((self.num_cars, 2), dtype).at[self.learner].set(action.astype(dtype))
         for car, policy in self._policies:
-            actions = actions.at[car].set(policy(race_state.x).astype(dtype))
+            actions = actions.at[car].set(policy_action(policy, race_state.x, race_state.status.active).astype(dtype))
         planned = []
         for (car, planner), plan in zip(self._planners, plans):
             act, plan = planner.act(plan, race_state.x, race_state.status.active)

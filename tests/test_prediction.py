@@ -217,10 +217,11 @@ def test_the_agent_plans_against_a_game_prediction():
     agent, _, _, state = _first_replan_against_the_lane_keeper("ilqr:prediction=ilqgame-fb")
     assert agent.diagnostics()["converged"]
     options = {"max_iterations": agent.max_iterations, **agent.solver_options}  # the agent's: 30, 1e-3
-    equilibrium = ilq.solve(agent.planning_game, state, mode="feedback", **options)
+    game = agent.planning_game.with_responsibility(state, agent.responsibility)  # the re-plan's game
+    equilibrium = ilq.solve(game, state, mode="feedback", **options)
     np.testing.assert_array_equal(agent._plan["xs"][:, 1], equilibrium.xs[:, 1])
     np.testing.assert_array_equal(agent._plan["us"][:, 1], equilibrium.us[:, 1])
-    response = solve_ilqr(agent.planning_game, state, ego=0, predicted=equilibrium.xs, **options)
+    response = solve_ilqr(game, state, ego=0, predicted=equilibrium.xs, **options)
     np.testing.assert_array_equal(agent._plan["us"][:, 0], response.us[:, 0])  # its own plan: the best response
     assert not np.array_equal(response.us[:, 0], equilibrium.us[:, 0])
 
@@ -284,7 +285,8 @@ def test_the_agent_plans_against_the_level_it_is_given():
     level-2 prediction made with the agent's own game and solver options."""
     agent, _, _, state = _first_replan_against_the_lane_keeper("ilqr:prediction=ilqr,levels=2")
     options = {"max_iterations": agent.max_iterations, **agent.solver_options}
-    level2, _ = PlannerPrediction("ilqr", 0, levels=2, **options)(agent.planning_game, state)
-    level1, _ = PlannerPrediction("ilqr", 0, levels=1, **options)(agent.planning_game, state)
+    game = agent.planning_game.with_responsibility(state, agent.responsibility)  # the re-plan's game
+    level2, _ = PlannerPrediction("ilqr", 0, levels=2, **options)(game, state)
+    level1, _ = PlannerPrediction("ilqr", 0, levels=1, **options)(game, state)
     np.testing.assert_array_equal(agent._plan["xs"][:, 1], level2[:, 1])
     assert not np.array_equal(level2[:, 1], level1[:, 1])

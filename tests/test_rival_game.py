@@ -106,8 +106,8 @@ def test_with_rivals_at_least_the_field_the_agent_solves_the_whole_game():
     agent.reset(0, 0, env)
     agent.act(observations["car_0"], state)
     assert agent.prepare_replan(observations["car_0"], state) is None  # nothing to batch: the whole game
-    expected = ilq.solve(agent.planning_game.with_racing(np.ones(2, bool)), state, mode="feedback",
-                         max_iterations=2, **agent.solver_options)
+    game = agent.planning_game.with_racing(np.ones(2, bool)).with_responsibility(state, agent.responsibility)
+    expected = ilq.solve(game, state, mode="feedback", max_iterations=2, **agent.solver_options)
     np.testing.assert_array_equal(agent._plan["us"], np.asarray(expected.us))
     np.testing.assert_array_equal(agent._plan["K"], np.asarray(expected.K)[:, 0])
 

@@ -95,13 +95,22 @@ class BatchedScripted(BatchedOpponent):
         agent.reset(None, self.index, self.game)  # builds the controller of this car
         self.controller = agent.controller
         self.jax_policy = scripted_laws.jax_policy(self.controller)
+        # a law that reads the racing flags (the racing-line driver's rules) is handed them
+        self._takes_racing = bool(getattr(self.jax_policy, "takes_racing", False))
         self._batched = jax.jit(jax.vmap(self.jax_policy))
 
     def _act_rows(self, rows, observations, x, racing):
         count = rows.size
-        padded = np.zeros((_padded_size(count),) + x.shape[1:])
+        size = _padded_size(count)
+        padded = np.zeros((size,) + x.shape[1:])
         padded[:count] = x
-        actions = np.asarray(self._batched(padded))[:count].astype(np.float64)
+        if self._takes_racing:
+            flags = np.ones((size, x.shape[1]), dtype=bool)
+            flags[:count] = racing
+            out = self._batched(padded, flags)
+        else:
+            out = self._batched(padded)
+        actions = np.asarray(out)[:count].astype(np.float64)
         diagnostics = empty_diagnostics(self.diagnostic_fields, count)
         braked = ~np.all(np.isfinite(x[:, self.index]), axis=1)  # where the law returned BRAKE_ACTION
         diagnostics["fallback"] |= braked

@@ -13,7 +13,8 @@ since races restart at different times. A step:
    racing flags (:meth:`racing_env.RaceGame.with_racing`) and cost weights: the agent's
    own, belief and opponent weights, the leading or trailing weights by the race's place,
    and the own track weight scaled by ``recovery_track_scale`` while the car recovers from
-   a standstill (on by default, so the weights differ per race);
+   a standstill (on by default, so the weights differ per race), and the collision scales
+   of its ``responsibility`` from the race's state;
 2. the other races follow their plans: ``u = u_hat_t - K_t (x - x_hat_t)`` for the
    feedback game, the planned ``u_hat_t`` otherwise;
 3. a race whose solve fails (non-finite output, an exception, or not converged under
@@ -54,7 +55,7 @@ from planners.agents.receding_horizon import (
 from planners.agents.weights import weight_names, with_player_weights
 from planners.ilq_batch import resolve_batching, solve_batch
 from planners.methods import CONSTANT_VELOCITY, FEEDBACK
-from racing_env.costs import CostWeights
+from racing_env.costs import CostWeights, responsibility_scale
 from racing_env.dynamics import STATE_DIM, V
 
 __all__ = ["BATCHABLE_AGENTS", "BatchedPlanner", "default_solve_sizes", "predict_constant_velocity_batch",
@@ -149,7 +150,9 @@ def _solve_joined(planners: list["BatchedPlanner"], requests: list[tuple]) -> li
     egos = joined([np.full(count, planner.index) for planner, count in zip(planners, counts)])
     weights = {name: joined([planner._weights[name][request[2]] for planner, request in zip(planners, requests)])
                for name in first._weights}
-    game = first._solve_game.replace(weights=CostWeights(**weights), racing=racing)
+    scales = [planner._collision_scales(request[0]) for planner, request in zip(planners, requests)]
+    scales = None if scales[0] is None else joined(scales)
+    game = first._solve_game.replace(weights=CostWeights(**weights), racing=racing, collision_scale=scales)
     us, xs, K, res = _solve_local_games(first, game, x0s, egos, init)
     iterations, converged = np.asarray(res.iterations), np.asarray(res.converged)
     out, start = [], 0
@@ -218,7 +221,9 @@ class BatchedPlanner(BatchedOpponent):
                                                   **{k: v for k, v in agent.solver_options.items() if k != "mode"}})
         self._weights, self._place_count, self._recovery_count = self._weight_variants()
         self._solve_game = agent.planning_game.replace(racing=None)
-        self._game_axes = self._solve_game.replace(track=None, vehicles=None, weights=0, racing=0)
+        if agent.responsibility != 1.0:  # every solve's game has its collision scales
+            self._solve_game = self._solve_game.replace(collision_scale=np.ones((self.game.num_players,) * 2))
+        self._game_axes = rival_game.game_axes(self._solve_game)
         # a game agent in a field larger than its game: local games (planners.rival_game)
         self.rivals = None if self.is_ilqr or agent.rivals >= self.game.num_players - 1 else agent.rivals
         if self.is_ilqr:
@@ -265,6 +270,15 @@ class BatchedPlanner(BatchedOpponent):
         table = {name: np.stack([np.broadcast_to(np.asarray(getattr(w, name), dtype=np.float64), (n,))
                                  for w in variants]) for name in weight_names()}
         return table, len(places), 2 if recovery else 1
+
+    def _collision_scales(self, x: np.ndarray) -> np.ndarray | None:
+        """The collision scales ``(R, N, N)`` of the races' re-plans from ``x (R, N, 6)`` by the
+        agent's ``responsibility`` (:meth:`racing_env.RaceGame.with_responsibility`, per race),
+        None for the symmetric cost."""
+        if self.agent.responsibility == 1.0:
+            return None
+        return responsibility_scale(self.game.track, x[..., 0], np.asarray(self.game.vehicles.length),
+                                    self.agent.responsibility)
 
     def _allocate(self) -> None:
         b, t, n = self.num_races, self.game.horizon, self.game.num_players
@@ -350,7 +364,7 @@ class BatchedPlanner(BatchedOpponent):
             return None
         game = self.game
         return (type(self), self.options, self.rivals, self.feedback, self.num_races, game.num_players, game.horizon,
-                id(game.track), id(game.vehicles), self.devices, self.batching)
+                id(game.track), id(game.vehicles), self.devices, self.batching, self.agent.responsibility == 1.0)
 
     @classmethod
     def act_together(cls, opponents, observations, x, racing):
@@ -468,7 +482,9 @@ class BatchedPlanner(BatchedOpponent):
         x0s = self._padded(x, size, slots, inert=np.nan)
         init, racing, variant = (self._padded(a, size, slots) for a in (init, racing, variant))
         weights = CostWeights(**{name: column[variant] for name, column in self._weights.items()})
-        game = self._solve_game.replace(weights=weights, racing=racing)
+        scales = self._collision_scales(x)
+        scales = None if scales is None else self._padded(scales, size, slots)
+        game = self._solve_game.replace(weights=weights, racing=racing, collision_scale=scales)
         K = None
         if self.is_ilqr:
             us, xs, res = self._solve_ilqr(game, x0s, init)

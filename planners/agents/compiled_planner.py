@@ -12,8 +12,8 @@ can step planner opponents inside its program, and vmap them over races::
 A step is the batched planner's (and so the single agent's):
 
 1. due to re-plan (no plan yet, ``replan_every`` steps since the last re-plan, or the plan
-   used up): the game with this race's racing flags and cost weights (place, recovery from
-   a standstill) is solved by :func:`planners.ilq.solve_arrays` from the shifted, restored
+   used up): the game with this race's racing flags, cost weights (place, recovery from
+   a standstill) and collision scales (``responsibility``, from the race's state) is solved by :func:`planners.ilq.solve_arrays` from the shifted, restored
    warm start, or from zero inputs at the first re-plan of a race (the cold plan of a
    reset); its iteration budget is the agent's ``iterations`` (or ``max_iterations``);
 2. otherwise the plan is followed: ``u = u_hat_t - K_t (x - x_hat_t)`` for the feedback
@@ -41,7 +41,7 @@ from planners.agents.receding_horizon import RECOVERED_SPEED, STOPPED_SPEED
 from planners.agents.warm_start import restore_accelerations
 from planners.game_problem import as_problem
 from planners.precision import require_x64
-from racing_env.costs import CostWeights
+from racing_env.costs import CostWeights, responsibility_scale
 from racing_env.dynamics import AX, AY, CHI, N_LAT, S, STATE_DIM, V
 
 __all__ = ["CompiledPlanner", "PlanState"]
@@ -95,6 +95,7 @@ class CompiledPlanner:
         self.weights = {name: jnp.asarray(column) for name, column in planner._weights.items()}
         self.place_count, self.recovery_count = planner._place_count, planner._recovery_count
         self.solve_game = planner._solve_game
+        self.responsibility = agent.responsibility
         self.ego_template = planner._ego_template if self.is_ilqr else None
         self.rivals = planner.rivals  # local games (planners.rival_game), or None: the whole game
         self.vehicle = planner._brake_law.vehicle
@@ -202,7 +203,7 @@ class CompiledPlanner:
         racing = racing.at[self.index].set(True)  # as the observation's flags say of the car itself
         variant, recovering = self._variant(plan, x, racing)
         weights = CostWeights(**{name: column[variant] for name, column in self.weights.items()})
-        game = self.solve_game.replace(weights=weights, racing=racing)
+        game = self.solve_game.replace(weights=weights, racing=racing, collision_scale=self._collision_scale(x))
         us, xs, K, converged = self._solve(game, jnp.where(due, x, jnp.nan), self._warm_start(plan, x))
         ok = _finite(us) & _finite(xs) & _finite(K)
         if self.require_converged:
@@ -216,6 +217,15 @@ class CompiledPlanner:
         old = old._replace(has_plan=old.has_plan & _finite(u_old))
         new = jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), fresh, old)
         return jnp.where(ok, u_fresh, u_old), new
+
+    def _collision_scale(self, x: jax.Array) -> jax.Array | None:
+        """The re-plan's collision scales ``(N, N)`` from ``x (N, 6)`` by the agent's
+        ``responsibility`` (traced :func:`racing_env.costs.responsibility_scale`), None for
+        the symmetric cost."""
+        if self.responsibility == 1.0:
+            return None
+        return responsibility_scale(self.game.track, x[:, S], jnp.asarray(self.game.vehicles.length),
+                                    self.responsibility, xp=jnp)
 
     def _finish(self, action: jax.Array, x: jax.Array) -> jax.Array:
         """``action (2,)`` clipped to ``[-1, 1]``, or the agents' braking action where it is

@@ -52,12 +52,13 @@ def field_batching(agent: Any, devices) -> str:
 
 def _group_key(agent: Any, local: rival_game.LocalGame) -> tuple:
     """Agents whose local games one batch can solve: the same solver options (structure and
-    numbers: a batch shares them), the same players, cars and horizon, and the same track and
-    cars' parameters (the batch shares them)."""
+    numbers: a batch shares them), the same players, cars and horizon, the same track and
+    cars' parameters (the batch shares them), and collision scales in all or none (the games'
+    structure)."""
     options = agent.batch_options()
     game = local.problem.params.game
     return (type(agent), options, local.problem.num_players, game.num_players, local.problem.horizon,
-            id(game.track), id(game.vehicles))
+            id(game.track), id(game.vehicles), game.collision_scale is None)
 
 
 def solve_field(agents: Sequence[Any], observations: Sequence[Any], joint_state: np.ndarray) -> dict[str, Any]:

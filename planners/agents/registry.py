@@ -80,7 +80,8 @@ AGENT_SUMMARIES = {
     ILQR: "iLQR against predictions of the opponents (the paper's: constant velocity and offset)",
     OPEN_LOOP_GAME: "open-loop Nash iLQGame, re-planned every step",
     FEEDBACK_GAME: "feedback Nash iLQGame, re-planned every step, its feedback law applied in between",
-    RACELINE: "scripted: the circuit's racing line at its lap-time limit's speeds (pace=0.95: slower); no avoidance",
+    RACELINE: ("scripted: the circuit's racing line at its lap-time limit's speeds (pace=0.95: slower), keeping a "
+               "gap to a car ahead and passing where clear (yield=false: no avoidance)"),
     LANE_KEEPING: "scripted: holds a lateral offset at a cruise speed, slowing for curves within grip",
     CONSTANT_SPEED: "scripted: the centre line at a constant speed (slowing only for curves)",
     RANDOM: "uniform random actions every step, seeded by the race (a rival no planner can predict)",
@@ -163,6 +164,8 @@ _LOOP_HELP = {
     "require_converged": "treat a re-plan that did not converge as a failure (previous plan, else brake)",
     "recovery_track_scale": f"factor on own c_track from a standstill (< {STOPPED_SPEED} m/s) until "
                             f"{RECOVERED_SPEED} m/s, to rejoin across the edge (0: no track term then; 1: off)",
+    "responsibility": ("the collision weight every car carries towards a car ahead of it over that towards a car "
+                       "behind, judged at each re-plan's start (finite, >= 1; 1: the paper's symmetric cost)"),
 }
 
 _GAME_HELP = {
@@ -217,6 +220,11 @@ _SCRIPTED_HELP = {"target_speed": "cruise speed [m/s]", "target_n": "lateral off
                   "pace": "fraction of the lap-time limit's speed profile driven, in (0, 1]",
                   "margin": "the racing line is kept this far inside the track boundaries [m]",
                   "line": "raceline (the circuit's; the centre line where none is shipped) or centerline",
+                  "yield": ("raceline: keep to the rules of traffic (keep a gap to a car ahead on its line, pass "
+                            "only where clear, never move across into a car alongside); false: drive the line "
+                            "whoever is on it (the old driver, for robustness tests)"),
+                  "time_gap": "raceline: the time gap kept to a car ahead on its path [s], >= 0",
+                  "standstill": "raceline: the bumper-to-bumper gap kept behind a car ahead, also at rest [m], > 0",
                   "scale": "random: actions drawn uniformly from [-scale, scale]^2, a fraction of the action box in (0, 1]"}
 
 _WEIGHT_MEANINGS = {

@@ -19,6 +19,8 @@ from planners.agents.protocol import BaseAgent
 from planners.methods import CONSTANT_SPEED, LANE_KEEPING, RACELINE, RANDOM
 from planners.scripted import RACELINE_MARGIN, ConstantSpeed, LaneKeeping, RacelineDriver, check_raceline_options, \
     check_targets
+from planners.traffic import RACELINE_STANDSTILL, RACELINE_TIME_GAP
+from racing_env.observation import cars_racing
 
 __all__ = ["ConstantSpeedAgent", "LaneKeepingAgent", "RacelineAgent", "RandomAgent", "check_random_scale", "random_generator"]
 
@@ -53,8 +55,12 @@ class _ScriptedAgent(BaseAgent):
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
         self.controller = self.controller_class(
-            self.game.track, self.index, self.game.vehicles.car(self.index), **self.kwargs
+            self.game.track, self.index, self.game.vehicles.car(self.index), **self._controller_kwargs()
         )
+
+    def _controller_kwargs(self) -> dict[str, Any]:
+        """The controller's keyword arguments: the agent's options."""
+        return dict(self.kwargs)
 
     def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
         return self._act_guarded(self.controller, observation, joint_state)
@@ -84,23 +90,47 @@ class ConstantSpeedAgent(_ScriptedAgent):
 
 class RacelineAgent(_ScriptedAgent):
     """:class:`planners.scripted.RacelineDriver`: the circuit's racing line at the speed profile
-    of its lap-time limit (kwargs: ``pace`` in ``(0, 1]``, ``margin`` [m], ``line``). It does
-    not avoid other cars beyond what its tracking controller does."""
+    of its lap-time limit, keeping to the rules of :mod:`planners.traffic` (kwargs: ``pace``
+    in ``(0, 1]``, ``margin`` [m], ``line``, ``time_gap`` [s], ``standstill`` [m], and
+    ``yield``: ``False`` is the driver without the rules, which drives its line whoever is on
+    it). It reads which cars still race from its observation, as the planners do."""
 
     spec = name = RACELINE
     controller_class = RacelineDriver
 
     @staticmethod
     def check_options(**kwargs: Any) -> None:
-        check_raceline_options(**kwargs)
+        check_raceline_options(**_driver_kwargs(kwargs))
 
     @classmethod
     def spec_options(cls) -> dict[str, type]:
-        return {"pace": float, "margin": float, "line": str}
+        return {"pace": float, "margin": float, "line": str, "yield": bool, "time_gap": float, "standstill": float}
 
     @classmethod
     def spec_defaults(cls) -> dict[str, Any]:
-        return {"pace": 1.0, "margin": RACELINE_MARGIN, "line": "raceline"}
+        return {"pace": 1.0, "margin": RACELINE_MARGIN, "line": "raceline", "yield": True,
+                "time_gap": RACELINE_TIME_GAP, "standstill": RACELINE_STANDSTILL}
+
+    def _controller_kwargs(self) -> dict[str, Any]:
+        return {**_driver_kwargs(self.kwargs), "fleet": self.game.vehicles}
+
+    def reset(self, seed: int | None, index: int, env_info: Any) -> None:
+        super().reset(seed, index, env_info)
+        # the env's nearest-rival observation layout, whose blocks do not say which car is out
+        self._observed_rivals = getattr(getattr(env_info, "config", None), "observed_rivals", None)
+
+    def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
+        racing = cars_racing(observation, self.index, self.game.num_players, self._observed_rivals)
+        return self._act_guarded(lambda o, x: self.controller(o, x, racing), observation, joint_state)
+
+
+def _driver_kwargs(options: dict[str, Any]) -> dict[str, Any]:
+    """The spec's options as :class:`RacelineDriver` arguments (``yield``, a Python keyword,
+    is its ``yielding``)."""
+    kwargs = dict(options)
+    if "yield" in kwargs:
+        kwargs["yielding"] = kwargs.pop("yield")
+    return kwargs
 
 
 def check_random_scale(scale: Any) -> float:
