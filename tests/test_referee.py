@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import racing_env  # noqa: F401  (float64: tests/conftest.py)
-from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
+from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, places, positions
 
 DT = 0.1
 FINISH = 100.0
@@ -191,3 +191,56 @@ def test_a_car_finishing_in_the_step_takes_its_lead_at_the_line():
     assert np.asarray(v.status.place).tolist() == [1, 2]
     lead = np.asarray(v.terms)[:, REWARD_TERMS.index("lead")]
     np.testing.assert_allclose(lead, WEIGHTS["lead"] * np.array([0.1 - 0.6, -20.0 / 300.0 + 0.6]), atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_places_and_positions_are_exact_in_either_precision(dtype):
+    """Finish times of a few minutes with penalties of seconds, arc lengths of a long race
+    (cumulative over laps): places by finish time plus penalty and positions (finished cars
+    first) are those of a stable sort, in float32 as in float64."""
+    rng = np.random.default_rng(5)
+    for _ in range(100):
+        num = int(rng.integers(2, 7))
+        finished = rng.random(num) < 0.6
+        race_time = (rng.uniform(50.0, 150.0, num) + rng.choice([0.0, 5.0], num)).astype(dtype)
+        place = np.asarray(places(jnp.asarray(finished), jnp.asarray(race_time)))
+        expected = np.zeros(num, int)
+        order = [i for i in np.argsort(race_time, kind="stable") if finished[i]]
+        expected[order] = np.arange(1, len(order) + 1)
+        np.testing.assert_array_equal(place, expected)
+        s = rng.uniform(1e5, 1e5 + 3.0, num).astype(dtype)
+        got = np.asarray(positions(jnp.asarray(s), jnp.asarray(finished), jnp.asarray(place, jnp.int32)))
+        key = sorted(range(num), key=lambda i: (not finished[i], place[i] if finished[i] else -float(s[i]), i))
+        want = np.empty(num, int)
+        want[key] = np.arange(1, num + 1)
+        np.testing.assert_array_equal(got, want)
+
+
+def test_a_float32_race_reports_every_finishing_order():
+    """With JAX's default precision (x64 off, in a fresh process): three cars coasting on a
+    straight at speeds in every order finish in that order, and the finished cars' positions
+    say so (keyed at -1e12 + place they all tied in float32, the first index ahead)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent("""
+        import itertools
+        import numpy as np
+        import jax
+        jax.config.update("jax_enable_x64", False)
+        import racing_env
+        for speeds in itertools.permutations([15.0, 20.0, 25.0]):
+            env = racing_env.parallel_env(track=racing_env.track.straight(length=200.0), num_agents=3,
+                                          race_distance=100.0)
+            x0 = np.zeros((3, 6))
+            x0[:, 0], x0[:, 1], x0[:, 2] = 10.0, speeds, (-4.0, 0.0, 4.0)
+            env.reset(seed=0, options={"x0": x0})
+            while env.agents:
+                env.step({a: np.zeros(2) for a in env.agents})
+            expected = 1 + np.argsort(np.argsort(-np.asarray(speeds)))
+            assert env.positions.tolist() == expected.tolist(), (speeds, env.positions)
+        print("ok")
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0 and result.stdout.strip().endswith("ok"), result.stderr[-3000:]
