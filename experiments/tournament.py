@@ -580,7 +580,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     places = config.cars > 2  # in a field, places say more than wins
     for col in ("#", "agent", "rating (mu - 3 sigma)", "wins/races", "win rate [95% CI]",
                 *(("mean place", "rivals beaten [95% CI]", "passes made/suffered") if places else ()), "finished",
-                *(("retired",) if retire else ()), "margin [s]", *(("x limit",) if limits else ()), "errors", "contacts", "at fault", "off track", "act [ms]",
+                *(("retired",) if retire else ()), "margin [s]", *(("x limit",) if limits else ()), "errors", "contacts (at fault)", "off track", "act [ms]",
                 "converged", *certified_header):
         table.add_column(col, overflow="fold")  # long specs (rl:PATH, options) wrap instead of being cut
     for k, row in enumerate(board["rows"], 1):
@@ -594,7 +594,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
                       or_dash(row["mean_margin_s"], "{:+.2f}"),
                       *((or_dash(row.get("mean_limit_ratio"), "{:.3f}"),) if limits else ()),
                       str(row["errors"]),
-                      str(row["collision_steps"]), str(row["faults"]), or_dash(row.get("off_track_steps"), "{:d}"),
+                      f"{row['collision_steps']} ({row['faults']})", or_dash(row.get("off_track_steps"), "{:d}"),
                       f"{1e3 * row['mean_act_time_s']:.1f}",
                       or_dash(row["converged_fraction"], "{:.0%}"), *certified[k - 1])
     console.print(table)

@@ -173,7 +173,7 @@ def test_bad_settings_are_refused(bad, message):
 def test_bad_command_lines_fail_before_training(tmp_path, capsys):
     cases = [
         (["--opponents", "wizard"], "unknown agent spec 'wizard'"),
-        (["--opponents", f"rl:{tmp_path / 'missing.zip'}"], "could not load"),
+        (["--opponents", f"rl:{tmp_path / 'missing.zip'}"], f"no model file at {tmp_path / 'missing.zip'} "),
         (["--hyperparameter", "n_steps"], "NAME=VALUE"),
         (["--hyperparameter", "n_steps=-4"], "ppo refused the model settings (hyperparameters {'n_steps': -4, "),
         (["--seed", "-1"], "seed (--seed) must be an integer >= 0, got -1"),
@@ -321,19 +321,19 @@ def test_parse_hyperparameter():
 
 
 def test_summarize_evaluation_counts_the_learner_slot():
-    def car(start, place, finish, distance, contact=0, off=0.0, error=None):
+    def car(start, place, finish, distance, contact=0, off=0.0, error=None, faults=0):
         return {"start_place": start, "place": place, "finish_time": finish, "distance": distance,
-                "collision_steps": contact, "time_off_track": off, "error": error}
+                "collision_steps": contact, "time_off_track": off, "error": error, "faults": faults}
 
     races = [  # (learner's slot, race)
-        (0, {"cars": [car(2, 1, 60.0, 500.0, contact=2), car(1, 2, 61.5, 500.0)]}),  # from behind, wins by 1.5 s
+        (0, {"cars": [car(2, 1, 60.0, 500.0, contact=2, faults=1), car(1, 2, 61.5, 500.0, contact=2)]}),  # from behind, wins by 1.5 s
         (1, {"cars": [car(2, 1, 59.0, 500.0), car(1, 2, None, 420.0, off=3.0)]}),    # from the front, not finished
     ]
     record = evaluation.summarize_evaluation(races, timesteps=4096)
     assert record == {"timesteps": 4096, "races": 2, "wins": 1, "win_rate": 0.5, "races_by_start_place": [1, 1],
                       "wins_by_start_place": [0, 1], "mean_place": 1.5,
                       "finished": 1, "mean_finish_time_s": 60.0, "mean_limit_ratio": None, "mean_margin_s": 1.5,
-                      "mean_distance": 460.0, "contact_steps": 2, "time_off_track_s": 3.0, "errors": []}
+                      "mean_distance": 460.0, "contact_steps": 2, "faults": 1, "time_off_track_s": 3.0, "errors": []}
 
 
 def test_summarize_evaluation_of_a_time_trial_reports_finish_times_and_no_margin():
