@@ -226,12 +226,15 @@ def test_same_seed_gives_identical_results(tmp_path):
         assert sorted(places) == [1, 2] and s0[places.index(1)] > s0[places.index(2)]
 
 
+@pytest.mark.slow
 def test_a_busy_machine_decides_no_race_and_a_given_budget_is_only_reported(tmp_path, capsys):
     """`racing tournament` here, then on two worker processes while a process of this test
     keeps a core busy and with a step budget that no action meets (1 ns: every timed action
     is over it): the same races and leaderboard, every car's actions over the budget counted
     in its record and printed, no car faulted by it. A budget decides only when enforced
-    (the sleeping agent above)."""
+    (the sleeping agent above). Slow: its busy core slows every test running beside it; the
+    default run checks the same records on worker processes
+    (test_races_on_workers_give_the_same_records_and_leaderboard)."""
     args = ["tournament", "--agents", "lane-keeping", "constant-speed", "--track", "straight", "--race-distance",
             "120", "--grids", "1", "--max-steps", "400", "--no-gif", "--no-report"]
     assert main([*args, "--out", str(tmp_path / "here")]) == 0
