@@ -36,7 +36,7 @@ def time_trial(track: str, spec: str = "raceline", max_steps: int = 4000) -> tup
     return finish, off, limits.lap_time_limit(env.track, line=line)
 
 
-@pytest.mark.parametrize("track", ["Monza", "Suzuka"])
+@pytest.mark.parametrize("track", ["Monza", pytest.param("Suzuka", marks=pytest.mark.slow)])
 def test_alone_it_laps_a_circuit_on_the_track_within_3_percent_of_the_limit(track):
     """The limit is a flying lap; the driver starts rolling at about 15 m/s from the grid (about
     0.3% of a lap) and lags the limit by its acceleration lag and jerk limits."""
