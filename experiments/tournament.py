@@ -389,8 +389,9 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             # the race time: the crossing plus the steward's time penalties (``penalty``)
             "finish_time": finish[i], "crossing_time": car["finish_time"], "penalty": car["penalty"],
             "faults": car["faults"],
-            # the finish time over the race's lap-time limit (racing_env.limits.race_limit), and its line
-            "limit_ratio": finish[i] / limit[0] if limit is not None and finish[i] is not None else None,
+            # the crossing time (penalties left out: the pace) over the race's lap-time limit
+            # (racing_env.limits.race_limit), and its line
+            "limit_ratio": car["finish_time"] / limit[0] if limit is not None and finish[i] is not None else None,
             "limit_time": limit[0] if limit is not None else None, "limit_line": limit[1] if limit is not None else None,
             "distance": car["distance"], "mean_speed": car["mean_speed"],
             "collision_steps": car["collision_steps"], "time_off_track": car["time_off_track"],
