@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from racing_env.dynamics import CHI, MIN_FRENET_SCALE, N_LAT, S, V
+from racing_env.physics import footprint_overlap
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
 
@@ -296,6 +297,4 @@ def separate(x: jax.Array, pairs: jax.Array, kappa: jax.Array, vehicles: Vehicle
 def overlapping(x: jax.Array, racing: jax.Array, vehicles: VehicleParams, track: Track) -> jax.Array:
     """``(N, N)`` bool: the footprints of two racing cars overlap at ``x`` (the ghost mode's
     contact)."""
-    from racing_env.physics import footprint_overlap
-
     return footprint_overlap(x, vehicles, track) & pairs_racing(racing)
