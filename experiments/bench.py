@@ -823,6 +823,7 @@ _TARGETS = {
     "target_steps_per_s": ("steps_per_s", True),
     "target_ratio": ("throughput_ratio", True),
     "target_vs_endless": ("vs_endless", True),
+    "target_vs_ghost": ("vs_ghost", True),
     "target_ms_p95": ("ms_p95", False),
     "target_exponent": ("exponent", False),
     "target_ms": (("ms_per_iter", "ms_per_solve", "ms_per_frame"), False),

@@ -274,6 +274,17 @@ def test_the_short_episode_row_counts_resets_and_judges_the_rate_against_endless
     assert "vs_endless" in text and ">= 0.5" in text
 
 
+@pytest.mark.slow  # two vectorised envs compiled (about 8 s); `racing bench --only rl` runs the rows
+def test_the_contact_rows_judge_physics_against_ghost_cars():
+    from experiments import bench_rl
+
+    ghost, physics = bench_rl.contact_rows(num_envs=4, calls=55, repeats=1)
+    assert (ghost["contact"], physics["contact"]) == ("ghost", "physics")
+    assert physics["vs_ghost"] == pytest.approx(physics["steps_per_s"] / ghost["steps_per_s"], rel=1e-12)
+    text, _ = bench._target_verdict(physics)
+    assert ">= 0.8 vs_ghost" in text and bench._target_verdict(ghost) is None
+
+
 @pytest.mark.slow  # three compiled race loops (about 19 s); `racing bench --only rl` runs the rows
 def test_gymnax_rows_time_the_scanned_races_with_x64_on_and_off_beside_the_vector_env():
     from experiments import bench_rl
