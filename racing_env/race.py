@@ -323,8 +323,8 @@ def step(
     collided = contact.any(axis=1)
     verdicts = judge_contacts(x, x_next, hit, contact, status.last_contact, steps, outside, game.vehicles,
                               params.steward, game.track)
-    status = steward_status(status, verdicts, contact, steps, x, x_next, params.steward)
     new_faults = jnp.sum(verdicts.fault, axis=1, dtype=jnp.int32)
+    status = steward_status(status, verdicts, new_faults, contact, steps, x, x_next, params.steward)
     disqualified = (params.steward.disqualify_after > 0) & (status.faults >= params.steward.disqualify_after)
     verdict = judge(x[:, S], x_next[:, S], status, collided, outside, steps, game.dt, params.finish_s,
                     params.rules, speed=x_next[:, V], new_faults=new_faults, disqualified=disqualified)
@@ -360,14 +360,14 @@ def serve_drive_throughs(x: jax.Array, x_next: jax.Array, serving: jax.Array, ga
     return x_next.at[:, V].set(limited.astype(jnp.result_type(x_next)))
 
 
-def steward_status(status: RaceStatus, verdicts: Verdicts, contact: jax.Array, steps: jax.Array, x: jax.Array,
-                   x_next: jax.Array, steward: Steward) -> RaceStatus:
+def steward_status(status: RaceStatus, verdicts: Verdicts, new_faults: jax.Array, contact: jax.Array,
+                   steps: jax.Array, x: jax.Array, x_next: jax.Array, steward: Steward) -> RaceStatus:
     """The status's steward fields after a step: this step's penalties and faults added, the
     drive-throughs served by the metres driven in the step (at most the pit speed, by
     :func:`serve_drive_throughs`, after the first step of braking down to it), each pair's
-    last contact."""
+    last contact. ``new_faults (N,)``: the incidents each car answers for that began in the
+    step (``verdicts.fault`` summed over its row)."""
     dtype = status.penalty.dtype
-    new_faults = jnp.sum(verdicts.fault, axis=1, dtype=jnp.int32)
     driven = jnp.where(status.serving > 0.0, x_next[:, S] - x[:, S], 0.0)
     serving = jnp.maximum(status.serving - driven, 0.0) + new_faults * steward.drive_through
     return status._replace(
