@@ -61,10 +61,10 @@ def _cmd_equilibria(args: argparse.Namespace) -> int:
 
 
 def _add_contact_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--contact``, ``--penalties`` and ``--penalty-seconds`` (the race's contact and
-    steward, :class:`experiments.race_spec.RaceSpec`)."""
+    """``--contact``, ``--penalties``, ``--penalty-seconds`` and ``--rules`` (the race's
+    contact and steward, :class:`experiments.race_spec.RaceSpec`)."""
     from racing_env.contact import CONTACT_MODES
-    from racing_env.steward import PENALTY_MODES
+    from racing_env.steward import DEFAULT_RULES, PENALTY_MODES, RULES
 
     parser.add_argument("--contact", default="physics", choices=CONTACT_MODES,
                         help="physics: cars that meet collide (the default); ghost: they drive through each other")
@@ -74,10 +74,13 @@ def _add_contact_arguments(parser: argparse.ArgumentParser) -> None:
                         "third) or none (verdicts recorded only)")
     parser.add_argument("--penalty-seconds", type=float, default=5.0,
                         help="seconds per incident with --penalties time (default: 5)")
+    parser.add_argument("--rules", nargs="+", default=list(DEFAULT_RULES), choices=RULES, metavar="RULE",
+                        help=f"the steward's rules, of {', '.join(RULES)} (default: all but the optional weaving)")
 
 
 def _contact_fields(args: argparse.Namespace) -> dict[str, Any]:
-    return {"contact": args.contact, "penalties": args.penalties, "penalty_seconds": args.penalty_seconds}
+    return {"contact": args.contact, "penalties": args.penalties, "penalty_seconds": args.penalty_seconds,
+            "rules": tuple(args.rules)}
 
 
 def _cmd_tournament(args: argparse.Namespace) -> int:

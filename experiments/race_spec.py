@@ -17,7 +17,7 @@ from typing import Any
 
 from racing_env.config import RaceConfig, check_incident_rules, check_race_length
 from racing_env.contact import CONTACT_MODES
-from racing_env.steward import RULES, check_stewarding
+from racing_env.steward import DEFAULT_RULES, check_stewarding
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights, racing_weights
 
 
@@ -44,6 +44,8 @@ class RaceSpec:
             ``penalty_seconds`` added to its race time), ``drive-through``, ``disqualify`` or
             ``none``.
         penalty_seconds: [s] per incident with ``penalties="time"``.
+        rules: the steward's rules (:data:`racing_env.steward.RULES`; by default
+            :data:`racing_env.steward.DEFAULT_RULES`, all but the optional ``weaving``).
     """
 
     track: str = "trefoil"
@@ -56,9 +58,11 @@ class RaceSpec:
     contact: str = "physics"
     penalties: str = "time"
     penalty_seconds: float = 5.0
+    rules: tuple[str, ...] = DEFAULT_RULES
 
     def __post_init__(self) -> None:
         check_race_spec(self)
+        object.__setattr__(self, "rules", tuple(self.rules))  # a list from a JSON or TOML file
 
     def race_spec(self) -> "RaceSpec":
         """The race's fields alone (of a configuration that inherits them)."""
@@ -77,7 +81,8 @@ class RaceSpec:
         race: dict[str, Any] = dict(track=self.track, laps=self.laps, race_distance=self.race_distance,
                                     max_steps=self.max_steps, on_collision=self.on_collision,
                                     on_off_track=self.on_off_track, weights=self.weights(), contact=self.contact,
-                                    penalties=self.penalties, penalty_seconds=self.penalty_seconds)
+                                    penalties=self.penalties, penalty_seconds=self.penalty_seconds,
+                                    rules=self.rules)
         race.update(fields)
         return RaceConfig(num_agents=num_agents, scenario=scenario, **race)
 
@@ -97,4 +102,4 @@ def check_race_spec(spec: RaceSpec) -> None:
     check_incident_rules(on_collision=spec.on_collision, on_off_track=spec.on_off_track)
     if spec.contact not in CONTACT_MODES:
         raise ValueError(f"contact must be one of {CONTACT_MODES}, got {spec.contact!r}")
-    check_stewarding(spec.penalties, spec.penalty_seconds, 3, RULES)
+    check_stewarding(spec.penalties, spec.penalty_seconds, 3, spec.rules)

@@ -10,7 +10,7 @@ import numpy as np
 from racing_env.contact import check_contact
 from racing_env.costs import CostWeights, racing_weights
 from racing_env.scenarios import SCENARIOS
-from racing_env.steward import RULES, check_stewarding
+from racing_env.steward import DEFAULT_RULES, check_stewarding
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
 
@@ -131,7 +131,8 @@ class RaceConfig:
             speed [m/s]: the penalty is scaled by the incident's closing speed over it.
         disqualify_after: at-fault incidents that retire a car, with ``penalties="disqualify"``.
         rules: the steward's rules that apply, a subset of :data:`racing_env.steward.RULES`
-            (docs/rules.md).
+            (docs/rules.md); by default :data:`racing_env.steward.DEFAULT_RULES`, all but the
+            optional ``weaving``.
         reward: reward weights.
         preview_distances: distances ahead [m] at which curvature and widths are observed.
         render_mode: None, ``rgb_array`` or ``human``.
@@ -170,7 +171,7 @@ class RaceConfig:
     penalty_seconds: float = 5.0
     severity_speed: float | None = None
     disqualify_after: int = 3
-    rules: tuple[str, ...] = RULES
+    rules: tuple[str, ...] = DEFAULT_RULES
 
     def __post_init__(self) -> None:
         if not isinstance(self.num_agents, (int, np.integer)) or not 1 <= self.num_agents <= MAX_CARS:

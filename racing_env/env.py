@@ -44,7 +44,8 @@ from racing_env.track import get_track
 # Columns of the packed rows (:func:`_per_car_rows`): floats, then int32 (N columns each for
 # the pair fields after the per-car ones).
 _FLOAT_COLUMNS = ("finish_time", "reward", *REWARD_TERMS, "penalty", "serving")
-_INT_COLUMNS = ("active", "finished", "out", "place", "position", "collided", "off_track", "lap", "faults")
+_INT_COLUMNS = ("active", "finished", "out", "place", "position", "collided", "off_track", "lap", "faults",
+                "last_move", "direction_changes")
 _PAIR_INTS = ("contact", "last_contact", "incident", "fault", "rule")
 
 
@@ -58,7 +59,7 @@ def _per_car_rows(params: RaceParams, status: RaceStatus, reward, info: RaceInfo
     floats = jnp.concatenate([status.finish_time[:, None], reward[:, None], info.terms, status.penalty[:, None],
                               status.serving[:, None], info.incidents.closing], axis=1)
     flags = [status.active, status.finished, status.out, status.place, info.position, info.collided,
-             info.off_track, info.lap, status.faults]
+             info.off_track, info.lap, status.faults, status.last_move, status.direction_changes]
     pairs = [info.contact, status.last_contact, info.incidents.incident, info.incidents.fault, info.incidents.rule]
     ints = jnp.concatenate([jnp.stack(flags, axis=1), *pairs], axis=1).astype(jnp.int32)
     return floats, ints
@@ -322,7 +323,8 @@ class RacingParallelEnv(ParallelEnv):
         return RaceStatus(
             active=flag("active").astype(bool), finished=flag("finished").astype(bool), out=flag("out").astype(bool),
             place=flag("place"), finish_time=value("finish_time"), penalty=value("penalty"), faults=flag("faults"),
-            serving=value("serving"), last_contact=ints[:, last:last + num])
+            serving=value("serving"), last_contact=ints[:, last:last + num], last_move=flag("last_move"),
+            direction_changes=flag("direction_changes"))
 
     @property
     def _active(self) -> np.ndarray:
@@ -348,7 +350,7 @@ class RacingParallelEnv(ParallelEnv):
         for i in range(num):
             row, values = ints[i], floats[i]
             finish_time, penalty, closing = values[0], values[2 + len(REWARD_TERMS)], values[len(_FLOAT_COLUMNS):]
-            _, finished, out, _, position, collided, outside, lap, faults = row[:len(_INT_COLUMNS)]
+            _, finished, out, _, position, collided, outside, lap, faults = row[:_INT_COLUMNS.index("faults") + 1]
             contact = row[pair["contact"]:pair["contact"] + num]
             per_car.append(
                 {

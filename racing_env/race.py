@@ -39,7 +39,8 @@ from racing_env.observation import observe
 from racing_env.physics import drive, off_track
 from racing_env import starts as starts_lib
 from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
-from racing_env.steward import PIT_SPEED_RATIO, Steward, Verdicts, judge_contacts, make_steward, penalty_seconds
+from racing_env.steward import (PIT_SPEED_RATIO, Steward, Verdicts, count_direction_changes, judge_contacts,
+                                make_steward, penalty_seconds)
 from racing_env.scenarios import scenario_starts
 from racing_env.starts import Starts
 from racing_env.track import Track
@@ -321,10 +322,10 @@ def step(
         contact = overlapping(x_next, active, game.vehicles, game.track)
     outside = off_track(x_next, game.track) & active
     collided = contact.any(axis=1)
-    verdicts = judge_contacts(x, x_next, hit, contact, status.last_contact, steps, outside, game.vehicles,
-                              params.steward, game.track)
+    verdicts = judge_contacts(x, x_next, hit, contact, status.last_contact, steps, outside, status.direction_changes,
+                              game.vehicles, params.steward, game.track)
     new_faults = jnp.sum(verdicts.fault, axis=1, dtype=jnp.int32)
-    status = steward_status(status, verdicts, new_faults, contact, steps, x, x_next, params.steward)
+    status = steward_status(status, verdicts, new_faults, contact, steps, x, x_next, params.steward, game.track)
     disqualified = (params.steward.disqualify_after > 0) & (status.faults >= params.steward.disqualify_after)
     verdict = judge(x[:, S], x_next[:, S], status, collided, outside, steps, game.dt, params.finish_s,
                     params.rules, speed=x_next[:, V], new_faults=new_faults, disqualified=disqualified)
@@ -361,18 +362,24 @@ def serve_drive_throughs(x: jax.Array, x_next: jax.Array, serving: jax.Array, ga
 
 
 def steward_status(status: RaceStatus, verdicts: Verdicts, new_faults: jax.Array, contact: jax.Array,
-                   steps: jax.Array, x: jax.Array, x_next: jax.Array, steward: Steward) -> RaceStatus:
+                   steps: jax.Array, x: jax.Array, x_next: jax.Array, steward: Steward, track: Track
+                   ) -> RaceStatus:
     """The status's steward fields after a step: this step's penalties and faults added, the
     drive-throughs served by the metres driven in the step (at most the pit speed, by
     :func:`serve_drive_throughs`, after the first step of braking down to it), each pair's
-    last contact. ``new_faults (N,)``: the incidents each car answers for that began in the
-    step (``verdicts.fault`` summed over its row)."""
+    last contact, each car's defending moves (:func:`racing_env.steward.count_direction_changes`).
+    ``new_faults (N,)``: the incidents each car answers for that began in the step
+    (``verdicts.fault`` summed over its row)."""
     dtype = status.penalty.dtype
     driven = jnp.where(status.serving > 0.0, x_next[:, S] - x[:, S], 0.0)
     serving = jnp.maximum(status.serving - driven, 0.0) + new_faults * steward.drive_through
+    last_move, changes = count_direction_changes(x_next, status.active, status.last_move, status.direction_changes,
+                                                 steward, track)
     return status._replace(
         penalty=(status.penalty + penalty_seconds(verdicts, steward)).astype(dtype),
         faults=status.faults + new_faults,
         serving=serving.astype(dtype),
         last_contact=jnp.where(contact, steps, status.last_contact).astype(jnp.int32),
+        last_move=last_move,
+        direction_changes=changes,
     )

@@ -37,6 +37,11 @@ class RaceStatus(NamedTuple):
         serving: [m] of drive-through penalty the car has still to drive.
         last_contact: ``(N, N)`` the last step in which each pair touched (int32;
             :data:`NEVER` before the first).
+        last_move: the direction of the car's last move across the track while defending on
+            the straight it is on (-1 right, +1 left, 0 none; int32;
+            :func:`racing_env.steward.count_direction_changes`).
+        direction_changes: the changes of direction it made defending there (int32; the
+            ``weaving`` rule's count).
     """
 
     active: jax.Array
@@ -48,6 +53,8 @@ class RaceStatus(NamedTuple):
     faults: jax.Array
     serving: jax.Array
     last_contact: jax.Array
+    last_move: jax.Array
+    direction_changes: jax.Array
 
     @classmethod
     def start(cls, num: int, dtype) -> "RaceStatus":
@@ -64,6 +71,8 @@ class RaceStatus(NamedTuple):
             faults=jnp.zeros(num, dtype=jnp.int32),
             serving=jnp.zeros(num, dtype=dtype),
             last_contact=jnp.full((num, num), NEVER, dtype=jnp.int32),
+            last_move=jnp.zeros(num, dtype=jnp.int32),
+            direction_changes=jnp.zeros(num, dtype=jnp.int32),
         )
 
 

@@ -17,7 +17,14 @@ they met) and the contact's geometry (:class:`racing_env.contact.Sweep`). The ru
   :attr:`Steward.across_speed`, and faster by that much than the other towards it: it
   answers;
 * ``squeeze``: a ``moved-across`` whose victim had less than a car's width between itself
-  and the track edge on its far side, or left the track in the contact: the mover answers.
+  and the track edge on its far side, or left the track in the contact: the mover answers;
+* ``weaving`` (optional: not in :data:`DEFAULT_RULES`): a car defending on a straight (a car
+  behind it within :attr:`Steward.defend_gap`, the centre line's curvature under
+  :attr:`Steward.straight_kappa`) changed direction more than once, moving across faster
+  than :attr:`Steward.across_speed` one way, then the other, then back again; a contact
+  between it and a car behind it is its fault, whatever else the scene is. The moves are
+  counted in :attr:`racing_env.referee.RaceStatus.direction_changes` by
+  :func:`count_direction_changes`.
 
 A contact that no rule pins on either car is a ``racing-incident``: nobody answers. A rule
 left out of :attr:`Steward.rules_on` makes its cases racing incidents (``brake-test`` and
@@ -46,8 +53,10 @@ from racing_env.dynamics import AX, CHI, N_LAT, S, V
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
 
-RULES = ("rear-end", "brake-test", "moved-across", "squeeze")
+RULES = ("rear-end", "brake-test", "moved-across", "squeeze", "weaving")
 """The named rules, in the order of :attr:`Steward.rules_on`."""
+DEFAULT_RULES = RULES[:4]
+"""The rules a race is judged by unless it names its own: all but ``weaving``."""
 VERDICTS = ("racing-incident",) + RULES
 """What an incident is judged to be: index 0 nobody answers, else the rule that decided it
 (the codes of :attr:`Verdicts.rule`)."""
@@ -55,19 +64,19 @@ PENALTY_MODES = ("time", "drive-through", "disqualify", "none")
 PIT_SPEED_RATIO = 0.5
 """A car serving a drive-through drives at most this share of its top speed."""
 
-RACING_INCIDENT, REAR_END, BRAKE_TEST, MOVED_ACROSS, SQUEEZE = range(len(VERDICTS))
+RACING_INCIDENT, REAR_END, BRAKE_TEST, MOVED_ACROSS, SQUEEZE, WEAVING = range(len(VERDICTS))
 
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=[
     "rules_on", "seconds", "severity_speed", "drive_through", "disqualify_after", "incident_gap", "across_speed",
-    "brake_decel", "brake_ratio", "v_line"], meta_fields=[])
+    "brake_decel", "brake_ratio", "defend_gap", "straight_kappa", "v_line"], meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class Steward:
     """The rules a race is judged by and their penalties (arrays: one compiled step serves
     every value). Made by :func:`make_steward` from a :class:`racing_env.config.RaceConfig`.
 
     Attributes:
-        rules_on: ``(4,)`` bool, which of :data:`RULES` apply.
+        rules_on: ``(5,)`` bool, which of :data:`RULES` apply.
         seconds: [s] the time penalty per at-fault incident (0 unless ``penalties="time"``).
         severity_speed: [m/s] the closing speed of a 1x time penalty; 0: every penalty is
             ``seconds`` whatever the speed.
@@ -78,6 +87,8 @@ class Steward:
         across_speed: [m/s] the lateral speed that counts as moving across.
         brake_decel: [m/s^2] the deceleration beyond which braking may be a brake test.
         brake_ratio: a brake test is braking at under this share of the line's speed.
+        defend_gap: [m] a car with another racing car this close behind it defends.
+        straight_kappa: [1/m] the centre line's curvature under which the track is straight.
         v_line: ``(N, M)`` [m/s] each car's quasi-steady-state speed on the centre line at
             the track's grid points.
     """
@@ -91,6 +102,8 @@ class Steward:
     across_speed: jax.Array
     brake_decel: jax.Array
     brake_ratio: jax.Array
+    defend_gap: jax.Array
+    straight_kappa: jax.Array
     v_line: jax.Array
 
 
@@ -123,8 +136,9 @@ def _line_speeds(track: Track, vehicle_fields: tuple[float, ...]) -> np.ndarray:
 
 def make_steward(track: Track, vehicles: VehicleParams, num_cars: int, penalties: str = "time",
                  penalty_seconds: float = 5.0, severity_speed: float = 0.0, disqualify_after: int = 3,
-                 rules: Sequence[str] = RULES, drive_through: float = 400.0, incident_gap_steps: int = 10,
-                 across_speed: float = 0.5, brake_decel: float = 4.0, brake_ratio: float = 0.8) -> Steward:
+                 rules: Sequence[str] = DEFAULT_RULES, drive_through: float = 400.0, incident_gap_steps: int = 10,
+                 across_speed: float = 0.5, brake_decel: float = 4.0, brake_ratio: float = 0.8,
+                 defend_gap: float = 20.0, straight_kappa: float = 1.0 / 300.0) -> Steward:
     """The :class:`Steward` of a race of ``num_cars`` cars ``vehicles`` (stacked or one for
     all) on ``track``, with the penalty mode ``penalties`` (:data:`PENALTY_MODES`)."""
     check_stewarding(penalties, penalty_seconds, disqualify_after, rules)
@@ -141,6 +155,8 @@ def make_steward(track: Track, vehicles: VehicleParams, num_cars: int, penalties
         across_speed=np.float64(across_speed),
         brake_decel=np.float64(brake_decel),
         brake_ratio=np.float64(brake_ratio),
+        defend_gap=np.float64(defend_gap),
+        straight_kappa=np.float64(straight_kappa),
         v_line=np.stack([_line_speeds(track, car) for car in cars]),
     )
 
@@ -167,12 +183,13 @@ def _symmetric(upper_value: jax.Array, upper: jax.Array) -> jax.Array:
 
 
 def judge_contacts(x0: jax.Array, x1: jax.Array, hit: Sweep, contact: jax.Array, last_contact: jax.Array,
-                   step: jax.Array, outside: jax.Array, vehicles: VehicleParams, steward: Steward, track: Track
-                   ) -> Verdicts:
+                   step: jax.Array, outside: jax.Array, direction_changes: jax.Array, vehicles: VehicleParams,
+                   steward: Steward, track: Track) -> Verdicts:
     """Judge the incidents that begin in the step from ``x0`` to ``x1`` (joint states
     ``(N, 6)``): ``contact (N, N)`` the step's contacts, ``last_contact (N, N)`` the last step
     each pair touched before, ``step`` this step's number, ``outside (N,)`` the cars off the
-    track after the step."""
+    track after the step, ``direction_changes (N,)`` each car's changes of direction while
+    defending on the straight it is on, at the step's start (:func:`count_direction_changes`)."""
     num = x0.shape[0]
     upper = jnp.triu(jnp.ones((num, num), dtype=bool), 1)
     incident = contact & (step - last_contact > steward.incident_gap)
@@ -207,10 +224,20 @@ def judge_contacts(x0: jax.Array, x1: jax.Array, hit: Sweep, contact: jax.Array,
     i_crosses = i_moves & on[2] & ~i_squeezes
     j_crosses = j_moves & on[2] & ~j_squeezes
 
-    rule = jnp.select([i_rear_end | j_rear_end, i_brake_test | j_brake_test, i_crosses | j_crosses,
-                       i_squeezes | j_squeezes], [REAR_END, BRAKE_TEST, MOVED_ACROSS, SQUEEZE], RACING_INCIDENT)
-    i_fault = i_rear_end | i_brake_test | i_crosses | i_squeezes
-    j_fault = j_rear_end | j_brake_test | j_crosses | j_squeezes
+    # a weaver ahead answers for any contact with the car behind it, whatever the scene
+    weaving = on[4] & (direction_changes > 1)
+    j_weaves = j_ahead & weaving[None, :]
+    i_weaves = i_ahead & weaving[:, None]
+    i_rear_end, i_brake_test, i_crosses, i_squeezes = (
+        rule & ~j_weaves for rule in (i_rear_end, i_brake_test, i_crosses, i_squeezes))
+    j_rear_end, j_brake_test, j_crosses, j_squeezes = (
+        rule & ~i_weaves for rule in (j_rear_end, j_brake_test, j_crosses, j_squeezes))
+
+    rule = jnp.select([i_weaves | j_weaves, i_rear_end | j_rear_end, i_brake_test | j_brake_test,
+                       i_crosses | j_crosses, i_squeezes | j_squeezes],
+                      [WEAVING, REAR_END, BRAKE_TEST, MOVED_ACROSS, SQUEEZE], RACING_INCIDENT)
+    i_fault = i_weaves | i_rear_end | i_brake_test | i_crosses | i_squeezes
+    j_fault = j_weaves | j_rear_end | j_brake_test | j_crosses | j_squeezes
     live = incident & upper
     fault = (live & i_fault) | (live & j_fault).T
     return Verdicts(
@@ -219,6 +246,27 @@ def judge_contacts(x0: jax.Array, x1: jax.Array, hit: Sweep, contact: jax.Array,
         rule=_symmetric(jnp.where(live, rule, RACING_INCIDENT).astype(jnp.int32), upper),
         closing=_symmetric(jnp.where(live, hit.closing, 0.0), upper),
     )
+
+
+def count_direction_changes(x: jax.Array, active: jax.Array, last_move: jax.Array, changes: jax.Array,
+                            steward: Steward, track: Track) -> tuple[jax.Array, jax.Array]:
+    """Each car's defending moves after a step that ended at ``x (N, 6)``: ``(last_move,
+    changes)``, both ``(N,)`` int32. A car defends when another racing car (``active (N,)``)
+    is behind it within :attr:`Steward.defend_gap` on a straight (the centre line's
+    curvature at the car under :attr:`Steward.straight_kappa`); while it does, a move across
+    the track faster than :attr:`Steward.across_speed` (``last_move``: -1 right, +1 left)
+    opposite to its last one adds a change of direction. A car that stops defending starts
+    again from none."""
+    s, lateral = x[:, S], x[:, V] * jnp.sin(x[:, CHI])
+    behind = track.wrap_ds(s[:, None] - s[None, :])  # > 0: j is behind i
+    chased = (active[None, :] & ~jnp.eye(s.shape[0], dtype=bool) & (behind > 0.0) & (behind < steward.defend_gap)
+              ).any(axis=1)
+    defending = active & chased & (jnp.abs(track.kappa_at(s)) < steward.straight_kappa)
+    move = jnp.where(jnp.abs(lateral) > steward.across_speed, jnp.sign(lateral), 0.0).astype(jnp.int32)
+    turned = (move != 0) & (last_move != 0) & (move != last_move)
+    last_move = jnp.where(defending, jnp.where(move != 0, move, last_move), 0)
+    changes = jnp.where(defending, changes + turned, 0)
+    return last_move.astype(jnp.int32), changes.astype(jnp.int32)
 
 
 def penalty_seconds(verdicts: Verdicts, steward: Steward) -> jax.Array:

@@ -13,10 +13,12 @@ import numpy as np
 import pytest
 
 import racing_env
+from experiments.rules_figure import defend
 from racing_env import contact as contact_lib
 from racing_env import track as tr
 from racing_env.dynamics import CHI, N_LAT, S, V
 from racing_env.scenarios import START_MARGIN, grid_starts
+from racing_env.steward import DEFAULT_RULES, RULES
 from racing_env.vehicle import VehicleParams
 
 STRAIGHT = tr.straight(length=400.0)
@@ -92,6 +94,40 @@ def test_cars_touching_side_by_side_without_moving_across_are_a_racing_incident(
     _, incidents, infos = _race(_x0((10.0, 20.0, -0.9), (11.0, 20.0, 0.9)), steps=5)
     assert _verdicts(incidents) == {"car_0": ("racing-incident", False), "car_1": ("racing-incident", False)}
     assert infos["car_0"]["penalty"] == infos["car_1"]["penalty"] == 0.0
+
+
+@pytest.mark.parametrize("moves, rules, verdict, weaver_answers", [
+    (5, RULES, "weaving", True),
+    (5, DEFAULT_RULES, "rear-end", False),
+    (2, RULES, "rear-end", False),
+])
+def test_a_defender_that_changes_direction_more_than_once_answers_under_the_weaving_rule(
+        moves, rules, verdict, weaver_answers):
+    """The car ahead moves across the straight left, right, left... with the car behind
+    closing: after its second change of direction, a rear-end is its fault under the
+    optional ``weaving`` rule; one move and back (one change) is allowed, and without the
+    rule the car behind answers."""
+    _, incidents = defend(moves, rules)
+    assert _verdicts(incidents) == {"car_0": (verdict, not weaver_answers), "car_1": (verdict, weaver_answers)}
+
+
+def test_direction_changes_count_only_while_defending_on_a_straight():
+    """A car that moves left, right and left again with a car 10 m behind on a straight
+    makes two changes of direction; with nobody within the defending gap (20 m) behind, or
+    on a curve, it makes none."""
+    from racing_env.steward import count_direction_changes, make_steward
+
+    def count(track, behind, at=100.0):
+        steward = make_steward(track, VehicleParams(), 2)
+        last, changes = jnp.zeros(2, dtype=jnp.int32), jnp.zeros(2, dtype=jnp.int32)
+        for lateral in (1.0, -1.0, 1.0):
+            x = jnp.asarray(_x0((at - behind, 20.0), (at, 20.0, 0.0, np.arcsin(lateral / 20.0))))
+            last, changes = count_direction_changes(x, jnp.ones(2, dtype=bool), last, changes, steward, track)
+        return int(changes[1])
+
+    assert count(STRAIGHT, behind=10.0) == 2
+    assert count(STRAIGHT, behind=30.0) == 0
+    assert count(tr.trefoil(), behind=10.0, at=150.0) == 0  # a curve of 90 m radius
 
 
 def test_a_rule_left_out_makes_its_cases_racing_incidents():
@@ -245,7 +281,13 @@ def test_twenty_car_scenes_race_without_pass_through_and_every_incident_judged(t
     box or by saturated ones (each axis -1 or +1). Nothing becomes non-finite; no two racing
     cars swap their order along the track while their footprints overlap across it at both
     ends of the step (a pass-through); every contact that begins an incident is judged once,
-    with a verdict of :data:`VERDICTS` and at most one car at fault."""
+    with a verdict of :data:`VERDICTS` and at most one car at fault.
+
+    The order along the track is an order in metres only where the track's frame holds: a
+    car more than half a corner's radius off the centre line towards the corner's centre
+    (``1 - n kappa < 0.5``; random drivers reach 80 m off the track, past the centre) has an
+    arc length that no longer says where it is, so a pass-through is looked for where both
+    cars of the pair are inside that region at both ends of the step."""
     from racing_env import race
     from racing_env.steward import VERDICTS
 
@@ -267,8 +309,9 @@ def test_twenty_car_scenes_race_without_pass_through_and_every_incident_judged(t
             before = track_gap(state.x, params)
             after = track_gap(new.x, params)
             lateral = lambda x: jnp.abs(x[None, :, N_LAT] - x[:, None, N_LAT]) < 0.9 * width  # noqa: E731
+            framed = in_frame(state.x) & in_frame(new.x)
             through = racing & (jnp.sign(before) * jnp.sign(after) < 0) & lateral(state.x) & lateral(new.x) & (
-                jnp.abs(before) < 10.0)
+                jnp.abs(before) < 10.0) & framed[:, None] & framed[None, :]
             v = info.incidents
             judged = (~v.incident | (v.rule >= 0) & (v.rule < len(VERDICTS))).all() & (
                 (v.fault & v.fault.T) == 0).all() & (~v.fault | v.incident).all()
@@ -277,6 +320,9 @@ def test_twenty_car_scenes_race_without_pass_through_and_every_incident_judged(t
 
         _, out = jax.lax.scan(step, (state, key), jnp.arange(steps))
         return out
+
+    def in_frame(x):  # (N,): the track's frame is metric at the car (see the docstring)
+        return 1.0 - x[:, N_LAT] * params.game.track.kappa_at(x[:, S]) >= 0.5
 
     def track_gap(x, params):
         return params.game.track.wrap_ds(x[None, :, S] - x[:, None, S])

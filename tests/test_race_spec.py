@@ -16,6 +16,7 @@ from experiments.race_spec import RACE_FIELDS, RaceSpec
 from racing_env.config import RaceConfig
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights
 from racing_env.env import RacingParallelEnv
+from racing_env.steward import RULES
 
 
 def _jerk_weights(race: RaceConfig) -> np.ndarray:
@@ -77,6 +78,7 @@ def test_the_three_configurations_hold_the_race_spec_once():
     (dict(jerk_weight="x"), "jerk_weight must be a number > 0"),
     (dict(on_off_track="crash"), "on_off_track must be one of"),
     (dict(track=5), "track must be a string"),
+    (dict(rules=("rear-end", "weave")), "unknown rule"),
 ])
 def test_bad_race_fields_are_refused_in_every_configuration(fields, message):
     pytest.importorskip("stable_baselines3")
@@ -106,3 +108,14 @@ def test_settings_files_keep_their_flat_keys():
         "lineup": ["lane-keeping"], "parameters": [["laps", [1]]], "grids": 2, "jerk_weight": RACING_JERK_WEIGHT,
         "laps": 1, "max_steps": 3000, "race_distance": None, "seed": 0, "step_budget_s": None, "track": "trefoil",
         "contact": "physics", "penalties": "time", "penalty_seconds": 5.0}
+
+
+def test_the_steward_rules_reach_the_race_and_are_named_when_not_the_default():
+    """``rules`` (a list, as a TOML or JSON file gives it) becomes the race's tuple; the
+    default (all but the optional weaving) is left out of tournament.json so that runs
+    written before the field existed resume, any other choice is named."""
+    spec = RaceSpec(rules=["rear-end", "weaving"])
+    assert spec.rules == ("rear-end", "weaving")
+    assert spec.to_race_config(2).rules == ("rear-end", "weaving")
+    config = tournament.TournamentConfig(agents=("lane-keeping", "constant-speed"), rules=RULES)
+    assert json.loads(settings_json(config, config.added_later(tournament.ADDED_LATER)))["rules"] == list(RULES)
