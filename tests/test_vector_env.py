@@ -55,16 +55,18 @@ def test_the_wrapped_single_env_still_passes_gymnasiums_checker():
 SHORT = dict(max_steps=12, on_off_track="terminate")
 
 
-@pytest.mark.parametrize("num_envs, mode, race, min_ends", [
-    (1, AutoresetMode.NEXT_STEP, RACE, 2),
-    (4, AutoresetMode.NEXT_STEP, RACE, 8),
-    (4, AutoresetMode.NEXT_STEP, dict(track="trefoil", num_agents=3, **SHORT), 32),
-    (4, AutoresetMode.SAME_STEP, dict(track="Monza", scenario="anywhere", **SHORT), 32),
+@pytest.mark.parametrize("num_envs, mode, race, min_ends, min_contacts", [
+    (1, AutoresetMode.NEXT_STEP, RACE, 2, 0),
+    (4, AutoresetMode.NEXT_STEP, RACE, 8, 0),
+    (4, AutoresetMode.NEXT_STEP, dict(track="trefoil", num_agents=3, **SHORT), 32, 0),
+    (4, AutoresetMode.SAME_STEP, dict(track="Monza", scenario="anywhere", **SHORT), 32, 5),
 ])
-def test_every_race_is_the_single_envs_race_over_several_episodes(num_envs, mode, race, min_ends):
+def test_every_race_is_the_single_envs_race_over_several_episodes(num_envs, mode, race, min_ends, min_contacts):
     """Same seeds and actions: the vectorised env and Gymnasium's SyncVectorEnv of the single
     env agree in every race, across the autoresets (in the same mode in both), starts drawn
-    in the compiled step included."""
+    in the compiled step included; the close-quarters scenes collide (at least
+    ``min_contacts`` steps of a learner in contact), so the faces agree through contact
+    physics and the steward's penalties too."""
     vector = gymnasium.make_vec("racing_env/Race-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
                                 autoreset_mode=mode, **race)
     sync = gymnasium.make_vec("racing_env/Race-v0", num_envs=num_envs, vectorization_mode="sync",
@@ -73,7 +75,7 @@ def test_every_race_is_the_single_envs_race_over_several_episodes(num_envs, mode
     obs_s, _ = sync.reset(seed=7)
     np.testing.assert_array_equal(obs_v, obs_s)  # the same starts, drawn as the single env draws them
     actions = np.random.default_rng(0).uniform(-1.3, 1.3, (130, num_envs, 2))
-    ends = 0
+    ends = contacts = 0
     for a in actions:
         obs_v, rew_v, term_v, trunc_v, info_v = vector.step(a)
         obs_s, rew_s, term_s, trunc_s, info_s = sync.step(a)
@@ -91,8 +93,12 @@ def test_every_race_is_the_single_envs_race_over_several_episodes(num_envs, mode
         if mode == AutoresetMode.SAME_STEP and done.size:
             np.testing.assert_allclose(np.stack(info_v["final_obs"][done]), np.stack(info_s["final_obs"][done]),
                                        rtol=0, atol=BATCH_TOLERANCE)
+        np.testing.assert_allclose(np.asarray(info_v["penalty"])[compared],
+                                   np.asarray(info_s["penalty"], dtype=float)[compared], rtol=0, atol=BATCH_TOLERANCE)
         ends += done.size
+        contacts += int(np.sum(info_v["collided"][compared]))
     assert ends >= min_ends  # the races ended and restarted
+    assert contacts >= min_contacts
 
 
 def test_a_race_does_not_depend_on_the_batch_it_is_in():
