@@ -33,9 +33,12 @@ GAME_SPECS = ["ilqr", "ilqgame-ol", "ilqgame-fb"]
 ALL_SPECS = GAME_SPECS + ["lane-keeping", "constant-speed"]
 # Recovery from a standstill and ghosts for cars out of the race are the receding-horizon
 # agent's (planners/agents/receding_horizon.py), the same code for the three planners; the
-# open-loop game differs from the feedback game only in its solver mode. Those tests run
-# iLQR (the ego problem) and the feedback game by default, the open-loop game in the slow run.
-GAME_SPECS_DEFAULT_RUN = ["ilqr", pytest.param("ilqgame-ol", marks=pytest.mark.slow), "ilqgame-fb"]
+# open-loop game differs from the feedback game only in its solver mode, iLQR in the problem
+# it solves (the ego's, with the opponent predicted). Those tests run the feedback game by
+# default, iLQR and the open-loop game in the slow run (iLQR races in the default run's short
+# races and tournaments).
+GAME_SPECS_DEFAULT_RUN = [pytest.param("ilqr", marks=pytest.mark.slow),
+                          pytest.param("ilqgame-ol", marks=pytest.mark.slow), "ilqgame-fb"]
 
 
 def _compile_listeners(compiles: list):
@@ -71,7 +74,8 @@ def _check_race(record, agent, actions):
     assert {"solve_time", "iterations", "converged", "fallback", "error"} <= set(d)
 
 
-@pytest.mark.parametrize("spec", ALL_SPECS)
+@pytest.mark.parametrize("spec", [pytest.param(spec, marks=pytest.mark.slow) if spec == "ilqgame-ol" else spec
+                                  for spec in ALL_SPECS])  # the open loop races the default run's tournaments
 def test_short_race_trefoil(spec):
     env = racing_env.parallel_env(track="trefoil", num_agents=2, race_distance=150.0, max_steps=120)
     agent = make_agent(spec)
@@ -163,8 +167,11 @@ def test_warm_start_reduces_iterations():
     assert sum(w[1:]) < 0.7 * sum(c[1:]), (w, c)
 
 
-@pytest.mark.parametrize("spec", ["ilqr", "ilqgame-ol", "ilqgame-fb", "ilqgame-fb:control_regularization=0.3,"
-                                  "adaptive_regularization=true,feedforward_regularization=true"])
+# the receding-horizon agent's warm start is one code for every planner: the feedback game
+# by default, the others and the regularised solver in the slow run
+@pytest.mark.parametrize("spec", [pytest.param(spec, marks=pytest.mark.slow) for spec in (
+    "ilqr", "ilqgame-ol", "ilqgame-fb:control_regularization=0.3,adaptive_regularization=true,"
+    "feedforward_regularization=true")] + ["ilqgame-fb"])
 def test_only_the_first_action_compiles(spec):
     """The first re-plan compiles the solver; warm-started re-plans after it must not.
 

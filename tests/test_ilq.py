@@ -535,6 +535,7 @@ print(json.dumps({"devices": devices, "gaps": gaps}))
 """
 
 
+@pytest.mark.slow  # a fresh process on every core; the projection itself: the default run's tests above
 def test_eig_projection_in_a_batch_on_every_core_does_not_hang():
     import json
     import subprocess

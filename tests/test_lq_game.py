@@ -589,7 +589,9 @@ def policy_value(game, K, k, i, t0):
     return np.asarray(jax.grad(cost)(x)), np.asarray(jax.hessian(cost)(x))
 
 
-@pytest.mark.parametrize("N, own", [(1, False), (2, False), (2, True),  # three players: with the slow tests
+@pytest.mark.parametrize("N, own", [(2, False),  # one player, the own-input solver and three: the slow tests
+                                    pytest.param(1, False, marks=pytest.mark.slow),
+                                    pytest.param(2, True, marks=pytest.mark.slow),
                                     pytest.param(3, False, marks=pytest.mark.slow),
                                     pytest.param(3, True, marks=pytest.mark.slow)])
 def test_feedforward_regularization_keeps_the_gains_and_damps_the_feedforward(N, own):

@@ -114,6 +114,7 @@ def test_interrupted_sweep_keeps_its_races(tiny, tmp_path, monkeypatch, capsys):
     assert len(sweep.read_results(tmp_path / "out")) == len(sweep.schedule(load_sweep(path)))
 
 
+@pytest.mark.slow  # worker processes; an interrupted in-process sweep: test_interrupted_sweep_keeps_its_races
 def test_ctrl_c_stops_the_worker_processes_and_the_sweep_resumes(tmp_path):
     """SIGINT to the process group of a real `racing sweep --workers 2` (as a terminal sends
     Ctrl-C): exit status 130, the finished races kept, no process left; rerun: complete."""

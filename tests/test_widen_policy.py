@@ -30,6 +30,7 @@ def test_the_new_cars_features_go_after_the_ones_the_policy_has():
             observation_widening(old, new, cars, preview)
 
 
+@pytest.mark.slow  # two trainings; the widening's feature layout: the test above
 def test_a_time_trial_policy_is_trained_further_against_an_opponent(tmp_path):
     """The widened policy acts and values exactly as the time-trial one, whatever the new
     car's features; the saved statistics are kept for the old features and measured in the
