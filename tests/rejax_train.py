@@ -1,6 +1,7 @@
 """Train rejax's learners on ``GymnaxRace`` with no adapter: a script, run in a subprocess by
 ``tests/test_gymnax.py`` (the JAX precision is per process, and the tests' process runs with
-64-bit floats on).
+64-bit floats on) and, with a fresh virtual environment's Python, by
+``tests/test_install_rejax.py``.
 
 ``python tests/rejax_train.py {on|off} ALGO[:normalize] ...``: with ``jax_enable_x64`` on or
 off (set after importing racing_env, which changes no JAX setting), trains each learner a
