@@ -909,8 +909,11 @@ def test_stage_curvature_is_the_progress_curvature_of_the_rk4_step_on_a_straight
     np.testing.assert_allclose(float(d[CHI]), finite_difference, rtol=1e-6)
 
 
-@pytest.mark.parametrize("gauss_newton", [True, False], ids=["gauss_newton", "exact_hessians"])
-@pytest.mark.parametrize("scene", ["paper", "three_cars_trefoil"])
+@pytest.mark.parametrize("scene, gauss_newton", [
+    ("paper", True), ("paper", False), ("three_cars_trefoil", False),
+    pytest.param("three_cars_trefoil", True, marks=pytest.mark.slow),  # three cars: exact Hessians by default
+], ids=["paper-gauss_newton", "paper-exact_hessians", "three_cars_trefoil-exact_hessians",
+        "three_cars_trefoil-gauss_newton"])
 def test_dynamics_curvature_adds_only_the_heading_diagonal_and_keeps_the_gradients(game, scene, gauss_newton):
     game, problem, xs, us = _random_trajectory(game, scene, 9, np.array([3.0, 2.0, 1.0, 0.1, 1.0, 1.0]))
     n, N, T = problem.state_dim, game.num_players, game.horizon
