@@ -82,6 +82,15 @@ def test_squeezing_a_car_alongside_off_the_track_answers():
     assert _verdicts(incidents) == {"car_0": ("squeeze", False), "car_1": ("squeeze", True)}
 
 
+def test_a_faster_car_from_behind_into_the_rear_corner_of_a_car_moving_across_answers_for_a_rear_end():
+    """A car 4 m/s faster, 1.5 m to the side and a car's length behind, runs into the rear
+    corner of a car ahead that moves across its path at 1 m/s: the corners meet, but the
+    car behind was never alongside; the footprints meet end to end and the car behind
+    answers (not a move across by the car ahead)."""
+    _, incidents, _ = _race(_x0((14.5, 24.0, -1.5), (20.0, 20.0, 0.0, -0.05)), steps=10)
+    assert _verdicts(incidents) == {"car_0": ("rear-end", True), "car_1": ("rear-end", False)}
+
+
 def test_a_brake_test_is_the_fault_of_the_car_ahead():
     """The car ahead brakes at 10 m/s^2 at 12 m/s on a straight that asks for no braking (its
     line's speed there is its top speed, 25 m/s): the car behind runs into it, and the car
