@@ -350,10 +350,11 @@ class RacelineDriver:
         return tuple(jnp.broadcast_to(jnp.asarray(getattr(source, k), dtype), (num_cars,)) for k in ("length", "width"))
 
     def _rules(self, x: jax.Array, racing: jax.Array | None, tables: _LineTables, s: jax.Array, n: jax.Array,
-               speed: jax.Array, n_ref: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """The lateral target [m] and the largest longitudinal acceleration [m/s^2] the rules
-        of :mod:`planners.traffic` allow at the joint state ``x (N, 6)``: the line ``n_ref`` and
-        ``+inf`` exactly when no car is near."""
+               speed: jax.Array, n_ref: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """The lateral target [m], whether traffic moved it off the line (a pass or a car
+        alongside), and the largest longitudinal acceleration [m/s^2] the rules of
+        :mod:`planners.traffic` allow at the joint state ``x (N, 6)``: the line ``n_ref``,
+        False and ``+inf`` exactly when no car is near."""
         track, margin, standstill = self.track, self.margin, self.standstill
         lengths, widths = self._footprints(x.shape[0], x.dtype)
         cars = traffic.traffic(x, self.index, track, lengths, widths, racing)
@@ -372,7 +373,7 @@ class RacelineDriver:
         # the path: the target held beside the cars alongside, the pass or the line elsewhere
         target_at_cars = jnp.where(side.beside, n_target, jnp.where(decision.passing, decision.n, line_at_cars))
         ahead = traffic.on_path(cars, traffic.path_offsets(cars, n, n_target, target_at_cars, speed), look)
-        return n_target, traffic.following_acceleration(cars, ahead, speed, self.time_gap, standstill)
+        return n_target, adjusted, traffic.following_acceleration(cars, ahead, speed, self.time_gap, standstill)
 
     def jax_law(self) -> Callable[..., jnp.ndarray]:
         """The law as a pure JAX function ``policy(x (N, 6), racing=None) -> action (2,)``:
@@ -396,12 +397,18 @@ class RacelineDriver:
             ahead_v = s + v_pos * RACELINE_SPEED_PREVIEW
             n_ref = track._interp(tables.n, s)
             chi_ref = track._interp(tables.chi, s)
-            n_target = n_ref
+            n_target, kappa_ahead = n_ref, track._interp(tables.kappa, ahead)
             if self.yielding:
-                n_target, ax_cap = self._rules(x, racing, tables, s, n, v_pos, n_ref)
+                n_target, adjusted, ax_cap = self._rules(x, racing, tables, s, n, v_pos, n_ref)
+                # a target traffic holds is an offset from the centre line, not from the line:
+                # damp the speed across the track and feed the centre line's curvature
+                # forward, or the car drifts on with the line's own lateral motion into a car
+                # it is held beside
+                chi_ref = jnp.where(adjusted, jnp.zeros_like(chi_ref), chi_ref)
+                kappa_ahead = jnp.where(adjusted, track.kappa_at(ahead).astype(dtype), kappa_ahead)
             lateral_error = jnp.clip(n - n_target, -RACELINE_ERROR_CAP, RACELINE_ERROR_CAP)
             error_rate = v * (jnp.sin(chi) - jnp.sin(chi_ref))
-            ay_des = (track._interp(tables.kappa, ahead) * v**2 - RACELINE_LATERAL_STIFFNESS * lateral_error
+            ay_des = (kappa_ahead * v**2 - RACELINE_LATERAL_STIFFNESS * lateral_error
                       - RACELINE_LATERAL_DAMPING * error_rate)
             rho = vehicle.rho(v_pos)
             ay_des = jnp.clip(ay_des, -rho, rho)
