@@ -53,13 +53,14 @@ def defend(moves: int, rules: tuple[str, ...], steps: int = DEFEND_STEPS):
     which moves across the straight at 1.5 m/s, left and right by turns, for ``moves``
     moves of 0.8 s, then holds its line (its lateral jerk is a proportional controller on
     its lateral speed); the steward judges by ``rules``. Returns the joint states ``(T+1,
-    2, 6)`` and every incident as ``(step, car, incident dict)`` seen from each car."""
+    2, 6)``, every incident as ``(step, car, incident dict)`` seen from each car, and the
+    first incident as :func:`race_scene` gives it (or None)."""
     from racing_env.dynamics import AY, CHI, V
 
     x0 = np.zeros((2, 6))
     x0[:, :2] = ((10.0, 17.5), (24.0, 15.0))
     env = _env(2, x0, rules=rules)
-    xs, incidents = [env.state()], []
+    xs, incidents, first = [env.state()], [], None
     for k in range(steps):
         ahead = xs[-1][1]
         wanted = (1.5 if (k // 8) % 2 == 0 else -1.5) if k < 8 * moves else 0.0  # [m/s] lateral speed
@@ -68,7 +69,8 @@ def defend(moves: int, rules: tuple[str, ...], steps: int = DEFEND_STEPS):
         _, _, _, _, infos = env.step({"car_0": np.zeros(2), "car_1": np.array([0.0, steer])})
         xs.append(env.state())
         incidents += [(k + 1, agent, i) for agent, info in infos.items() for i in info["incidents"]]
-    return np.stack(xs), incidents
+        first = first or _first_incident(infos, k + 1)
+    return np.stack(xs), incidents, first
 
 
 def race_scene(starts: tuple[tuple[float, ...], ...], steps: int = STEPS):
@@ -104,11 +106,7 @@ def draw(path: Path) -> Path:
     track = tr.straight(length=400.0)
     vehicles = stack_vehicles([VehicleParams()] * 2)
     scenes = [(rule, what, *race_scene(starts), (5.0, 60.0)) for rule, (what, starts) in SCENES.items()]
-    xs, incidents = defend(5, RULES)
-    first = min((step for step, _, _ in incidents), default=None)
-    at_first = [(agent, i) for step, agent, i in incidents if step == first]
-    weave = dict(at_first[0][1], step=first, at_fault_car=next((a for a, i in at_first if i["at_fault"]), None)
-                 ) if at_first else None
+    xs, _, weave = defend(5, RULES)
     scenes.append(("weaving (optional)", "the car ahead moves left, right, left... as the car behind closes",
                    xs, weave, (5.0, 100.0)))
     fig, axes = plt.subplots(len(scenes), 1, figsize=(9, 2.1 * len(scenes)))

@@ -116,7 +116,7 @@ def test_a_defender_that_changes_direction_more_than_once_answers_under_the_weav
     closing: after its second change of direction, a rear-end is its fault under the
     optional ``weaving`` rule; one move and back (one change) is allowed, and without the
     rule the car behind answers."""
-    _, incidents = defend(moves, rules)
+    _, incidents, _ = defend(moves, rules)
     assert _verdicts(incidents) == {"car_0": (verdict, not weaver_answers), "car_1": (verdict, weaver_answers)}
 
 
