@@ -61,9 +61,10 @@ def _cmd_equilibria(args: argparse.Namespace) -> int:
 
 
 def _add_contact_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--contact``, ``--penalties``, ``--penalty-seconds`` and ``--rules`` (the race's
-    contact and steward, :class:`experiments.race_spec.RaceSpec`)."""
+    """``--contact``, ``--penalties``, ``--penalty-seconds``, ``--rules`` (the race's contact
+    and steward) and ``--observation-units`` (:class:`experiments.race_spec.RaceSpec`)."""
     from racing_env.contact import CONTACT_MODES
+    from racing_env.observation import OBSERVATION_UNITS
     from racing_env.steward import DEFAULT_RULES, PENALTY_MODES, RULES
 
     parser.add_argument("--contact", default="physics", choices=CONTACT_MODES,
@@ -76,11 +77,14 @@ def _add_contact_arguments(parser: argparse.ArgumentParser) -> None:
                         help="seconds per incident with --penalties time (default: 5)")
     parser.add_argument("--rules", nargs="+", default=list(DEFAULT_RULES), choices=RULES, metavar="RULE",
                         help=f"the steward's rules, of {', '.join(RULES)} (default: all but the optional weaving)")
+    parser.add_argument("--observation-units", default=OBSERVATION_UNITS[0], choices=OBSERVATION_UNITS,
+                        help="what the cars' observations are in: scaled (the default, of order one) or physical "
+                        "(SI units; what models trained before the choice existed read)")
 
 
 def _contact_fields(args: argparse.Namespace) -> dict[str, Any]:
     return {"contact": args.contact, "penalties": args.penalties, "penalty_seconds": args.penalty_seconds,
-            "rules": tuple(args.rules)}
+            "rules": tuple(args.rules), "observation_units": args.observation_units}
 
 
 def _cmd_tournament(args: argparse.Namespace) -> int:

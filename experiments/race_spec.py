@@ -17,6 +17,7 @@ from typing import Any
 
 from racing_env.config import RaceConfig, check_incident_rules, check_race_length
 from racing_env.contact import CONTACT_MODES
+from racing_env.observation import check_observation_units
 from racing_env.steward import DEFAULT_RULES, check_stewarding
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights, racing_weights
 
@@ -46,6 +47,9 @@ class RaceSpec:
         penalty_seconds: [s] per incident with ``penalties="time"``.
         rules: the steward's rules (:data:`racing_env.steward.RULES`; by default
             :data:`racing_env.steward.DEFAULT_RULES`, all but the optional ``weaving``).
+        observation_units: what the cars' observations are in
+            (:data:`racing_env.observation.OBSERVATION_UNITS`): ``scaled`` (the default) or
+            ``physical``.
     """
 
     track: str = "trefoil"
@@ -59,6 +63,7 @@ class RaceSpec:
     penalties: str = "time"
     penalty_seconds: float = 5.0
     rules: tuple[str, ...] = DEFAULT_RULES
+    observation_units: str = "scaled"
 
     def __post_init__(self) -> None:
         check_race_spec(self)
@@ -82,7 +87,7 @@ class RaceSpec:
                                     max_steps=self.max_steps, on_collision=self.on_collision,
                                     on_off_track=self.on_off_track, weights=self.weights(), contact=self.contact,
                                     penalties=self.penalties, penalty_seconds=self.penalty_seconds,
-                                    rules=self.rules)
+                                    rules=self.rules, observation_units=self.observation_units)
         race.update(fields)
         return RaceConfig(num_agents=num_agents, scenario=scenario, **race)
 
@@ -103,3 +108,4 @@ def check_race_spec(spec: RaceSpec) -> None:
     if spec.contact not in CONTACT_MODES:
         raise ValueError(f"contact must be one of {CONTACT_MODES}, got {spec.contact!r}")
     check_stewarding(spec.penalties, spec.penalty_seconds, 3, spec.rules)
+    check_observation_units(spec.observation_units)

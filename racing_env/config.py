@@ -9,6 +9,7 @@ import numpy as np
 
 from racing_env.contact import check_contact
 from racing_env.costs import CostWeights, racing_weights
+from racing_env.observation import check_observation_units
 from racing_env.scenarios import SCENARIOS
 from racing_env.steward import DEFAULT_RULES, check_stewarding
 from racing_env.track import Track
@@ -143,6 +144,9 @@ class RaceConfig:
         observed_rivals: the observation's rival blocks: None (the default) every other car
             in index order; K (1 to ``MAX_CARS - 1``) the K nearest rivals by track distance,
             nearest first, a fixed size whatever N (:mod:`racing_env.observation`).
+        observation_units: ``scaled`` (the default: every feature over a scale of the car
+            and the track, of order one) or ``physical`` (m, m/s, rad, m/s^2, 1/m);
+            :data:`racing_env.observation.OBSERVATION_UNITS`.
     """
 
     track: Track | str = "trefoil"
@@ -164,6 +168,7 @@ class RaceConfig:
     camera: str = "auto"
     follow_car: int | None = None
     observed_rivals: int | None = None
+    observation_units: str = "scaled"
     contact: str = "physics"
     restitution: float = 0.3
     contact_friction: float = 0.5
@@ -200,6 +205,7 @@ class RaceConfig:
                 self.observed_rivals, (int, np.integer)) or not 1 <= self.observed_rivals < MAX_CARS):
             raise ValueError(f"observed_rivals must be None (every other car) or an integer in [1, {MAX_CARS - 1}] "
                              f"(the nearest rivals observed), got {self.observed_rivals!r}")
+        check_observation_units(self.observation_units)
         if len(self.preview_distances) < 1 or not all(np.isfinite(d) and d >= 0 for d in self.preview_distances):
             raise ValueError(
                 f"preview_distances must be non-empty, finite and >= 0, got {self.preview_distances!r}"

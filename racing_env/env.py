@@ -153,7 +153,7 @@ class RacingParallelEnv(ParallelEnv):
         # their argument leaves (racing_env.packing)
         self._constants, self._layout = pack(self.params)
         obs_dim = observation_size(num, len(config.preview_distances), config.observed_rivals)
-        # every finite float32 vector (physical units, no natural bounds): finite limits,
+        # every finite float32 vector (no natural bounds): finite limits,
         # because Gymnasium's check_env warns about infinite Box bounds
         big = np.finfo(np.float32).max
         self._obs_space = gymnasium.spaces.Box(-big, big, (obs_dim,), np.float32)

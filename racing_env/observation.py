@@ -13,7 +13,27 @@ blocks (``K = N - 1`` by default, or the ``observed_rivals`` of the race):
   rivals of a small field are zeros with the racing flag 0 (an absent car);
 * the track ahead at each preview distance d: ``kappa(s+d)``, ``w_left(s+d)``, ``w_right(s+d)``.
 
-Units are physical (m, m/s, rad, m/s^2, 1/m).
+Units (``RaceConfig.observation_units``, :data:`OBSERVATION_UNITS`): ``scaled`` (the default)
+divides each feature by a scale of the observing car and the track, so that a network at its
+default initialisation reads numbers of order one; ``physical`` gives them in m, m/s, rad,
+m/s^2 and 1/m. The scales (:func:`observation_scale`), for a car of top speed ``v_max`` and
+gg radius at top speed ``a_ref = rho(v_max)`` on a track of mean half-width ``w_ref``:
+
+* speeds ``V`` and ``dV`` over ``v_max``;
+* accelerations over ``a_ref``;
+* lateral offsets ``n``, ``dn``, the rooms to the boundaries and the previewed widths over
+  ``w_ref``;
+* the gap ``ds`` over ``v_max *`` :data:`GAP_SECONDS` (the distance the car covers in that
+  time at top speed);
+* curvature times ``v_max^2 / a_ref``, the radius of the tightest corner the car takes at top
+  speed: 1 where a corner's limit speed is ``v_max``, 4 where it is half of it;
+* headings [rad], the fraction to go and the racing flags as they are.
+
+Scaling is a product by fixed weights (the same for every step of a race), so the two units
+convert exactly: ``scaled = physical * observation_scale(...)``. The weights are the race's
+``RaceParams.obs_scale``. Without it, stable-baselines3's PPO at its defaults finished no lap of
+the default race in 442k steps: the curvature that announces a bend was a thousandth of the
+speed's scale at the network's input (docs/rl.md).
 """
 
 from __future__ import annotations
@@ -28,6 +48,47 @@ from racing_env.track import Track
 OWN_FEATURES = 8
 OTHER_FEATURES = 7
 PREVIEW_FEATURES = 3
+OBSERVATION_UNITS = ("scaled", "physical")
+"""What an observation's numbers are in (``RaceConfig.observation_units``): ``scaled`` (the
+default, every feature over a scale of the car and track) or ``physical`` (SI units)."""
+GAP_SECONDS = 4.0
+"""[s] The rival gap ``ds`` is scaled by the distance the observing car covers in this time at
+its top speed (100 m for the paper's car)."""
+
+
+def check_observation_units(units: str) -> None:
+    """Refuse an unknown ``observation_units``, naming the allowed ones."""
+    if units not in OBSERVATION_UNITS:
+        raise ValueError(f"observation_units must be one of {OBSERVATION_UNITS}, got {units!r}")
+
+
+def observation_scale(track: Track, v_max: np.ndarray, a_ref: np.ndarray, num_preview: int,
+                      observed_rivals: int | None = None, units: str = "scaled") -> np.ndarray:
+    """The weights each car's observation is multiplied by, ``(N, O)`` float64 (module
+    docstring): all ones for ``physical``.
+
+    Args:
+        track: the race's track (its mean half-width is the lateral scale).
+        v_max: ``(N,)`` the cars' top speeds [m/s].
+        a_ref: ``(N,)`` the cars' gg radius at top speed [m/s^2].
+        num_preview: number of preview distances P.
+        observed_rivals: the race's nearest-rival blocks K, or None (every other car).
+        units: one of :data:`OBSERVATION_UNITS`.
+    """
+    check_observation_units(units)
+    v_max, a_ref = np.atleast_1d(np.asarray(v_max, np.float64)), np.atleast_1d(np.asarray(a_ref, np.float64))
+    num_cars = v_max.shape[0]
+    size = observation_size(num_cars, num_preview, observed_rivals)
+    if units == "physical":
+        return np.ones((num_cars, size))
+    w_ref = float(np.mean(np.asarray(track.width_left) + np.asarray(track.width_right))) / 2.0
+    one = np.ones(num_cars)
+    own = [1 / v_max, one / w_ref, one, 1 / a_ref, 1 / a_ref, one / w_ref, one / w_ref, one]
+    rival = [1 / (v_max * GAP_SECONDS), one / w_ref, 1 / v_max, one, 1 / a_ref, 1 / a_ref, one]
+    ahead = [v_max**2 / a_ref, one / w_ref, one / w_ref]
+    rivals = num_cars - 1 if observed_rivals is None else observed_rivals
+    columns = own + rival * rivals + ahead * num_preview
+    return np.stack(columns, axis=-1)
 
 
 def observation_size(num_cars: int, num_preview: int, observed_rivals: int | None = None) -> int:
@@ -64,9 +125,12 @@ def observe(
     finish_s: jax.Array,
     preview: jax.Array,
     observed_rivals: int | None = None,
+    scale: jax.Array | None = None,
 ) -> jax.Array:
     """Observations of all cars: ``x (N, 6)``, ``active (N,)`` -> ``(N, obs_size)``;
-    ``observed_rivals`` (static): the K nearest rivals' blocks instead of every other car's."""
+    ``observed_rivals`` (static): the K nearest rivals' blocks instead of every other car's;
+    ``scale (N, obs_size)``: each car's row multiplies its observation
+    (:func:`observation_scale`), None: physical units."""
     num_cars = x.shape[0]
     s, n = x[:, S], x[:, N_LAT]
     to_go = jnp.clip((finish_s - s) / finish_s, 0.0, 1.0)
@@ -112,4 +176,5 @@ def observe(
         [track.kappa_at(s_ahead), track.width_left_at(s_ahead), track.width_right_at(s_ahead)],
         axis=-1,
     ).reshape(num_cars, -1)
-    return jnp.concatenate([own, others, ahead], axis=-1)
+    physical = jnp.concatenate([own, others, ahead], axis=-1)
+    return physical if scale is None else physical * scale

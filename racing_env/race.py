@@ -35,7 +35,7 @@ from racing_env.config import RETIRING_MODES, RaceConfig
 from racing_env.contact import ContactModel, collide, overlapping, sweep
 from racing_env.dynamics import S, V
 from racing_env.game import RaceGame
-from racing_env.observation import observe
+from racing_env.observation import observation_scale, observe
 from racing_env.physics import drive, off_track
 from racing_env import starts as starts_lib
 from racing_env.referee import REWARD_TERMS, RaceRules, RaceStatus, judge, positions
@@ -76,6 +76,8 @@ class RaceParams(NamedTuple):
         contact: how cars that meet interact (:class:`racing_env.contact.ContactModel`).
         steward: the rules incidents are judged by and their penalties
             (:class:`racing_env.steward.Steward`).
+        obs_scale: ``(N, O)`` the weights each car's observation is multiplied by
+            (:func:`racing_env.observation.observation_scale`; ones for physical units).
         rival_slots: the observation's rival blocks, of which only the shape is read (it is
             static under ``jit``): ``(K,)`` for the K nearest rivals
             (``RaceConfig.observed_rivals``), ``(0,)`` (the default) for every other car in
@@ -93,6 +95,7 @@ class RaceParams(NamedTuple):
     starts: Starts
     contact: ContactModel
     steward: Steward
+    obs_scale: jax.Array
     rival_slots: jax.Array = np.zeros(0)
 
     @property
@@ -222,6 +225,8 @@ def race_params(config: RaceConfig, track: Track, game: RaceGame, finish_s: floa
         steward=make_steward(track, game.vehicles, config.num_agents, config.penalties, config.penalty_seconds,
                              config.severity_speed or 0.0, config.disqualify_after, config.rules,
                              incident_gap_steps=max(1, round(INCIDENT_GAP_S / config.dt))),
+        obs_scale=observation_scale(track, game.vehicles.v_max, game.vehicles.rho(game.vehicles.v_max),
+                                    len(config.preview_distances), config.observed_rivals, config.observation_units),
         rival_slots=np.zeros(config.observed_rivals or 0),
     )
 
@@ -249,7 +254,7 @@ def start(x0: jax.Array, params: RaceParams) -> tuple[RaceState, jax.Array, Race
     state = RaceState(x0, status, jnp.zeros((), jnp.int32))
     game = params.game
     obs = observe(x0, status.active, game.track, params.finish_s, params.preview,
-                  params.observed_rivals).astype(jnp.float32)
+                  params.observed_rivals, params.obs_scale).astype(jnp.float32)
     none = jnp.zeros(num, dtype=bool)
     info = RaceInfo(
         s=x0[:, S],
@@ -333,7 +338,7 @@ def step(
     new_status = jax.tree_util.tree_map(lambda new, old: new.astype(old.dtype), verdict.status, status)
     # observed with the cars still racing after this step's verdict
     obs = observe(x_next, new_status.active, game.track, params.finish_s, params.preview,
-                  params.observed_rivals).astype(jnp.float32)
+                  params.observed_rivals, params.obs_scale).astype(jnp.float32)
     info = RaceInfo(
         s=x_next[:, S],
         lap=_lap(params, x_next[:, S]),

@@ -138,7 +138,8 @@ class _LoopedCallable:
 
 def make_opponent(opponent: Any, game, index: int, num_races: int):
     """The batched driver of car ``index`` in ``num_races`` races from an ``opponents`` entry
-    of :class:`RaceVectorEnv` (see the module docstring and :mod:`racing_env.opponents`).
+    of :class:`RaceVectorEnv` (see the module docstring and :mod:`racing_env.opponents`);
+    ``game``: the races' :class:`RaceGame` or an env that has it.
 
     Raises ``ValueError`` for an agent object in more than one race (it keeps one race's
     state: a spec or a factory makes one per race) and for an entry of no known kind."""
@@ -229,7 +230,8 @@ class RaceVectorEnv(VectorEnv):
         self.config, self.game, self.params = self.race.config, self.race.game, self.race.params
         self.learner = int(learner)
         self.num_cars = num
-        self.opponents = {j: make_opponent(o, self.game, j, self.num_envs) for j, o in drivers}
+        # the race env (not just its game): a trained model finds the units of its observations
+        self.opponents = {j: make_opponent(o, self.race, j, self.num_envs) for j, o in drivers}
         self._jax_cars = tuple(j for j, o in self.opponents.items() if o.jax_policy is not None)
         self._host_cars = tuple(j for j, o in self.opponents.items() if o.jax_policy is None)
         learner_agent = agent_name(self.learner)

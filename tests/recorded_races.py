@@ -101,7 +101,9 @@ def replay(name: str, races: dict = RACES, starts: dict = STARTS) -> list[dict[s
     """Race ``name`` of ``races`` from its start in ``starts`` in the PettingZoo env; every
     step as plain Python values."""
     config, seed, action_seed, bias, steps = races[name]
-    config = {**config, "track": _track(config["track"])}
+    # recorded in physical units; the scaled ones are the same times fixed weights
+    # (tests/test_race_core.py, test_scaled_observations_are_the_physical_ones_times_their_weights)
+    config = {**config, "track": _track(config["track"]), "observation_units": "physical"}
     env = racing_env.parallel_env(**config)
     start = starts[name]
     obs, infos = env.reset(seed=seed, options=None if start is None else {"x0": np.array(start)})

@@ -4,12 +4,14 @@ at the env's defaults, evaluating as it goes: a script, run in a subprocess by
 tests' own process runs with 64-bit floats).
 
 ``python tests/sb3_default_race.py --seed S --budget STEPS [--every STEPS] [--races R]
-[--needed K] [--raw]`` trains ``PPO("MlpPolicy", env, seed=S)`` for up to ``--budget``
-steps on the env wrapped in SB3's ``VecNormalize(norm_obs=True, norm_reward=False)`` (the
-observations scaled by their running mean and deviation; ``--raw``: the env's physical
-units as they come). Every ``--every`` steps (default 16,384: eight of PPO's 2,048-step
-rollouts) it races the policy, acting deterministically on observations scaled with the
-training's statistics, in ``--races`` evaluation races (default 5, seeded 1000, 1001, ...)
+[--needed K] [--vecnormalize] [--physical]`` trains ``PPO("MlpPolicy", env, seed=S)`` for
+up to ``--budget`` steps on the env as it comes (its observations in their default, scaled
+units; ``--physical``: in SI units; ``--vecnormalize``: wrapped in SB3's
+``VecNormalize(norm_obs=True, norm_reward=False)``, the observations scaled by their running
+mean and deviation). Every ``--every`` steps (default 16,384: eight of PPO's 2,048-step
+rollouts) it races the policy, acting deterministically (on observations normalised with the
+training's statistics, under ``--vecnormalize``), in ``--races`` evaluation races (default 5,
+seeded 1000, 1001, ...)
 and prints one JSON line: ``timesteps``, ``train_s`` (training's wall time [s],
 evaluations excluded), ``wall_s`` (everything [s]), ``finished`` (races finished), and per
 race ``distance_m`` (the learner's arc length at the end [m]), ``steps``, ``out`` and
@@ -57,14 +59,16 @@ def evaluate(model: PPO, normalizer: VecNormalize | None, env: gymnasium.Env, ra
     return results
 
 
-def main(seed: int, budget: int, every: int = 16_384, races: int = 5, needed: int = 3, raw: bool = False) -> None:
+def main(seed: int, budget: int, every: int = 16_384, races: int = 5, needed: int = 3, vecnormalize: bool = False,
+         physical: bool = False) -> None:
     # torch's update on one thread: on a 2-core CPU shared with JAX's threads (and other
     # processes) its two threads contend, and PPO's update took 22 times as long
     torch.set_num_threads(1)
-    envs = DummyVecEnv([lambda: gymnasium.make(ENV_ID)])
-    normalizer = None if raw else VecNormalize(envs, norm_obs=True, norm_reward=False)
+    options = {"observation_units": "physical"} if physical else {}
+    envs = DummyVecEnv([lambda: gymnasium.make(ENV_ID, **options)])
+    normalizer = VecNormalize(envs, norm_obs=True, norm_reward=False) if vecnormalize else None
     model = PPO("MlpPolicy", normalizer or envs, seed=seed)
-    evaluation_env = gymnasium.make(ENV_ID)
+    evaluation_env = gymnasium.make(ENV_ID, **options)
     started, train_s = time.perf_counter(), 0.0
     while model.num_timesteps < budget:
         chunk = time.perf_counter()
@@ -72,7 +76,7 @@ def main(seed: int, budget: int, every: int = 16_384, races: int = 5, needed: in
         train_s += time.perf_counter() - chunk
         results = evaluate(model, normalizer, evaluation_env, races)
         finished = sum(r["finished"] for r in results)
-        print(json.dumps({"seed": seed, "raw": raw, "timesteps": model.num_timesteps, "train_s": round(train_s, 1),
+        print(json.dumps({"seed": seed, "vecnormalize": vecnormalize, "physical": physical, "timesteps": model.num_timesteps, "train_s": round(train_s, 1),
                           "wall_s": round(time.perf_counter() - started, 1), "finished": finished,
                           "races": results}), flush=True)
         if finished >= needed:
@@ -86,5 +90,6 @@ if __name__ == "__main__":
     parser.add_argument("--every", type=int, default=16_384, help="training steps between evaluations")
     parser.add_argument("--races", type=int, default=5, help="races per evaluation")
     parser.add_argument("--needed", type=int, default=3, help="finished races that end the run")
-    parser.add_argument("--raw", action="store_true", help="observations in the env's units, not normalised")
+    parser.add_argument("--vecnormalize", action="store_true", help="observations normalised by SB3's VecNormalize")
+    parser.add_argument("--physical", action="store_true", help="the env's observations in SI units")
     main(**vars(parser.parse_args()))

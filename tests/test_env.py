@@ -742,7 +742,8 @@ def test_the_nearest_rivals_observation_has_one_size_whatever_the_field():
     x0 = np.zeros((4, 6))
     x0[:, 0] = [50.0, 55.0, 120.0, 48.0]
     x0[:, 1] = 10.0
-    env = RacingParallelEnv(RaceConfig(track="straight", num_agents=4, observed_rivals=2))
+    env = RacingParallelEnv(RaceConfig(track="straight", num_agents=4, observed_rivals=2,
+                                       observation_units="physical"))
     observations, _ = env.reset(seed=0, options={"x0": x0})
     rivals = observations["car_0"][OWN_FEATURES:OWN_FEATURES + 2 * OTHER_FEATURES].reshape(2, OTHER_FEATURES)
     np.testing.assert_allclose(rivals[:, 0], [-2.0, 5.0], atol=1e-5)  # ds of car 3, then car 1

@@ -1,9 +1,9 @@
 """The learner's default race is learnable as it comes: stable-baselines3's PPO at its
 defaults (``MlpPolicy``) on ``gymnasium.make("racing_env/Race-v0")`` at the env's defaults
-(the trefoil, one lap, a coasting rival, leaving the track ends the learner's race), with
-the observations normalised by SB3's ``VecNormalize``, finishes races within a stated budget
-of steps (docs/rl.md, "Stable-baselines3 at its defaults", with the measurements and why
-the normalisation: on the env's raw observations it finished no race in 442,368 steps).
+(the trefoil, one lap, a coasting rival, leaving the track ends the learner's race, the
+observations in their default scaled units), with no wrapper, finishes races within a stated
+budget of steps (docs/rl.md, "Stable-baselines3 at its defaults", with the measurements; on
+observations in physical units it finished no race in 442,368 steps).
 
 The training runs in a process of its own (``tests/sb3_default_race.py``) with JAX's default
 float32, as a user's script has it (the tests' process runs with x64 on)."""
@@ -22,7 +22,7 @@ pytest.importorskip("stable_baselines3", reason="needs stable-baselines3 (pip in
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 0
-BUDGET = 98_304  # steps: twice the slowest of three seeds (49,152; docs/rl.md)
+BUDGET = 98_304  # steps: twice the slowest of five seeds (49,152; docs/rl.md)
 EVERY = 16_384  # steps between evaluations: eight of PPO's 2,048-step rollouts
 RACES, NEEDED = 5, 3  # evaluation races, and how many of them the policy must finish
 TIMEOUT_S = 1800  # the budget at ~250 steps/s (a loaded 2-core CPU), evaluations included

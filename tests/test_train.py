@@ -70,6 +70,7 @@ def test_training_writes_checkpoints_logs_and_a_model_that_races(tmp_path):
 
     agent = make_agent(f"rl:{tmp_path / 'model.zip'}")
     assert isinstance(agent, SB3Agent) and agent.normalizer is not None
+    assert agent.observation_units == "scaled"  # recorded in the model: a physical race is converted
     reference = VecNormalize.load(str(vecnormalize_path(tmp_path / "model.zip")),
                                   train_rl.make_training_env(TrainConfig(**TINY)))
     reference.training = False

@@ -34,7 +34,8 @@ RESUMABLE_CHANGES = ("timesteps", "eval_every", "checkpoint_every", "subprocesse
 TRAINING_STARTS = ("grid", "anywhere", "mixed")  # where training episodes may start (TrainConfig.start)
 # fields added to TrainConfig after runs were saved, with the value those runs had
 ADDED_LATER = {"start": "grid", "imitate": None, "imitate_episodes": 20, "imitate_noise": 0.2,
-               "imitate_spread": None, "vector": False, "learner": "sb3", "rules": list(DEFAULT_RULES)}
+               "imitate_spread": None, "vector": False, "learner": "sb3", "rules": list(DEFAULT_RULES),
+               "observation_units": "physical"}
 LEARNERS = ("sb3", "jax")  # TrainConfig.learner
 EVALUATION_RULE = "penalty"  # what contact (and, unless eval_off_track is set, leaving the track) does in evaluations
 

@@ -456,6 +456,10 @@ def _build_model(config: TrainConfig, out: Path, resume_from: tuple[int, Path] |
                          f"train it further with{'' if stats.exists() else ' --no-normalize'}")
     try:
         saved = algo.load(config.init_model, device="cpu")
+        trained_on = getattr(saved, "observation_units", None)
+        if trained_on not in (None, config.observation_units):
+            raise ValueError(f"init_model {config.init_model} was trained on {trained_on} observations; train it "
+                             f"further with --observation-units {trained_on}")
         widening = _init_model_widening(config, saved, venv)
         init_model = config.init_model
         if widening is not None:  # trained with fewer cars (e.g. a time trial): zero weights on the new cars
@@ -602,6 +606,7 @@ def _run_training(config: TrainConfig, out: Path, fresh: bool, progress: bool) -
     out.mkdir(parents=True, exist_ok=True)
     report: dict[str, Any] = {"config": wanted, "status": "running", "timesteps": 0}
     model = _build_model(config, out, resume_from)
+    model.observation_units = config.observation_units  # saved with the model: SB3Agent reads it
     report["model_settings"] = {name: getattr(model, name) for name in model_settings(config)
                                 if isinstance(getattr(model, name, None), (int, float, str, bool))}
     if resume_from is not None:

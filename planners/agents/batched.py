@@ -168,24 +168,20 @@ class BatchedSB3(BatchedOpponent):
         if not isinstance(agent, (SB3Agent, JaxPolicyAgent)):
             raise TypeError(f"BatchedSB3 needs an SB3Agent or a JaxPolicyAgent, got {type(agent).__name__}")
         super().__init__(spec or agent.name, game, index, num_races)
-        agent.reset(None, self.index, self.game)
+        agent.reset(None, self.index, game)  # the env, where given: its observations' units
         self.agent = agent
 
     def _act_rows(self, rows, observations, x, racing):
         if hasattr(self.agent, "predict_many"):  # a JAX learner's policy
             return self._act_jax(rows, observations, x)
-        model, normalizer = self.agent.model, self.agent.normalizer
-        expected = tuple(model.observation_space.shape)
+        expected = tuple(self.agent.model.observation_space.shape)
         if observations.shape[1:] != expected:
             raise ValueError(f"{self.agent.path} reads observations of shape {expected}, got "
                              f"{observations.shape[1:]} per "
                              "race (trained with another number of cars or preview distances?)")
         diagnostics = empty_diagnostics(self.diagnostic_fields, rows.size)
         try:
-            obs = observations.astype(np.float32)
-            if normalizer is not None:
-                obs = normalizer.normalize_obs(obs)
-            actions, _ = model.predict(obs, deterministic=True)
+            actions = self.agent.predict_raw(observations)
             actions = np.asarray(actions, dtype=np.float64).reshape(rows.size, 2)
         except Exception:  # noqa: BLE001 - any policy failure: brake, as the single agent does
             actions = np.full((rows.size, 2), np.nan)

@@ -15,6 +15,10 @@ The model file is one ``.npz`` (NumPy's archive, readable without JAX):
 
 * ``format``: :data:`MODEL_FORMAT`; ``hidden``: the hidden layer sizes ``(H,)`` int;
 * ``obs_mean``, ``obs_var`` ``(O,)`` float64, ``clip_obs``, ``epsilon`` scalars;
+* ``observation_units``: what the observations were in when it trained
+  (:data:`racing_env.observation.OBSERVATION_UNITS`; a file without it, written before the
+  units could be chosen, was trained on ``physical`` ones). A race observed in other units is
+  converted exactly (:func:`planners.agents.protocol.units_conversion`);
 * ``params/<module>/<name>``: the network's weights (float32), flax's parameter tree flattened
   with ``/``.
 
@@ -29,13 +33,15 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from planners.agents.protocol import BaseAgent, observation_space_of
+from planners.agents.protocol import BaseAgent, observation_space_of, units_conversion
 from planners.methods import RL
 
 __all__ = ["JAX_MODEL_SUFFIX", "MODEL_FORMAT", "JaxPolicyAgent", "ObsNormalizer", "PolicyModel",
            "actor_critic", "deterministic_action", "is_jax_model", "load_model", "normalize_obs", "save_model"]
 
 MODEL_FORMAT = "racing-games jax actor-critic 1"
+UNITS_BEFORE_CHOICE = "physical"
+"""The observation units of a model file that does not record them."""
 JAX_MODEL_SUFFIX = ".npz"
 
 
@@ -119,7 +125,7 @@ class PolicyModel:
     observation statistics, and its compiled :func:`deterministic_action`."""
 
     def __init__(self, hidden: Sequence[int], params: dict, obs_mean: np.ndarray, obs_var: np.ndarray,
-                 clip_obs: float = 10.0, epsilon: float = 1e-8) -> None:
+                 clip_obs: float = 10.0, epsilon: float = 1e-8, observation_units: str = "scaled") -> None:
         import jax
 
         self.hidden = tuple(int(h) for h in hidden)
@@ -127,6 +133,7 @@ class PolicyModel:
         self.obs_mean = np.asarray(obs_mean, dtype=np.float64)
         self.obs_var = np.asarray(obs_var, dtype=np.float64)
         self.clip_obs, self.epsilon = float(clip_obs), float(epsilon)
+        self.observation_units = observation_units
         self.module = actor_critic(self.hidden)
         module, clip, eps = self.module, self.clip_obs, self.epsilon
         self._act = jax.jit(lambda p, o, m, v: deterministic_action(module, p, o, m, v, clip, eps))
@@ -144,7 +151,7 @@ class PolicyModel:
 
 
 def save_model(path: str | Path, hidden: Sequence[int], params: dict, obs_mean, obs_var, clip_obs: float = 10.0,
-               epsilon: float = 1e-8) -> Path:
+               epsilon: float = 1e-8, observation_units: str = "scaled") -> Path:
     """Write the model file (module docstring) to ``path`` atomically; returns the path."""
     import os
 
@@ -156,7 +163,8 @@ def save_model(path: str | Path, hidden: Sequence[int], params: dict, obs_mean, 
     tmp = path.with_name(path.name + ".tmp.npz")
     np.savez(tmp, format=np.asarray(MODEL_FORMAT), hidden=np.asarray(hidden, dtype=np.int64),
              obs_mean=np.asarray(obs_mean, dtype=np.float64), obs_var=np.asarray(obs_var, dtype=np.float64),
-             clip_obs=np.asarray(clip_obs), epsilon=np.asarray(epsilon), **flat)
+             clip_obs=np.asarray(clip_obs), epsilon=np.asarray(epsilon),
+             observation_units=np.asarray(observation_units), **flat)
     os.replace(tmp, path)
     return path
 
@@ -178,8 +186,9 @@ def load_model(path: str | Path) -> PolicyModel:
         raise ValueError(f"{path} is not a JAX learner's model file (format {MODEL_FORMAT!r})")
     params = traverse_util.unflatten_dict({tuple(key.split("/")[1:]): jnp.asarray(value)
                                            for key, value in arrays.items() if key.startswith("params/")})
+    units = str(arrays.get("observation_units", UNITS_BEFORE_CHOICE))
     return PolicyModel(arrays["hidden"].tolist(), params, arrays["obs_mean"], arrays["obs_var"],
-                       float(arrays["clip_obs"]), float(arrays["epsilon"]))
+                       float(arrays["clip_obs"]), float(arrays["epsilon"]), units)
 
 
 class JaxPolicyAgent(BaseAgent):
@@ -206,10 +215,14 @@ class JaxPolicyAgent(BaseAgent):
                 f"{self.path} reads observations of shape ({self.model.observation_size},), and car {self.index} "
                 f"of this {self.game.num_players}-car race observes {space.shape}: trained with another number "
                 "of cars or preview distances?")
+        self.to_model_units = units_conversion(env_info, self.index, self.model.observation_units)
 
     def predict_many(self, observations: np.ndarray) -> np.ndarray:
-        """Actions ``(R, 2)`` for observations ``(R, O)`` (the batched opponents' call)."""
+        """Actions ``(R, 2)`` for the race's observations ``(R, O)`` (the batched opponents'
+        call), in the model's units."""
+        if self.to_model_units is not None:
+            observations = np.asarray(observations, dtype=np.float64) * self.to_model_units
         return self.model.act(observations)
 
     def act(self, observation: np.ndarray, joint_state: np.ndarray) -> np.ndarray:
-        return self._act_guarded(lambda obs, _: self.model.act(obs), observation, joint_state)
+        return self._act_guarded(lambda obs, _: self.predict_many(obs), observation, joint_state)

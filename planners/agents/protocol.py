@@ -21,7 +21,7 @@ from typing import Any, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-__all__ = ["Agent", "BaseAgent", "empty_record", "game_of", "observation_space_of", "reset_agents"]
+__all__ = ["Agent", "BaseAgent", "empty_record", "game_of", "observation_space_of", "reset_agents", "units_conversion"]
 
 
 @runtime_checkable
@@ -79,6 +79,43 @@ def observation_space_of(env_info: Any, index: int):
         if inner is not None and inner is not env_info:
             return observation_space_of(inner, index)
     return None
+
+
+def _race_config_of(env_info: Any):
+    """The :class:`racing_env.config.RaceConfig` of an env (parallel, Gymnasium or vectorised
+    view), or None for a bare game."""
+    from racing_env.config import RaceConfig
+
+    config = getattr(env_info, "config", None)
+    if isinstance(config, RaceConfig):
+        return config
+    for attr in ("race", "unwrapped"):
+        inner = getattr(env_info, attr, None)
+        if inner is not None and inner is not env_info:
+            return _race_config_of(inner)
+    return None
+
+
+def units_conversion(env_info: Any, index: int, model_units: str | None) -> np.ndarray | None:
+    """The factors ``(O,)`` that turn car ``index``'s observations in ``env_info`` into the
+    units a model was trained in (``model_units``, one of
+    :data:`racing_env.observation.OBSERVATION_UNITS`), or None where nothing is to convert:
+    the same units, a model that does not say (``None``), or a bare game (its observations'
+    units unknown). Exact, as both units are fixed weights on the same features
+    (:func:`racing_env.observation.observation_scale`)."""
+    from racing_env.observation import check_observation_units, observation_scale
+
+    config = _race_config_of(env_info)
+    if model_units is None or config is None or model_units == config.observation_units:
+        return None
+    check_observation_units(model_units)
+    game = game_of(env_info)
+    vehicles = game.vehicles
+    v_max = np.asarray(vehicles.v_max, np.float64)
+    scale = {units: observation_scale(game.track, v_max, np.asarray(vehicles.rho(v_max)),
+                                      len(config.preview_distances), config.observed_rivals, units)[index]
+             for units in (model_units, config.observation_units)}
+    return scale[model_units] / scale[config.observation_units]
 
 
 def empty_record() -> dict:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from planners.agents.protocol import BaseAgent, observation_space_of
+from planners.agents.protocol import BaseAgent, observation_space_of, units_conversion
 from planners.methods import RL
 
 __all__ = ["SB3Agent", "SB3_ALGOS", "VECNORMALIZE_SUFFIX", "vecnormalize_path"]
@@ -51,7 +51,11 @@ class SB3Agent(BaseAgent):
 
     If the model was trained under ``VecNormalize`` (as ``racing train`` does by default),
     its observation statistics are loaded from beside the model
-    (:func:`vecnormalize_path`) and applied to every observation.
+    (:func:`vecnormalize_path`) and applied to every observation. A model that records the
+    units it was trained on (its ``observation_units`` attribute, which ``racing train`` sets)
+    reads them in any race: a race observed in the other units is converted exactly
+    (:func:`planners.agents.protocol.units_conversion`); a model that does not say reads the
+    race's observations as they come.
 
     Args:
         path: the ``.zip`` written by ``model.save``.
@@ -86,6 +90,8 @@ class SB3Agent(BaseAgent):
         self.name = f"rl:{self.algo}"
         stats = vecnormalize_path(self.path)
         self.normalizer = _observation_normalizer(stats, self.model) if stats.exists() else None
+        self.observation_units = getattr(self.model, "observation_units", None)
+        self.to_model_units: np.ndarray | None = None  # (O,) factors, set by reset
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         """As every agent's; also refuses a race whose observations the model cannot read
@@ -100,6 +106,7 @@ class SB3Agent(BaseAgent):
                 "or preview distances? (A time-trial model races alone, racing tournament --cars 1; "
                 "racing train --init-model carries it into a race with more cars.)"
             )
+        self.to_model_units = units_conversion(env_info, self.index, self.observation_units)
         if seed is not None:
             try:
                 self.model.set_random_seed(seed)
@@ -114,6 +121,14 @@ class SB3Agent(BaseAgent):
                 f"observation shape {obs.shape} does not match the model's {expected} "
                 "(trained with a different number of cars or preview distances?)"
             )
+        return self.predict_raw(obs)
+
+    def predict_raw(self, observations: np.ndarray) -> np.ndarray:
+        """The model's deterministic actions for the race's observations ``(..., O)``: in its
+        own units, normalised by its saved statistics."""
+        obs = np.asarray(observations, dtype=np.float32)
+        if self.to_model_units is not None:
+            obs = (obs * self.to_model_units).astype(np.float32)
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
         action, _ = self.model.predict(obs, deterministic=True)
