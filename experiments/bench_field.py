@@ -7,7 +7,10 @@ its local game with its ``rivals=2`` nearest rivals (:mod:`planners.rival_game`)
 field's re-plans solved as one batch per step (:func:`planners.agents.field.solve_field`),
 as ``racing tournament`` races them. Race-steps per second for each N, the first step
 (which compiles) reported apart, and the exponent of the cost of a step in N fitted over
-the fields (:func:`cost_exponent`).
+the fields (:func:`cost_exponent`). The 10- and 20-car fields race again with every other
+car predicted in each local game (``obstacles`` at least the field: the local game grows with
+N), and a row compares the two settings: the 20-car step over the 10-car step in each (target
+at most :data:`TARGET_20_OVER_10`), and the 10-car rate of the default over the other.
 
 :func:`vector_field_rows`: the vectorised env with a field of coasting cars (random learner
 actions) beside two cars, at the same batch, timed in turns in one run.
@@ -24,6 +27,9 @@ FIELD_SPEC = "ilqgame-fb:iterations=2,trust_radius=10"
 FIELDS = (2, 4, 10, 20)
 TARGET_STEPS_PER_S = 50.0  # a 10-car field of game planners, every car re-planning every step
 TARGET_EXPONENT = 1.2  # the cost of a step in N: linear, at most this exponent
+EVERY_CAR_PREDICTED = ",obstacles=19"  # added to a spec: each local game predicts every other car of up to 20
+TARGET_20_OVER_10 = 2.1  # a 20-car step over a 10-car step with the default obstacles (linear: 2.0)
+TARGET_SPEEDUP_10 = 1.5  # the 10-car rate with the default obstacles over that with every car predicted
 
 
 def cost_exponent(cars: list[int], seconds_per_step: list[float]) -> float:
@@ -34,7 +40,7 @@ def cost_exponent(cars: list[int], seconds_per_step: list[float]) -> float:
 
 
 def field_race_rate(cars: int, spec: str = FIELD_SPEC, steps: int = 40, warmup: int = 3,
-                    track: str = "trefoil", seed: int = 0) -> dict[str, Any]:
+                    track: str = "trefoil", seed: int = 0, name: str | None = None) -> dict[str, Any]:
     """One field's race: ``cars`` agents ``spec`` on ``track``'s seeded grid, ``warmup`` steps
     (the first compiles), then ``steps`` timed steps of the whole loop (the field's batched
     re-plans, every car's action, the env step)."""
@@ -66,7 +72,7 @@ def field_race_rate(cars: int, spec: str = FIELD_SPEC, steps: int = 40, warmup: 
             if record["iterations"] is not None:
                 iterations.append(record["iterations"])
     timed = np.array(times[warmup:])
-    return {"name": f"field_{cars}_cars", "cars": cars, "spec": spec, "track": track,
+    return {"name": name or f"field_{cars}_cars", "cars": cars, "spec": spec, "track": track,
             "steps_per_s": float(len(timed) / timed.sum()), "ms_per_step": 1e3 * float(np.median(timed)),
             "ms_per_step_p95": 1e3 * float(np.percentile(timed, 95)), "compile_s": float(times[0]),
             "steps_timed": int(len(timed)), "fallbacks": fallbacks,
@@ -92,6 +98,16 @@ def field_rows(fields: tuple[int, ...] = FIELDS, steps: int = 40) -> Iterator[di
         if len(local) >= 2:
             exponent["exponent_local_games"] = cost_exponent(*map(list, zip(*local)))
         yield exponent
+    by_cars = {row["cars"]: row for row in rows}
+    if 10 in by_cars and 20 in by_cars:
+        every = {cars: field_race_rate(cars, FIELD_SPEC + EVERY_CAR_PREDICTED, steps=steps,
+                                       name=f"field_{cars}_cars_every_car_predicted") for cars in (10, 20)}
+        yield from every.values()
+        yield {"name": "field_20_over_10", "ratio": by_cars[20]["ms_per_step"] / by_cars[10]["ms_per_step"],
+               "ratio_every_car_predicted": every[20]["ms_per_step"] / every[10]["ms_per_step"],
+               "target_ratio": TARGET_20_OVER_10,
+               "speedup_10_cars": by_cars[10]["steps_per_s"] / every[10]["steps_per_s"],
+               "target_speedup_10_cars": TARGET_SPEEDUP_10}
 
 
 def vector_field_rows(cars: tuple[int, ...] = (2, 10), num_envs: int = 256, calls: int = 200,

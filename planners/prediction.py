@@ -144,6 +144,8 @@ class PlannerPrediction:
             race of more than ``k + 1`` cars its local game with its ``k`` nearest rivals
             (:mod:`planners.rival_game`), whose equilibrium predicts those rivals; every
             other car is predicted at constant speed and lateral offset.
+        obstacles: for the games, the other cars the local game predicts as moving
+            obstacles, nearest first (None: all).
         levels: for ``"ilqr"``, the levels of reasoning (level-k thinking). Level 0 is the
             constant-velocity prediction of every car; a car's level-``k`` plan is its iLQR
             best response to the level-``k - 1`` plans of all the others. The prediction is
@@ -162,11 +164,13 @@ class PlannerPrediction:
     The cost is that of the solves: ``levels * N - 1`` iLQR solves, or one game solve.
     """
 
-    def __init__(self, planner: str, ego: int, levels: int = 1, rivals: int = 2, **solver_options: Any) -> None:
+    def __init__(self, planner: str, ego: int, levels: int = 1, rivals: int = 2, obstacles: int | None = None,
+                 **solver_options: Any) -> None:
         if planner not in PLANNERS:
             raise ValueError(f"planner must be one of {list(PLANNERS)}, got {planner!r}")
         check_levels(planner, levels)
         self.rivals = rival_game.check_rivals(rivals)
+        self.obstacles = rival_game.check_obstacles(obstacles)
         check_solver_options(planner, **solver_options)  # now, not at the first solve
         self.planner = planner
         self.ego = int(ego)
@@ -180,7 +184,7 @@ class PlannerPrediction:
             if self.rivals >= game.num_players - 1:
                 res = ilq.solve(game, x0, init=U0, **options)
                 return np.asarray(res.xs), np.asarray(res.us)
-            local = rival_game.local_game(game, x0, self.ego, self.rivals, U0)
+            local = rival_game.local_game(game, x0, self.ego, self.rivals, U0, obstacles=self.obstacles)
             ilq.validate_problem(game)
             res = jax.device_get(ilq.solve(local.problem, local.x0, init=local.init, validate=False, **options))
             xs, us, _ = rival_game.to_field(local, res.xs, res.us, None, U0)
@@ -203,7 +207,7 @@ def _lane_keeper(game, car: int) -> Driver:
     return lambda x: controller(None, x)
 
 
-def make_predictor(name: str, game, ego: int, levels: int = 1, rivals: int = 2,
+def make_predictor(name: str, game, ego: int, levels: int = 1, rivals: int = 2, obstacles: int | None = None,
                    **solver_options: Any) -> Predictor | None:
     """The prediction ``name`` (one of :data:`PREDICTIONS`) for car ``ego`` in ``game``.
 
@@ -213,7 +217,8 @@ def make_predictor(name: str, game, ego: int, levels: int = 1, rivals: int = 2,
     line at the car's ``v_max``, slowing for the curves ahead); it drives in ``game``
     whatever game it is called with, and predicts no jerks. ``"ilqr"``, ``"ilqgame-fb"``,
     ``"ilqgame-ol"``: a :class:`PlannerPrediction` with ``solver_options`` (and ``levels``
-    of reasoning for ``"ilqr"``, ``rivals`` in the game for the games); it plans in the game it is called with (the predicting
+    of reasoning for ``"ilqr"``, ``rivals`` and ``obstacles`` in the game for the games); it plans in the game it
+    is called with (the predicting
     agent's beliefs of the others' weights).
     """
     check_prediction(name)
@@ -221,7 +226,7 @@ def make_predictor(name: str, game, ego: int, levels: int = 1, rivals: int = 2,
     if name == CONSTANT_VELOCITY:
         return None
     if name in PLANNERS:
-        return PlannerPrediction(name, ego, levels=levels, rivals=rivals, **solver_options)
+        return PlannerPrediction(name, ego, levels=levels, rivals=rivals, obstacles=obstacles, **solver_options)
     others = [j for j in range(game.num_players) if j != ego]
     rollout = PolicyRollout(game, {j: _lane_keeper(game, j) for j in others})
     return lambda _game, x0, U0=None: (rollout(x0), None)

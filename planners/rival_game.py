@@ -4,12 +4,18 @@ In a race of N cars a game planner that solved the game of the whole field would
 an LQ recursion over all N players, which grows with the cube of N. A car in a field races
 the few cars around it: the *local game* of car ``ego`` is the game of ``ego`` and its
 ``k`` nearest rivals (:func:`nearest_rivals`, by wrapped track distance), solved as an
-ordinary ``(k + 1)``-player game. Every other car is predicted (constant speed and lateral
-offset, :func:`planners.ilqr.predict_constant_velocity`, or any trajectory the caller
-passes) and enters every player's costs as a moving obstacle: its collision terms with the
-players, and its progress in their terminal costs (a constant). The players' costs are the
-whole field's costs, evaluated at the joint state ``[players; predicted cars at stage t]``,
-so a local game differs from the whole game only in that the predicted cars do not react.
+ordinary ``(k + 1)``-player game. The next ``m`` nearest cars (``obstacles``; None: every
+other car) are predicted (constant speed and lateral offset,
+:func:`planners.ilqr.predict_constant_velocity`, or any trajectory the caller passes) and
+enter every player's costs as moving obstacles: their collision terms with the players, and
+their progress in the players' terminal costs (a constant). The players' costs are the costs
+of the game of these ``k + 1 + m`` cars, evaluated at the joint state ``[players; predicted
+cars at stage t]``, so a local game differs from the whole game in that the predicted cars do
+not react, and, with ``obstacles``, in the collision terms of the cars further away, left
+out: a car's collision term falls as ``exp(-2 (ds / l)^2)`` with the gap ``ds`` over its
+length scale ``l`` (:mod:`racing_env.costs`), below 1e-300 beyond ~19 lengths, so a car
+that stays that far from every player over the horizon adds nothing a float64 sum keeps.
+With ``obstacles`` a local game's size, and so its cost, does not grow with N.
 
 :func:`local_game` builds the problem (a :class:`planners.game_problem.GameProblem` whose
 ``params`` is a :class:`RivalParams` pytree: the local games of every car of a field have
@@ -22,9 +28,9 @@ With ``k >= N - 1`` there is nothing to leave out: the callers then solve the ra
 itself (bit for bit today's solve), not a local game.
 
 Shapes: field state ``x (N, 6)``; a local game of ``P = k + 1`` players has flat state
-``(6 P,)``, inputs ``(T, P, 2)``, and ``M = N - P`` predicted cars ``(T + 1, M, 6)``.
+``(6 P,)``, inputs ``(T, P, 2)``, and ``M = min(m, N - P)`` predicted cars ``(T + 1, M, 6)``.
 ``order (N,)``: the field's car indices, the players first (``order[0]`` the ego, then the
-rivals nearest first), then the predicted cars.
+rivals nearest first), then the other cars nearest first (the first ``M`` of them predicted).
 """
 
 from __future__ import annotations
@@ -43,7 +49,8 @@ from racing_env.dynamics import S, STATE_DIM
 
 Array = jax.Array
 
-__all__ = ["LocalGame", "RivalParams", "batch_axes", "check_rivals", "field_orders", "game_axes", "local_game",
+__all__ = ["LocalGame", "RivalParams", "batch_axes", "check_obstacles", "check_rivals", "field_orders", "game_axes",
+           "local_game", "predicted_count",
            "local_games", "local_problem", "nearest_rivals", "ordered_game", "stack_params", "to_field", "to_field_batch"]
 
 
@@ -52,6 +59,24 @@ def check_rivals(rivals) -> int:
     if isinstance(rivals, bool) or not isinstance(rivals, (int, np.integer)) or rivals < 1:
         raise ValueError(f"rivals must be an integer >= 1 (the rivals a car plays its game with), got {rivals!r}")
     return int(rivals)
+
+
+def check_obstacles(obstacles) -> int | None:
+    """``obstacles`` as an int (or None: every other car), refused unless None or an
+    integer >= 1."""
+    if obstacles is None:
+        return None
+    if isinstance(obstacles, bool) or not isinstance(obstacles, (int, np.integer)) or obstacles < 1:
+        raise ValueError(f"obstacles must be None (every other car predicted) or an integer >= 1 (the nearest other "
+                         f"cars predicted as moving obstacles), got {obstacles!r}")
+    return int(obstacles)
+
+
+def predicted_count(num_cars: int, players: int, obstacles: int | None) -> int:
+    """``M``: the predicted cars of a local game of ``players`` players in a field of
+    ``num_cars`` with ``obstacles`` (None: all the others)."""
+    others = num_cars - players
+    return others if obstacles is None else min(int(obstacles), others)
 
 
 def nearest_rivals(track, x: np.ndarray, ego: int, k: int, racing: np.ndarray | None = None) -> np.ndarray:
@@ -74,10 +99,10 @@ def _xp(*arrays):
 
 def field_orders(track, x, egos, k: int, racing=None):
     """The car orders ``(R, N)`` of R local games (:class:`RivalParams`'s ``order``): in each,
-    the ego ``egos[r]``, its ``k`` nearest rivals in the fields ``x (R, N, 6)`` (as
-    :func:`nearest_rivals` ranks them; ``racing (R, N)`` bool or None), then every other car
-    in index order. Needs ``1 <= k <= N - 1``. NumPy in, NumPy out; JAX arrays (also
-    traced) in, JAX out."""
+    the ego ``egos[r]``, then every other car as :func:`nearest_rivals` ranks them in the
+    fields ``x (R, N, 6)`` (``racing (R, N)`` bool or None): cars racing before ghosts,
+    nearest first, equal distances to the lower index; the first ``k`` are the rivals.
+    Needs ``1 <= k <= N - 1``. NumPy in, NumPy out; JAX arrays (also traced) in, JAX out."""
     xp = _xp(x, egos, racing)
     R, N = x.shape[:2]
     if not 1 <= k <= N - 1:
@@ -89,10 +114,7 @@ def field_orders(track, x, egos, k: int, racing=None):
     out = xp.zeros((R, N), dtype=int) if racing is None else (~xp.asarray(racing, dtype=bool)).astype(int)
     rank = xp.where(is_ego, -1, out)
     # lexsort sorts by its last key first: ego, then racing before ghosts, then distance, then index
-    players = xp.lexsort((index, gaps, rank), axis=-1)[:, : k + 1]
-    chosen = xp.any(players[:, :, None] == xp.arange(N), axis=1)
-    others = xp.argsort(chosen, axis=1, stable=True)[:, : N - k - 1]  # the rest in index order
-    return xp.concatenate([players, others], axis=1)
+    return xp.lexsort((index, gaps, rank), axis=-1)
 
 
 class RivalParams(NamedTuple):
@@ -102,10 +124,11 @@ class RivalParams(NamedTuple):
         game: the field's :class:`racing_env.RaceGame` (its ``racing`` an array, all True
             when every car races), cars in their own order.
         order: ``(N,)`` the field's car indices, the players first (the ego, then its rivals
-            nearest first), then the predicted cars. The functions of the problem take the
-            game's cars in this order (:func:`ordered_game`), so that the local games of a
-            field share the game's arrays and differ in ``order`` alone.
-        predicted: ``(T + 1, M, 6)`` the predicted cars' trajectories, in ``order[P:]``'s order.
+            nearest first), then the other cars nearest first. The functions of the problem
+            take the game's first ``P + M`` cars in this order (:func:`ordered_game`), so that
+            the local games of a field share the game's arrays and differ in ``order`` alone.
+        predicted: ``(T + 1, M, 6)`` the predicted cars' trajectories, in
+            ``order[P:P + M]``'s order.
     """
 
     game: object
@@ -113,11 +136,13 @@ class RivalParams(NamedTuple):
     predicted: Array
 
 
-def ordered_game(params: RivalParams):
-    """The field's game with its cars in ``params.order`` (JAX gathers: traceable); the
+def ordered_game(params: RivalParams, players: int):
+    """The game of the local game's ``players`` players and ``M`` predicted cars: the
+    field's game with its cars ``params.order[:players + M]`` (JAX gathers: traceable); the
     collision scale, where the game has one, in that order along both axes."""
-    game, order = params.game, params.order
-    take = lambda fields: jax.tree_util.tree_map(lambda leaf: jnp.broadcast_to(leaf, order.shape)[order], fields)
+    game, field = params.game, params.order.shape
+    order = params.order[: players + params.predicted.shape[-2]]
+    take = lambda fields: jax.tree_util.tree_map(lambda leaf: jnp.broadcast_to(leaf, field)[order], fields)
     scale = game.collision_scale
     scale = None if scale is None else jnp.asarray(scale)[order][:, order]
     return game.replace(vehicles=take(game.vehicles), weights=take(game.weights), racing=game.racing[order],
@@ -126,12 +151,20 @@ def ordered_game(params: RivalParams):
 
 class LocalGame(NamedTuple):
     """A car's local game: the ``problem`` (``P`` players), its start ``x0 (6 P,)``, its warm
-    start ``init (T, P, 2)`` and the field's car indices ``order (N,)`` (players first)."""
+    start ``init (T, P, 2)``, the field's car indices ``order (N,)`` (players first) and
+    the predictions of every car not playing, ``others (T + 1, N - P, 6)`` in ``order[P:]``'s
+    order (the first ``M`` of them the problem's)."""
 
     problem: GameProblem
     x0: Array
     init: Array
     order: np.ndarray
+    others: np.ndarray
+
+
+def _players(x) -> int:
+    """P, from the players' flat state ``x (6 P,)`` (static)."""
+    return x.shape[-1] // STATE_DIM
 
 
 def _field_state(params: RivalParams, t, x):
@@ -149,25 +182,25 @@ def _dynamics_jacobians(params: RivalParams, t, x, u):
 
 
 def _stage_cost(params: RivalParams, t, i, x, u_i):
-    return race_problem.race_stage_cost(ordered_game(params), t, i, _field_state(params, t, x), u_i)
+    return race_problem.race_stage_cost(ordered_game(params, _players(x)), t, i, _field_state(params, t, x), u_i)
 
 
 def _terminal_cost(params: RivalParams, i, x):
     last = params.predicted.shape[0] - 1
-    return race_problem.race_terminal_cost(ordered_game(params), i, _field_state(params, last, x))
+    return race_problem.race_terminal_cost(ordered_game(params, _players(x)), i, _field_state(params, last, x))
 
 
 def _stage_gauss_newton(params: RivalParams, t, i, x, u_i):
-    return race_problem.race_stage_gauss_newton(ordered_game(params), t, i, _field_state(params, t, x), u_i)
+    return race_problem.race_stage_gauss_newton(ordered_game(params, _players(x)), t, i, _field_state(params, t, x), u_i)
 
 
 def _terminal_gauss_newton(params: RivalParams, i, x):
     last = params.predicted.shape[0] - 1
-    return race_problem.race_terminal_gauss_newton(ordered_game(params), i, _field_state(params, last, x))
+    return race_problem.race_terminal_gauss_newton(ordered_game(params, _players(x)), i, _field_state(params, last, x))
 
 
 def _stage_curvature(params: RivalParams, t, i, x):
-    return race_problem.race_stage_curvature(ordered_game(params), t, i, _field_state(params, t, x))[: x.shape[0]]
+    return race_problem.race_stage_curvature(ordered_game(params, _players(x)), t, i, _field_state(params, t, x))[: x.shape[0]]
 
 
 def _with_racing_array(game):
@@ -204,7 +237,7 @@ def _checked_rivals(rivals, num_cars: int) -> int:
 
 
 def local_game(game, x0: np.ndarray, ego: int, rivals: int, init: np.ndarray | None = None,
-               predicted: np.ndarray | None = None) -> LocalGame:
+               predicted: np.ndarray | None = None, obstacles: int | None = None) -> LocalGame:
     """Car ``ego``'s game with its ``rivals`` nearest rivals (module docstring).
 
     Args:
@@ -218,12 +251,14 @@ def local_game(game, x0: np.ndarray, ego: int, rivals: int, init: np.ndarray | N
             is among the nearest.
         predicted: the field's predicted trajectories ``(T + 1, N, 6)`` (the players' rows are
             not used); None: constant speed and lateral offset from ``x0``.
+        obstacles: the nearest other cars the game predicts as moving obstacles (None: all).
     """
     x0 = np.asarray(x0, dtype=np.float64)
     N, T = game.num_players, game.horizon
     if x0.shape != (N, STATE_DIM):
         raise ValueError(f"x0 must have shape (N, 6) = ({N}, {STATE_DIM}), got {x0.shape}")
     k = _checked_rivals(rivals, N)
+    M = predicted_count(N, k + 1, check_obstacles(obstacles))
     racing = None if game.racing is None else np.asarray(game.racing)[None]
     order = field_orders(game.track, x0[None], np.array([ego]), k, racing)[0]
     players = order[: k + 1]
@@ -232,13 +267,14 @@ def local_game(game, x0: np.ndarray, ego: int, rivals: int, init: np.ndarray | N
     elif np.shape(predicted) != (T + 1, N, STATE_DIM):
         raise ValueError(f"predicted must have shape (T+1, N, 6) = {(T + 1, N, STATE_DIM)}, got {np.shape(predicted)}")
     us = np.zeros((T, N, game.input_dim)) if init is None else np.asarray(init, dtype=np.float64)
-    params = RivalParams(game=_with_racing_array(game), order=order, predicted=np.asarray(predicted)[:, order[k + 1:]])
+    others = np.asarray(predicted)[:, order[k + 1:]]
+    params = RivalParams(game=_with_racing_array(game), order=order, predicted=others[:, :M])
     problem = local_problem(k + 1, STATE_DIM, game.input_dim, T, params)
-    return LocalGame(problem=problem, x0=x0[players].reshape(-1), init=us[:, players], order=order)
+    return LocalGame(problem=problem, x0=x0[players].reshape(-1), init=us[:, players], order=order, others=others)
 
 
-def local_games(game, x0s: np.ndarray, egos: np.ndarray, rivals: int, inits: np.ndarray,
-                predicted: np.ndarray) -> tuple[GameProblem, np.ndarray, np.ndarray, np.ndarray]:
+def local_games(game, x0s: np.ndarray, egos: np.ndarray, rivals: int, inits: np.ndarray, predicted: np.ndarray,
+                obstacles: int | None = None) -> tuple[GameProblem, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """R local games at once (e.g. one car's in R races), for :func:`planners.ilq_batch.solve_batch`
     with ``params_axes=``:func:`batch_axes`.
 
@@ -247,20 +283,25 @@ def local_games(game, x0s: np.ndarray, egos: np.ndarray, rivals: int, inits: np.
             track and the cars' parameters shared).
         x0s: ``(R, N, 6)``; egos: ``(R,)``; rivals: ``k <= N - 2``; inits: ``(R, T, N, 2)``;
         predicted: ``(R, T + 1, N, 6)`` (the players' rows are not used).
+        obstacles: the nearest other cars each game predicts as moving obstacles (None: all).
 
     Returns:
-        ``(problem, x0 (R, 6 P), init (R, T, P, 2), orders (R, N))``: the problem's params are
-        the R games stacked (:class:`RivalParams` with leading axis R).
+        ``(problem, x0 (R, 6 P), init (R, T, P, 2), orders (R, N), others (R, T + 1, N - P, 6))``:
+        the problem's params are the R games stacked (:class:`RivalParams` with leading axis
+        R); ``others`` the predictions of the cars not playing, in their orders (for
+        :func:`to_field_batch`).
     """
     R, N = x0s.shape[:2]
     k = _checked_rivals(rivals, N)
+    M = predicted_count(N, k + 1, check_obstacles(obstacles))
     orders = field_orders(game.track, x0s, np.asarray(egos), k, np.asarray(game.racing))
     rows = np.arange(R)[:, None]
-    players, others = orders[:, : k + 1], orders[:, k + 1:]
-    params = RivalParams(game=game, order=orders, predicted=np.transpose(predicted[rows, :, others], (0, 2, 1, 3)))
+    players = orders[:, : k + 1]
+    others = np.transpose(predicted[rows, :, orders[:, k + 1:]], (0, 2, 1, 3))
+    params = RivalParams(game=game, order=orders, predicted=others[:, :, :M])
     x0 = x0s[rows, players].reshape(R, -1)
     init = np.transpose(inits[rows, :, players], (0, 2, 1, 3))
-    return local_problem(k + 1, STATE_DIM, game.input_dim, game.horizon, params), x0, init, orders
+    return local_problem(k + 1, STATE_DIM, game.input_dim, game.horizon, params), x0, init, orders, others
 
 
 def batch_axes(local: LocalGame) -> RivalParams:
@@ -315,14 +356,15 @@ def to_field(local: LocalGame, xs: np.ndarray, us: np.ndarray, K: np.ndarray | N
     init = np.zeros((T, N, np.shape(us)[-1])) if init is None else init
     out = to_field_batch(np.asarray(local.order)[None], np.asarray(xs)[None], np.asarray(us)[None],
                          None if K is None else np.asarray(K)[None], np.asarray(init, dtype=np.float64)[None],
-                         np.asarray(local.problem.params.predicted)[None])
+                         np.asarray(local.others)[None])
     return out[0][0], out[1][0], None if K is None else out[2][0]
 
 
 def to_field_batch(orders, xs, us, K, inits, predicted):
     """:func:`to_field` of R local solutions: ``orders (R, N)``, ``xs (R, T + 1, 6 P)``,
     ``us (R, T, P, 2)``, ``K (R, T, P, 2, 6 P)`` or None, the warm starts ``inits (R, T, N, 2)``
-    and the predicted cars' trajectories ``(R, T + 1, N - P, 6)``. Returns ``xs (R, T + 1, N, 6)``,
+    and the trajectories of the cars not playing ``(R, T + 1, N - P, 6)`` (their predictions,
+    in the orders' order, :attr:`LocalGame.others`). Returns ``xs (R, T + 1, N, 6)``,
     ``us (R, T, N, 2)`` and the egos' gains ``(R, T, 2, 6 N)`` or None. Written with gathers
     (the inverse of each order), so it runs in NumPy and, on JAX arrays, traced."""
     xp = _xp(orders, xs, us, inits)

@@ -244,3 +244,59 @@ def test_the_batched_planners_of_a_field_solve_their_races_in_one_batch(monkeypa
     calls.clear()
     vector.step(np.zeros((2, 2)))
     assert len(calls) == 1
+
+
+def test_a_local_game_with_fewer_obstacles_is_the_same_game_when_the_rest_are_far():
+    """Six cars on the straight: car 0 and its rival side by side, a car 30 m ahead, three
+    more 450-550 m ahead. Car 0's local game predicting only the nearest other car
+    (``obstacles=1``) has the solution of the one predicting all four, for the same reason
+    as above: the far cars' collision terms are below the rounding of ``c_c`` over the whole
+    horizon, so both games' conditions agree in float64, and the solutions differ by no more
+    than each solve's distance to its own solution. The cars left out keep their predictions
+    in the field's shapes."""
+    game = RaceGame.create(get_track("straight"), [VehicleParams()] * 6, racing_weights(), horizon=50)
+    x0 = _field([50.0, 44.0, 80.0, 500.0, 550.0, 600.0], [1.0, -1.0, 0.5, 0.0, 1.0, -1.0])
+    options = dict(mode="feedback", max_iterations=200, tolerance=1e-9)
+    solutions = []
+    for obstacles in (None, 1):
+        local = rival_game.local_game(game, x0, 0, 1, obstacles=obstacles)
+        assert list(local.order) == [0, 1, 2, 3, 4, 5]
+        assert local.problem.params.predicted.shape == (51, 4 if obstacles is None else 1, 6)
+        res = ilq.solve(local.problem, local.x0, init=local.init, validate=False, **options)
+        assert bool(res.converged)
+        solutions.append((res, rival_game.to_field(local, res.xs, res.us, None)[0]))
+    (whole, whole_xs), (fewer, fewer_xs) = solutions
+    gap = np.min(np.min(whole_xs[:, 3:, 0], axis=1) - np.max(whole_xs[:, :3, 0], axis=1))
+    c, length = float(np.asarray(game.weights.c_collision)[0]), float(np.max(game.vehicles.length))
+    assert c * np.exp(2.0 * (1.0 - (gap / length) ** 2)) < np.finfo(float).eps * c
+    bound = _contraction_bound(whole) + _contraction_bound(fewer)
+    assert np.max(np.abs(whole_xs[:, :2] - fewer_xs[:, :2])) <= bound
+    np.testing.assert_array_equal(fewer_xs[:, 2:], whole_xs[:, 2:])  # the predictions of every other car
+
+
+def test_a_local_games_size_does_not_depend_on_the_field():
+    """With ``obstacles`` the local game of a car and its two rivals has the same players,
+    predicted cars and stage residuals in a field of 8 cars as in one of 20."""
+    import jax
+
+    shapes = []
+    for cars in (8, 20):
+        game = RaceGame.create(get_track("trefoil"), [VehicleParams()] * cars, racing_weights(), horizon=10)
+        x0 = _field(10.0 * np.arange(cars))
+        local = rival_game.local_game(game, x0, 3, 2, obstacles=2)
+        problem = local.problem
+        residuals = jax.eval_shape(lambda x, u: problem.stage_gauss_newton(problem.params, 0, 0, x, u),
+                                   local.x0, local.init[0, 0])
+        shapes.append((problem.num_players, problem.params.predicted.shape,
+                       jax.tree_util.tree_map(lambda leaf: leaf.shape, residuals)))
+    assert shapes[0] == shapes[1]
+    assert shapes[0][1] == (11, 2, 6)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, None])
+def test_obstacles_below_one_or_not_an_integer_is_refused(bad):
+    with pytest.raises(ValueError, match="obstacles must be"):
+        make_agent("ilqgame-fb").__class__(obstacles=bad)
+    if bad is not None:
+        with pytest.raises(ValueError, match="obstacles must be None"):
+            rival_game.check_obstacles(bad)

@@ -117,13 +117,13 @@ def _solve_local_games(planner: "BatchedPlanner", game, x0s: np.ndarray, egos: n
     batched solve with ``planner``'s solver: ``(us, xs, K or None, result)`` in the field's
     shapes (:func:`planners.rival_game.to_field_batch`)."""
     predicted = predict_constant_velocity_batch(x0s, planner.game.horizon, planner.game.dt)
-    problem, x0, local_init, orders = rival_game.local_games(game, x0s, egos, planner.rivals, init, predicted)
+    problem, x0, local_init, orders, others = rival_game.local_games(game, x0s, egos, planner.rivals, init, predicted,
+                                                                     planner.obstacles)
     axes = rival_game.RivalParams(game=planner._game_axes, order=0, predicted=0)
     res = solve_batch(problem, x0, local_init, params_axes=axes, devices=planner.devices, batching=planner.batching,
                       options=planner.options, validate=False)
     res = jax.device_get(res)
-    xs, us, K = rival_game.to_field_batch(orders, res.xs, res.us, res.K if planner.feedback else None, init,
-                                          problem.params.predicted)
+    xs, us, K = rival_game.to_field_batch(orders, res.xs, res.us, res.K if planner.feedback else None, init, others)
     return us, xs, K, res
 
 
@@ -226,6 +226,7 @@ class BatchedPlanner(BatchedOpponent):
         self._game_axes = rival_game.game_axes(self._solve_game)
         # a game agent in a field larger than its game: local games (planners.rival_game)
         self.rivals = None if self.is_ilqr or agent.rivals >= self.game.num_players - 1 else agent.rivals
+        self.obstacles = None if self.rivals is None else agent.obstacles
         if self.is_ilqr:
             self._ego_template = ilqr.ego_problem(self._solve_game, np.zeros((self.game.num_players, STATE_DIM)),
                                                   self.index)
@@ -363,7 +364,8 @@ class BatchedPlanner(BatchedOpponent):
         if self.rivals is None:
             return None
         game = self.game
-        return (type(self), self.options, self.rivals, self.feedback, self.num_races, game.num_players, game.horizon,
+        return (type(self), self.options, self.rivals, self.obstacles, self.feedback, self.num_races, game.num_players,
+                game.horizon,
                 id(game.track), id(game.vehicles), self.devices, self.batching, self.agent.responsibility == 1.0)
 
     @classmethod

@@ -98,6 +98,7 @@ class CompiledPlanner:
         self.responsibility = agent.responsibility
         self.ego_template = planner._ego_template if self.is_ilqr else None
         self.rivals = planner.rivals  # local games (planners.rival_game), or None: the whole game
+        self.obstacles = planner.obstacles  # the predicted cars of a local game (None: all)
         self.vehicle = planner._brake_law.vehicle
 
     # --- the interface --------------------------------------------------------------------
@@ -186,12 +187,12 @@ class CompiledPlanner:
         predicted at constant velocity (:mod:`planners.rival_game`, traced)."""
         k, P = self.rivals, self.rivals + 1
         order = rival_game.field_orders(game.track, x[None], jnp.asarray([self.index]), k, game.racing[None])[0]
-        predicted = ilqr.predict_constant_velocity(game, x)
-        params = rival_game.RivalParams(game=game, order=order, predicted=predicted[:, order[P:]])
+        others = ilqr.predict_constant_velocity(game, x)[:, order[P:]]
+        params = rival_game.RivalParams(game=game, order=order, predicted=others[:, :self.obstacles])
         problem = rival_game.local_problem(P, STATE_DIM, game.input_dim, self.horizon, params)
         res = ilq.solve_arrays(problem, x[order[:P]].reshape(-1), init[:, order[:P]], self.options)
         xs, us, K = rival_game.to_field_batch(order[None], res.xs[None], res.us[None],
-                                              res.K[None] if self.feedback else None, init[None], params.predicted[None])
+                                              res.K[None] if self.feedback else None, init[None], others[None])
         K = K[0] if self.feedback else jnp.zeros((self.horizon, 2, x.size), x.dtype)
         return us[0], xs[0], K, res.converged
 

@@ -49,6 +49,7 @@ __all__ = [
     "ILQRAgent",
     "OpenLoopGameAgent",
     "DEFAULT_RESPONSIBILITY",
+    "DEFAULT_OBSTACLES",
     "DEFAULT_RIVALS",
     "RECOVERED_SPEED",
     "REPLAN_TOLERANCE",
@@ -63,6 +64,10 @@ RECOVERED_SPEED = 5.0  # [m/s] and it plans normally again once this fast
 DEFAULT_RIVALS = 2
 """The rivals a game planner plays its game with in a field (``rivals``): the nearest car
 ahead and behind, typically, and every car of a race of three."""
+DEFAULT_OBSTACLES = 4
+"""The cars beyond its rivals that a game planner's local game predicts as moving obstacles
+(``obstacles``), the nearest first: two more ahead and behind, typically. The rest of a field
+is left out, so a local game costs the same whatever N (:mod:`planners.rival_game`)."""
 DEFAULT_RESPONSIBILITY = 2.0
 """The ratio of the collision weight a planner carries towards a car ahead of it to that
 towards a car behind it (``responsibility``), in its plans of every car. The paper lets the
@@ -508,6 +513,14 @@ def certificate_record(game: Any, x0: np.ndarray, result: Any, mode: str) -> dic
     return {"certified": verdict == LOCAL_NASH, "verdict": verdict, "certify_time": time.perf_counter() - t0}
 
 
+def _checked_obstacles(obstacles) -> int:
+    """An agent's ``obstacles``: an integer >= 1 (an agent always has a number of them)."""
+    if obstacles is None:
+        raise ValueError("obstacles must be an integer >= 1 (the nearest other cars a local game predicts); "
+                         "a number at least the field's size predicts every car")
+    return rival_game.check_obstacles(obstacles)
+
+
 class _GameAgent(RecedingHorizonAgent):
     """A game method: the game solved by :func:`planners.ilq.solve` in the solver mode that
     the method's name stands for (:data:`planners.methods.GAME_MODES`).
@@ -520,6 +533,9 @@ class _GameAgent(RecedingHorizonAgent):
             with ``k + 1`` cars or fewer, the whole game (bit for bit the solve without this
             option). A rival's warm start is its row of the stored plan, kept while it is not
             among the nearest.
+        obstacles: the cars of a local game predicted as moving obstacles: the ``obstacles``
+            nearest after its rivals (integer >= 1); the cars further away are left out of
+            its costs, so its cost does not grow with the field.
         certify: certify every adopted re-plan in the cheap form (:func:`certificate_record`,
             about 17 ms for two cars at T = 50 on one CPU core; of the local game when it
             plays one): its diagnostics carry ``certified``, ``verdict`` and
@@ -530,18 +546,21 @@ class _GameAgent(RecedingHorizonAgent):
 
     planned_players = 2  # at least: every car of the race
 
-    def __init__(self, rivals: int = DEFAULT_RIVALS, certify: bool = False, **kwargs: Any) -> None:
+    def __init__(self, rivals: int = DEFAULT_RIVALS, obstacles: int = DEFAULT_OBSTACLES, certify: bool = False,
+                 **kwargs: Any) -> None:
         self.rivals = rival_game.check_rivals(rivals)  # before the solver options are checked
+        self.obstacles = _checked_obstacles(obstacles)
         super().__init__(**kwargs)
         self.certify = bool(certify)
 
     @classmethod
     def spec_options(cls) -> dict[str, type]:
-        return {**super().spec_options(), "rivals": int, "certify": bool}
+        return {**super().spec_options(), "rivals": int, "obstacles": int, "certify": bool}
 
     @classmethod
     def spec_defaults(cls) -> dict[str, Any]:
-        return {**super().spec_defaults(), "rivals": DEFAULT_RIVALS, "certify": False}
+        return {**super().spec_defaults(), "rivals": DEFAULT_RIVALS, "obstacles": DEFAULT_OBSTACLES,
+                "certify": False}
 
     def _adopted(self, game, x0, result, record):
         if self.certify:
@@ -555,7 +574,7 @@ class _GameAgent(RecedingHorizonAgent):
         if not self._plays_local_game(game) or self.budget_ms is not None:
             return None  # the whole game (today's solve), or a wall-clock budget: solved by act()
         self._validate(game)
-        return rival_game.local_game(game, x0, self.index, self.rivals, init, predicted)
+        return rival_game.local_game(game, x0, self.index, self.rivals, init, predicted, self.obstacles)
 
     def _validate(self, game) -> None:
         """Refuse input weights that make a player's LQ game undefined (NumPy; the local
@@ -583,7 +602,7 @@ class _GameAgent(RecedingHorizonAgent):
             res = ilq.solve(game, x0, init=init, **options)
             us, xs, K = (np.asarray(a) for a in (res.us, res.xs, res.K))
             return us, xs, (K[:, self.index] if self.feedback else None), res
-        local = rival_game.local_game(game, x0, self.index, self.rivals, init)
+        local = rival_game.local_game(game, x0, self.index, self.rivals, init, obstacles=self.obstacles)
         self._validate(game)
         res = ilq.solve(local.problem, local.x0, init=local.init, validate=False, **options)
         return self._from_result(local, jax.device_get(res), init)
@@ -638,9 +657,10 @@ class ILQRAgent(RecedingHorizonAgent):
     feedback = False
 
     def __init__(self, prediction: str = CONSTANT_VELOCITY, levels: int = 1, rivals: int = DEFAULT_RIVALS,
-                 **kwargs: Any) -> None:
+                 obstacles: int = DEFAULT_OBSTACLES, **kwargs: Any) -> None:
         prediction_models.check_prediction(prediction)  # when the agent is made, not at its reset
         self.rivals = rival_game.check_rivals(rivals)
+        self.obstacles = _checked_obstacles(obstacles)
         prediction_models.check_levels(prediction, levels)
         if kwargs.get("budget_ms") is not None and prediction not in _ONE_SOLVE_PREDICTIONS:
             raise ValueError(f"budget_ms bounds one solve: iLQR takes it with prediction in "
@@ -652,11 +672,12 @@ class ILQRAgent(RecedingHorizonAgent):
 
     @classmethod
     def spec_options(cls) -> dict[str, type]:
-        return {**super().spec_options(), "prediction": str, "levels": int, "rivals": int}
+        return {**super().spec_options(), "prediction": str, "levels": int, "rivals": int, "obstacles": int}
 
     @classmethod
     def spec_defaults(cls) -> dict[str, Any]:
-        return {**super().spec_defaults(), "prediction": CONSTANT_VELOCITY, "levels": 1, "rivals": DEFAULT_RIVALS}
+        return {**super().spec_defaults(), "prediction": CONSTANT_VELOCITY, "levels": 1, "rivals": DEFAULT_RIVALS,
+                "obstacles": DEFAULT_OBSTACLES}
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
         super().reset(seed, index, env_info)
@@ -665,7 +686,7 @@ class ILQRAgent(RecedingHorizonAgent):
         made_for = getattr(self, "_predictor_for", None)
         if made_for is None or made_for[0] is not self.game or made_for[1] != self.index:
             self._predict = prediction_models.make_predictor(
-                self.prediction, self.game, self.index, levels=self.levels, rivals=self.rivals,
+                self.prediction, self.game, self.index, levels=self.levels, rivals=self.rivals, obstacles=self.obstacles,
                 max_iterations=self.max_iterations,
                 **self.solver_options)
             self._predictor_for = (self.game, self.index)

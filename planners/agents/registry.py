@@ -172,6 +172,8 @@ _GAME_HELP = {
     "rivals": ("in a field, the game is this car's with its nearest rivals (by track distance, chosen at "
                "every re-plan), the others predicted at constant velocity; rivals >= cars - 1: the whole game "
                f"({ILQR}: the game of prediction={FEEDBACK_GAME} or {OPEN_LOOP_GAME})"),
+    "obstacles": ("in a local game, the nearest other cars after the rivals predicted as moving obstacles; the cars "
+                  "further away are left out of its costs, so it costs the same in any field"),
     "certify": ("certify every adopted re-plan as a local Nash equilibrium or not (cheap form, ~17 ms for "
                 "2 cars at T=50): diagnostics' certified and verdict, the race record's certified_share"),
 }
