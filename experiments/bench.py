@@ -826,6 +826,8 @@ _TARGETS = {
     "target_vs_ghost": ("vs_ghost", True),
     "target_ms_p95": ("ms_p95", False),
     "target_exponent": ("exponent", False),
+    "target_step_20_over_10": ("step_20_over_10", False),
+    "target_speedup": ("speedup", True),
     "target_ms": (("ms_per_iter", "ms_per_solve", "ms_per_frame"), False),
 }
 
