@@ -39,51 +39,80 @@ def cost_exponent(cars: list[int], seconds_per_step: list[float]) -> float:
     return float(np.polyfit(np.log(cars), np.log(seconds_per_step), 1)[0])
 
 
-def field_race_rate(cars: int, spec: str = FIELD_SPEC, steps: int = 40, warmup: int = 3,
-                    track: str = "trefoil", seed: int = 0, name: str | None = None) -> dict[str, Any]:
-    """One field's race: ``cars`` agents ``spec`` on ``track``'s seeded grid, ``warmup`` steps
-    (the first compiles), then ``steps`` timed steps of the whole loop (the field's batched
-    re-plans, every car's action, the env step)."""
-    from planners.agents import make_agent
-    from planners.agents.field import solve_field
-    from racing_env import RaceConfig
-    from racing_env.env import RacingParallelEnv
+class _FieldRace:
+    """A field's race stepped one timed step at a time (so that several can run in turns):
+    ``cars`` agents ``spec`` on ``track``'s seeded grid; a step is the whole loop (the field's
+    batched re-plans, every car's action, the env step)."""
 
-    env = RacingParallelEnv(RaceConfig(track=track, num_agents=cars, max_steps=warmup + steps + 1))
-    observations, _ = env.reset(seed=seed)
-    agents = [make_agent(spec) for _ in range(cars)]
-    for i, agent in enumerate(agents):
-        agent.reset(seed, i, env)
-    index = {name: i for i, name in enumerate(env.possible_agents)}
-    times, fallbacks, iterations = [], 0, []
-    for _ in range(warmup + steps):
+    def __init__(self, cars: int, spec: str, steps: int, track: str, seed: int) -> None:
+        from planners.agents import make_agent
+        from racing_env import RaceConfig
+        from racing_env.env import RacingParallelEnv
+
+        self.cars, self.spec, self.track = cars, spec, track
+        self.env = RacingParallelEnv(RaceConfig(track=track, num_agents=cars, max_steps=steps + 1))
+        self.observations, _ = self.env.reset(seed=seed)
+        self.agents = [make_agent(spec) for _ in range(cars)]
+        for i, agent in enumerate(self.agents):
+            agent.reset(seed, i, self.env)
+        self.index = {name: i for i, name in enumerate(self.env.possible_agents)}
+        self.times: list[float] = []
+        self.fallbacks, self.iterations = 0, []
+
+    def step(self) -> None:
+        from planners.agents.field import solve_field
+
+        env = self.env
         if not env.agents:
-            break
+            return
         start = time.perf_counter()
         state = env.state()
-        racing = [agents[index[a]] for a in env.agents]
-        solve_field(racing, [observations[a] for a in env.agents], state)
-        actions = {a: agents[index[a]].act(observations[a], state) for a in env.agents}
-        observations, *_ = env.step(actions)
-        times.append(time.perf_counter() - start)
+        racing = [self.agents[self.index[a]] for a in env.agents]
+        solve_field(racing, [self.observations[a] for a in env.agents], state)
+        actions = {a: self.agents[self.index[a]].act(self.observations[a], state) for a in env.agents}
+        self.observations, *_ = env.step(actions)
+        self.times.append(time.perf_counter() - start)
         for agent in racing:
             record = agent.diagnostics()
-            fallbacks += bool(record["fallback"])
+            self.fallbacks += bool(record["fallback"])
             if record["iterations"] is not None:
-                iterations.append(record["iterations"])
-    timed = np.array(times[warmup:])
-    return {"name": name or f"field_{cars}_cars", "cars": cars, "spec": spec, "track": track,
-            "steps_per_s": float(len(timed) / timed.sum()), "ms_per_step": 1e3 * float(np.median(timed)),
-            "ms_per_step_p95": 1e3 * float(np.percentile(timed, 95)), "compile_s": float(times[0]),
-            "steps_timed": int(len(timed)), "fallbacks": fallbacks,
-            "iterations_median": float(np.median(iterations)) if iterations else None,
-            "target_steps_per_s": TARGET_STEPS_PER_S if cars == 10 else None}
+                self.iterations.append(record["iterations"])
+
+    def row(self, warmup: int, name: str | None = None) -> dict[str, Any]:
+        timed = np.array(self.times[warmup:])
+        return {"name": name or f"field_{self.cars}_cars", "cars": self.cars, "spec": self.spec, "track": self.track,
+                "steps_per_s": float(len(timed) / timed.sum()), "ms_per_step": 1e3 * float(np.median(timed)),
+                "ms_per_step_p95": 1e3 * float(np.percentile(timed, 95)), "compile_s": float(self.times[0]),
+                "steps_timed": int(len(timed)), "fallbacks": self.fallbacks,
+                "iterations_median": float(np.median(self.iterations)) if self.iterations else None,
+                "target_steps_per_s": TARGET_STEPS_PER_S if self.cars == 10 else None}
+
+
+def field_race_rates(races: dict[str, tuple[int, str]], steps: int = 40, warmup: int = 3, track: str = "trefoil",
+                     seed: int = 0) -> dict[str, dict[str, Any]]:
+    """Races ``{name: (cars, spec)}`` (see :class:`_FieldRace`) timed in turns, a step of each
+    in every round, so that a change in the machine's load falls on them alike: ``warmup``
+    steps (the first compiles), then ``steps`` timed ones; a row per race."""
+    fields = {name: _FieldRace(cars, spec, warmup + steps, track, seed) for name, (cars, spec) in races.items()}
+    for _ in range(warmup + steps):
+        for race in fields.values():
+            race.step()
+    return {name: race.row(warmup, name) for name, race in fields.items()}
+
+
+def field_race_rate(cars: int, spec: str = FIELD_SPEC, steps: int = 40, warmup: int = 3,
+                    track: str = "trefoil", seed: int = 0) -> dict[str, Any]:
+    """One field's race (:func:`field_race_rates` of one race)."""
+    name = f"field_{cars}_cars"
+    return field_race_rates({name: (cars, spec)}, steps, warmup, track, seed)[name]
 
 
 def field_rows(fields: tuple[int, ...] = FIELDS, steps: int = 40) -> Iterator[dict[str, Any]]:
     """A row per field (:func:`field_race_rate`), then the fitted exponent of a step's cost in
     N over every field and over the fields of local games (more than ``rivals + 1 = 3`` cars,
-    whose re-plans are all games of three players)."""
+    whose re-plans are all games of three players); then the 10- and 20-car fields with the
+    default obstacles and with every other car predicted, the four timed in turns, and their
+    ratios."""
     rows = []
     for cars in fields:
         row = field_race_rate(cars, steps=steps)
@@ -98,15 +127,19 @@ def field_rows(fields: tuple[int, ...] = FIELDS, steps: int = 40) -> Iterator[di
         if len(local) >= 2:
             exponent["exponent_local_games"] = cost_exponent(*map(list, zip(*local)))
         yield exponent
-    by_cars = {row["cars"]: row for row in rows}
-    if 10 in by_cars and 20 in by_cars:
-        every = {cars: field_race_rate(cars, FIELD_SPEC + EVERY_CAR_PREDICTED, steps=steps,
-                                       name=f"field_{cars}_cars_every_car_predicted") for cars in (10, 20)}
-        yield from every.values()
-        yield {"name": "field_20_over_10", "step_20_over_10": by_cars[20]["ms_per_step"] / by_cars[10]["ms_per_step"],
-               "step_20_over_10_every_car_predicted": every[20]["ms_per_step"] / every[10]["ms_per_step"],
+    if 10 in fields and 20 in fields:
+        runs = {f"field_{cars}_cars{suffix}_in_turns": (cars, FIELD_SPEC + extra)
+                for cars in (10, 20) for suffix, extra in (("", ""), ("_every_car_predicted", EVERY_CAR_PREDICTED))}
+        timed = field_race_rates(runs, steps=steps)
+        yield from timed.values()
+        step = {name: row["ms_per_step"] for name, row in timed.items()}
+        yield {"name": "field_20_over_10",
+               "step_20_over_10": step["field_20_cars_in_turns"] / step["field_10_cars_in_turns"],
+               "step_20_over_10_every_car_predicted": (step["field_20_cars_every_car_predicted_in_turns"]
+                                                       / step["field_10_cars_every_car_predicted_in_turns"]),
                "target_step_20_over_10": TARGET_20_OVER_10}
-        yield {"name": "field_10_speedup", "speedup": by_cars[10]["steps_per_s"] / every[10]["steps_per_s"],
+        yield {"name": "field_10_speedup",
+               "speedup": step["field_10_cars_every_car_predicted_in_turns"] / step["field_10_cars_in_turns"],
                "target_speedup": TARGET_SPEEDUP_10}
 
 
