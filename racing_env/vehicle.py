@@ -87,7 +87,7 @@ def interp_in_square_np(v: np.ndarray, speeds: np.ndarray, values: np.ndarray) -
     return np.where(hit, values[np.minimum(exact, len(speeds) - 1)], out)
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class LimitTable:
     """A car's speed-dependent limits at ``K >= 2`` speeds (stacked: ``(N, K)`` per field).
 
@@ -125,6 +125,15 @@ class LimitTable:
             if top.size == 0 or top[0] == 0 or row_ax[top[0]] != 0 or np.any(row_ax[top[0]:] > 0):
                 raise ValueError("LimitTable.ax_max (the drive limit) must be > 0 m/s^2 up to the top speed, exactly "
                                  f"0 there and not positive beyond it, got {row_ax.tolist()} at speeds {row_speeds.tolist()}")
+
+    def __eq__(self, other: object) -> bool:
+        """Equal tables: the same values at the same speeds (concrete tables)."""
+        if not isinstance(other, LimitTable):
+            return NotImplemented
+        return all(np.array_equal(np.asarray(getattr(self, name)), np.asarray(getattr(other, name)))
+                   for name in ("speeds", "ax_max", "rho"))
+
+    __hash__ = None  # arrays: use VehicleParams.key() for a hashable description
 
     @property
     def top_speed(self) -> np.ndarray:
