@@ -23,6 +23,10 @@ import numpy as np
 
 from racing_env.vehicle import LimitTable, VehicleParams, interp_in_square_np
 
+#: Where no source gives jerk limits, a full-size class reaches its largest gg radius in the time
+#: the paper's car reaches its 12 m/s^2 at 30 m/s^3 [s] (so the AV-21, 32 m/s^2 at its top
+#: speed, gets 81 m/s^3; TUM's car, 12 m/s^2, the paper's 30 m/s^3).
+JERK_RISE_TIME = 12.0 / 30.0
 #: Standard gravity [m/s^2] (the value TUMFTM's racecar.ini uses).
 GRAVITY = 9.81
 #: Air density [kg/m^3] at sea level and 15 degrees C.
@@ -133,8 +137,9 @@ def _av21() -> VehicleParams:
     ax, rho = av21_source_limits(AV21_SPEEDS)
     table = table_with_top_speed(AV21_SPEEDS, ax, rho, av21_figures()["top_speed"])
     # the footprint: the paper's 4.7 m x 2.0 m (no public figure for the AV-21's was found)
+    jerk = float(np.max(table.rho)) / JERK_RISE_TIME
     return VehicleParams.from_table(table, length=4.7, width=2.0, mass=AV21_MASS,
-                                    min_turn_radius=AV21_WHEELBASE / math.tan(AV21_STEER_MAX))
+                                    min_turn_radius=AV21_WHEELBASE / math.tan(AV21_STEER_MAX), jx_max=jerk, jy_max=jerk)
 
 
 # --- f1tenth: f1tenth/f1tenth_gym ---------------------------------------------------------------------------
