@@ -79,8 +79,9 @@ class RaceSpec:
 
     def weights(self) -> CostWeights:
         """Every car's cost weights in the race's game: the defaults with jerk weight
-        ``jerk_weight``."""
-        return racing_weights(self.jerk_weight)
+        ``jerk_weight``, scaled for the jerk limits of the race's ``car``
+        (:func:`racing_env.costs.racing_weights`)."""
+        return racing_weights(self.jerk_weight, get_car(self.car))
 
     def to_race_config(self, num_agents: int, scenario: str = "grid", **fields: Any) -> RaceConfig:
         """This race for ``num_agents`` cars from ``scenario``

@@ -66,6 +66,7 @@ from experiments.tournament import expand_lineup, has_count, shuffle_field, spli
 from planners.agents import with_options
 from racing_env.car_classes import CAR_CLASSES, car_names, get_car
 from racing_env.config import RaceConfig, is_number
+from racing_env.costs import racing_weights
 from racing_env.costs import CostWeights
 from racing_env.vehicle import SCALAR_FIELDS
 
@@ -216,11 +217,11 @@ class SweepConfig(StepBudget, RaceSpec):
         weights, vehicles = [], []
         for slot in range(cars):
             agent = slots[slot]
-            weights.append(race.weights().replace(**{**fields("weights.", WEIGHT_FIELDS),
-                                                     **fields(f"agent{agent}.", WEIGHT_FIELDS)}))
-            car = get_car(point.get(f"agent{agent}.car", race.car))
-            vehicles.append(car.replace(**{**fields("vehicles.", VEHICLE_FIELDS),
-                                           **fields(f"agent{agent}.", VEHICLE_FIELDS)}))
+            vehicle = get_car(point.get(f"agent{agent}.car", race.car)).replace(
+                **{**fields("vehicles.", VEHICLE_FIELDS), **fields(f"agent{agent}.", VEHICLE_FIELDS)})
+            vehicles.append(vehicle)
+            weights.append(racing_weights(race.jerk_weight, vehicle).replace(
+                **{**fields("weights.", WEIGHT_FIELDS), **fields(f"agent{agent}.", WEIGHT_FIELDS)}))
         any_car = race.car != "paper" or any(
             k.split(".", 1)[-1] in VEHICLE_FIELDS + ("car",) for k in point if "." in k)
         return race.to_race_config(cars, "grid", weights=weights,

@@ -217,7 +217,12 @@ class RaceConfig:
 
     def game_weights(self) -> CostWeights | Sequence[CostWeights]:
         """The cost weights of the game the env builds: ``weights``, or when None the racing
-        default, every car with jerk weight :data:`racing_env.costs.RACING_JERK_WEIGHT`."""
-        if self.weights is None:
+        default, every car with jerk weight :data:`racing_env.costs.RACING_JERK_WEIGHT` scaled
+        for its jerk limits (:func:`racing_env.costs.racing_weights`)."""
+        if self.weights is not None:
+            return self.weights
+        if self.vehicles is None:
             return racing_weights()
-        return self.weights
+        if isinstance(self.vehicles, VehicleParams):
+            return racing_weights(vehicle=self.vehicles)
+        return [racing_weights(vehicle=vehicle) for vehicle in self.vehicles]
