@@ -504,7 +504,8 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--jerk-weight", type=float, default=None,
                       help="every car's jerk weight r (R = r I) in the race's game, which the planners plan with "
                       "(default: 0.01, racing_env.costs.RACING_JERK_WEIGHT, the env's own default for races; "
-                      "CostWeights' default 1 is for single solves)")
+                      "CostWeights' default 1 is for single solves; scaled by (30 / jerk limit)^2 for a --car whose "
+                      "jerk limits are not 30 m/s^3)")
     tour.add_argument("--scenario", default="grid", choices=SCENARIO_CHOICES,
                       help="the start: grid (a seeded rolling grid per --grids, the default), paper (the paper's "
                       "overtaking scene: the first slot's car, v_max 20 m/s, 10 m ahead of the second, v_max 25 m/s, "

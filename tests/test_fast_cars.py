@@ -1,7 +1,8 @@
 """The planners and the racing-line driver with the fastest car class (the Dallara AV-21,
 87.6 m/s): alone from Monza's grid, each drives the first 1,000 m (the start straight at
 over 80 m/s and the braking zone into the first chicane) without leaving the track, within
-10% of the quasi-steady-state time of the same car from the same start speed; the
+6% of the quasi-steady-state time of the same car from the same start speed (the planners
+take 1.6% more, 8% at the jerk weight tuned for the paper car; the racing-line driver 5%); the
 racing-line driver laps Suzuka, whose esses ask for braking at the lateral limit, on the
 track. The planners are slow tests (their compilations); the racing-line driver is cheap."""
 
@@ -45,7 +46,7 @@ def test_each_agent_drives_monzas_first_kilometre_with_the_fastest_class(spec):
     profile = limits.speed_profile(limits.get_line(env.track, "raceline"), car, v_start=start_speed)
     qss = float(np.interp(DISTANCE, np.asarray(env.track.s), profile.t))  # from s = 0 at the start speed
     assert finish is not None and off == 0, (finish, off)
-    assert finish < 1.10 * qss, (finish, qss)
+    assert finish < 1.06 * qss, (finish, qss)
     assert top > 0.9 * float(car.v_max)  # the class's speed, not the paper car's 25 m/s
 
 
