@@ -133,7 +133,9 @@ class LimitTable:
         return all(np.array_equal(np.asarray(getattr(self, name)), np.asarray(getattr(other, name)))
                    for name in ("speeds", "ax_max", "rho"))
 
-    __hash__ = None  # arrays: use VehicleParams.key() for a hashable description
+    def __hash__(self) -> int:
+        """From the values (concrete tables), so that a car with a table can key a cache."""
+        return hash(tuple(np.asarray(getattr(self, name), dtype=float).tobytes() for name in ("speeds", "ax_max", "rho")))
 
     @property
     def top_speed(self) -> np.ndarray:

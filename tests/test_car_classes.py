@@ -204,3 +204,14 @@ def test_the_race_jerk_weight_is_scaled_for_a_class_jerk_limits(cars):
     assert av21.r_jx < RACING_JERK_WEIGHT / 5.0  # 81 m/s^3: (30 / 81)^2 = 0.14
     field = RaceConfig(num_agents=2, vehicles=[cars["paper"], cars["av21"]]).game_weights()
     assert [w.r_jy for w in field] == [RACING_JERK_WEIGHT, av21.r_jy]
+
+
+def test_a_class_car_is_equal_to_itself_and_keys_a_cache(cars):
+    """Two builds of a class are equal and hash alike (the JAX learner caches its compiled race
+    by the race's config, whose cars are these), and another class differs."""
+    from experiments.race_spec import RaceSpec
+
+    assert get_car("tum") == cars["tum"] and hash(get_car("tum")) == hash(cars["tum"])
+    assert cars["tum"] != cars["av21"]
+    config = RaceSpec(track="Monza", car="tum").to_race_config(2)
+    assert {config: 1}[RaceSpec(track="Monza", car="tum").to_race_config(2)] == 1
