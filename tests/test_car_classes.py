@@ -215,3 +215,17 @@ def test_a_class_car_is_equal_to_itself_and_keys_a_cache(cars):
     assert cars["tum"] != cars["av21"]
     config = RaceSpec(track="Monza", car="tum").to_race_config(2)
     assert {config: 1}[RaceSpec(track="Monza", car="tum").to_race_config(2)] == 1
+
+
+@pytest.mark.parametrize("name", car_names())
+def test_the_lap_time_limit_reads_the_curve_the_env_and_the_planners_read(name, cars):
+    """The QSS profile's scalar curve (racing_env.limits) equals VehicleParams.ax_max and rho
+    (the env's projection, the planners' costs) at speeds between and beyond the knots."""
+    car = cars[name]
+    curve = limits._Curve.of(car)
+    v = np.random.default_rng(0).uniform(0.0, 1.2 * float(car.v_max), 200)
+    np.testing.assert_allclose([curve.at(curve.ax, s * s) for s in v], np.asarray(car.ax_max(v)), rtol=0, atol=1e-9)
+    np.testing.assert_allclose([curve.at(curve.rho, s * s) for s in v], np.asarray(car.rho(v)), rtol=0, atol=1e-9)
+    kappa = np.array([1e-4, 1e-3, 0.01, 0.05])
+    w = curve.lateral_limit(kappa)
+    np.testing.assert_allclose(kappa * w, np.asarray(car.rho(np.sqrt(w))), rtol=1e-9)  # |kappa| V^2 = rho(V)
