@@ -306,7 +306,8 @@ class RacelineDriver:
         index: the car this controller drives (row of the joint state).
         vehicle: that car's parameters.
         pace: fraction of the limit's speed, in ``(0, 1]``.
-        margin: how far inside the boundaries the line (and a pass) is kept [m].
+        margin: how far inside the boundaries the line (and a pass) is kept [m], at the circuit's full
+            size (on a model at scale k, k times it: racing_env.track.scaled).
         line: ``"raceline"`` or ``"centerline"``.
         yielding: keep to the rules (True) or drive the line whoever is on it (False).
         time_gap: the time gap [s] kept to a car ahead on its path, >= 0.
@@ -325,7 +326,8 @@ class RacelineDriver:
 
         check_raceline_options(pace, margin, line, yielding, time_gap, standstill)
         self.track, self.index, self.vehicle = track, int(index), vehicle
-        self.pace, self.margin = float(pace), float(margin)
+        # the margin is at the circuit's full size: a model at scale k keeps k times it
+        self.pace, self.margin = float(pace), float(margin) * track.scale
         self.yielding, self.time_gap, self.standstill = bool(yielding), float(time_gap), float(standstill)
         self.fleet = fleet
         use_raceline = line == "raceline" and limits.has_raceline(track)

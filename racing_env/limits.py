@@ -230,6 +230,8 @@ def racing_line(
     """
     if not track.closed:
         raise ValueError(f"racing_line: {track.name!r} is an open track; racing lines are for closed circuits")
+    if path is None and track.scale != 1.0:  # a circuit's model: its full-size line, scaled
+        return _scaled_raceline(track, margin)
     if path is None:
         if circuit_name(track.name) is None:
             raise ValueError(f"no racing line is shipped for track {track.name!r}: pass path= (rows x_m,y_m) "
@@ -330,7 +332,28 @@ def racing_line(
 
 @functools.lru_cache(maxsize=64)
 def _shipped_raceline(track: Track, margin: float) -> RacingLine:
+    if track.scale != 1.0:
+        return _scaled_raceline(track, margin)
     return racing_line(track, margin=margin)
+
+
+def _scaled_raceline(track: Track, margin: float) -> RacingLine:
+    """The shipped racing line of a circuit's scaled model (:func:`racing_env.track.scaled`):
+    the full-size circuit's line ``margin / scale`` inside its boundaries, every length times
+    the scale, on the model's grid (the same points)."""
+    from racing_env.track import circuit
+
+    if circuit_name(track.name) is None:
+        raise ValueError(f"no racing line is shipped for track {track.name!r} (at scale {track.scale:g}): use the "
+                         f"centre line; the shipped circuits are {circuit_names()}")
+    full = circuit(track.name)
+    if full.num_points != track.num_points or not np.isclose(full.length * track.scale, track.length):
+        raise ValueError(f"track {track.name!r} at scale {track.scale:g} is not the shipped circuit's model "
+                         "(build it with racing_env.track.circuit(name, scale) or scaled(circuit(name), scale))")
+    line = _shipped_raceline(full, margin / track.scale)
+    k = track.scale
+    return RacingLine(track=track, n=line.n * k, chi=line.chi, sigma=line.sigma * k, kappa=line.kappa / k,
+                      length=line.length * k, name=line.name)
 
 
 def get_line(track: Track, line: str | RacingLine = "raceline", margin: float = 0.0) -> RacingLine:

@@ -230,3 +230,29 @@ def test_the_lap_time_limit_reads_the_curve_the_env_and_the_planners_read(name, 
     kappa = np.array([1e-4, 1e-3, 0.01, 0.05])
     w = curve.lateral_limit(kappa)
     np.testing.assert_allclose(kappa * w, np.asarray(car.rho(np.sqrt(w))), rtol=1e-9)  # |kappa| V^2 = rho(V)
+
+
+def test_a_circuits_model_is_the_circuit_scaled():
+    """A model at scale k (racing_env.track.scaled) is the circuit with every length times k:
+    a car k^(1/2) times as fast at the same accelerations laps it in k^(1/2) times the time
+    (the formula car without downforce, whose limits scale so), on the shipped line scaled."""
+    from racing_env.track import circuit
+
+    k = 0.1
+    full, model = circuit("Monza"), circuit("Monza", k)
+    assert model.scale == k and model.length == pytest.approx(k * full.length, rel=1e-12)
+    car = VehicleParams(rho_aero=0.0)
+    small = car.replace(v_max=float(car.v_max) * np.sqrt(k))
+    assert limits.lap_time_limit(model, small) == pytest.approx(np.sqrt(k) * limits.lap_time_limit(full, car), rel=1e-9)
+    line, full_line = limits.get_line(model, "raceline"), limits.get_line(full, "raceline")
+    np.testing.assert_allclose(line.n, k * full_line.n, rtol=1e-12)
+
+
+@pytest.mark.parametrize("scale", [0.0, -0.1, float("nan"), float("inf"), "0.1"])
+def test_a_scale_that_is_not_a_positive_number_is_refused(scale):
+    from racing_env.track import circuit, get_track
+
+    with pytest.raises(ValueError, match="scale must be a finite number > 0"):
+        circuit("Monza", scale)
+    with pytest.raises(ValueError, match="scale must be a finite number > 0"):
+        get_track("trefoil", scale=scale)
