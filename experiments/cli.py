@@ -8,6 +8,7 @@ and stable-baselines3) only by ``racing train``. Guide: README.md and docs/.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -99,7 +100,7 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
         cars=args.cars, seed=args.seed, versus=args.versus, max_steps=args.max_steps, step_budget_s=args.step_budget,
         enforce_budget=args.enforce_budget,
         on_collision=args.collision, on_off_track=args.off_track, scenario=args.scenario, **_contact_fields(args),
-        **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
+        **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}), car=args.car,
     )
     _check_ray(args.backend)
     run_tournament(config, Path(args.out), gif=not args.no_gif, fresh=args.fresh, backend=args.backend,
@@ -234,7 +235,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         imitate=args.imitate, imitate_episodes=args.imitate_episodes, imitate_noise=args.imitate_noise,
         imitate_spread=args.imitate_spread,
         hyperparameters=tuple(parse_hyperparameter(text) for text in args.hyperparameter or ()),
-        **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}),
+        **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}), car=args.car,
     )
     report = run_training(config, Path(args.out), fresh=args.fresh)
     return 130 if report["status"] == "interrupted" else 0
@@ -252,7 +253,7 @@ def _cmd_exploit(args: argparse.Namespace) -> int:
         targets=tuple(split_spec_list(args.targets)), seeds=args.seeds, timesteps=args.timesteps,
         learner=args.learner, envs=args.envs, grids=args.grids, eval_every=args.eval_every,
         hyperparameters=tuple(parse_hyperparameter(text) for text in args.hyperparameter or ()),
-        track=args.track, laps=args.laps, race_distance=args.race_distance, max_steps=args.max_steps,
+        track=args.track, laps=args.laps, race_distance=args.race_distance, max_steps=args.max_steps, car=args.car,
     )
     report = run_exploit(config, Path(args.out), backend=args.backend, workers=args.workers, address=args.address,
                          fresh=args.fresh)
@@ -264,11 +265,35 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
 
     path = sweep_path(args.file)
     config = load_sweep(path)
+    if args.car is not None:
+        config = dataclasses.replace(config, car=args.car)
     _check_ray(args.backend)
     out = Path(args.out) if args.out else Path("runs/sweep") / path.stem
     report = run_sweep(config, out, backend=args.backend, workers=args.workers, address=args.address,
                        fresh=args.fresh, plans=args.plans, report=args.report)
     return 130 if report["interrupted"] else 0
+
+
+def _cmd_cars(args: argparse.Namespace) -> int:
+    from experiments.cars import car_rows, print_cars, write_limits_page
+    from racing_env.track import circuit_names
+
+    if args.markdown:
+        print(f"wrote {write_limits_page(Path(args.markdown))}")
+        return 0
+    print_cars(car_rows(circuit_names() if args.all_circuits else None), as_json=args.json)
+    return 0
+
+
+def _car_option(default: str | None = "paper") -> argparse.ArgumentParser:
+    """``--car NAME``: every car's class (racing_env.car_classes)."""
+    from racing_env.car_classes import car_names
+
+    parent = argparse.ArgumentParser(add_help=False)
+    parent.add_argument("--car", default=default, choices=car_names(), metavar="NAME",
+                        help=f"every car's class, one of {', '.join(car_names())} (racing cars lists them; default: "
+                        + ("the sweep file's, else paper)" if default is None else f"{default}, the paper's car)"))
+    return parent
 
 
 def _compile_cache_option() -> argparse.ArgumentParser:
@@ -317,6 +342,7 @@ def _check_ray(backend: str) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     cache = _compile_cache_option()
+    car = _car_option()
     backends = _backend_options()
     recording = _recording_options()
     parser = argparse.ArgumentParser(
@@ -376,6 +402,19 @@ def build_parser() -> argparse.ArgumentParser:
     tracks.add_argument("--json", action="store_true", help="print the table as JSON")
     tracks.set_defaults(func=_cmd_tracks)
 
+    cars = sub.add_parser(
+        "cars", help="list the car classes (--car NAME) with their top speed and lap-time limit of Monza",
+        description="The car classes every race command takes with --car: the paper's car (the default), TUM's "
+        "research car, the Dallara AV-21 of the Indy Autonomous Challenge and the 1:10-scale F1TENTH car, with "
+        "their top speed and the lap-time limit (quasi-steady-state flying lap on the racing line) of Monza. "
+        "Sources and figures: docs/model.md, 'Car classes'.",
+    )
+    cars.add_argument("--all-circuits", action="store_true", help="the limits of every shipped circuit (a minute)")
+    cars.add_argument("--markdown", metavar="PATH", default=None,
+                      help="write the table of every circuit's limit per class as a Markdown page (docs/lap-limits.md)")
+    cars.add_argument("--json", action="store_true", help="print the table as JSON")
+    cars.set_defaults(func=_cmd_cars)
+
     paper = sub.add_parser(
         "paper", parents=[cache],
         help="reproduce the paper's figures and claims, certify every solution, map the scene's equilibria "
@@ -426,7 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     equilibria.set_defaults(func=_cmd_equilibria)
 
     tour = sub.add_parser(
-        "tournament", parents=[cache, backends, recording],
+        "tournament", parents=[car, cache, backends, recording],
         help="round robin of agents over seeded start grids (resumable; leaderboard, report.html, replays)",
         description="Every combination of --cars agents races on --grids start grids, once per rotation of "
         "the starting slots (with more --cars than agents, or a --lineup: one field per grid). Results are appended to OUT/results.jsonl as races end, every race's replay to "
@@ -465,7 +504,8 @@ def build_parser() -> argparse.ArgumentParser:
     tour.add_argument("--jerk-weight", type=float, default=None,
                       help="every car's jerk weight r (R = r I) in the race's game, which the planners plan with "
                       "(default: 0.01, racing_env.costs.RACING_JERK_WEIGHT, the env's own default for races; "
-                      "CostWeights' default 1 is for single solves)")
+                      "CostWeights' default 1 is for single solves; scaled by (30 / jerk limit)^2 for a --car whose "
+                      "jerk limits are not 30 m/s^3)")
     tour.add_argument("--scenario", default="grid", choices=SCENARIO_CHOICES,
                       help="the start: grid (a seeded rolling grid per --grids, the default), paper (the paper's "
                       "overtaking scene: the first slot's car, v_max 20 m/s, 10 m ahead of the second, v_max 25 m/s, "
@@ -554,7 +594,7 @@ def build_parser() -> argparse.ArgumentParser:
     conv.set_defaults(func=_cmd_convergence)
 
     train = sub.add_parser(
-        "train", parents=[cache],
+        "train", parents=[car, cache],
         help="train an RL agent (stable-baselines3, or PPO in JAX with --learner jax) against planner or scripted opponents (resumable)",
         description="Train an SB3 policy (MlpPolicy) to drive one car against --opponents (or alone: "
         "--time-trial) on seeded rolling grids, "
@@ -669,7 +709,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.set_defaults(func=_cmd_train)
 
     exploit = sub.add_parser(
-        "exploit", parents=[cache, backends],
+        "exploit", parents=[car, cache, backends],
         help="exploitability: train best responses against agents and race them against every agent (resumable)",
         description="For every target agent, train a best response per seed (--seeds) with a budget of --timesteps "
         "steps (racing train against the target alone), then race each best response against its own target and "
@@ -713,7 +753,7 @@ def build_parser() -> argparse.ArgumentParser:
     exploit.set_defaults(func=_cmd_exploit)
 
     sweep = sub.add_parser(
-        "sweep", parents=[cache, backends, recording],
+        "sweep", parents=[cache, backends, recording, _car_option(None)],
         help="races over a grid of settings from a TOML file, on local worker processes or a Ray cluster",
         description="Race a lineup of agents at every combination of the parameters in a TOML file (its keys: "
         "docs/sweeps.md), or in an example sweep shipped with the package, named by FILE (e.g. aggression; an "

@@ -15,6 +15,7 @@ import dataclasses
 import numbers
 from typing import Any
 
+from racing_env.car_classes import CAR_CLASSES, car_names, get_car
 from racing_env.config import RaceConfig, check_incident_rules, check_race_length
 from racing_env.contact import CONTACT_MODES
 from racing_env.observation import check_observation_units
@@ -50,6 +51,8 @@ class RaceSpec:
         observation_units: what the cars' observations are in
             (:data:`racing_env.observation.OBSERVATION_UNITS`): ``scaled`` (the default) or
             ``physical``.
+        car: every car's class (:data:`racing_env.car_classes.CAR_CLASSES`: ``paper``, the
+            default, ``tum``, ``av21``, ``f1tenth``).
     """
 
     track: str = "trefoil"
@@ -64,6 +67,7 @@ class RaceSpec:
     penalty_seconds: float = 5.0
     rules: tuple[str, ...] = DEFAULT_RULES
     observation_units: str = "scaled"
+    car: str = "paper"
 
     def __post_init__(self) -> None:
         check_race_spec(self)
@@ -75,19 +79,24 @@ class RaceSpec:
 
     def weights(self) -> CostWeights:
         """Every car's cost weights in the race's game: the defaults with jerk weight
-        ``jerk_weight``."""
-        return racing_weights(self.jerk_weight)
+        ``jerk_weight``, scaled for the jerk limits of the race's ``car``
+        (:func:`racing_env.costs.racing_weights`)."""
+        return racing_weights(self.jerk_weight, get_car(self.car))
 
     def to_race_config(self, num_agents: int, scenario: str = "grid", **fields: Any) -> RaceConfig:
         """This race for ``num_agents`` cars from ``scenario``
         (:data:`racing_env.scenarios.SCENARIOS`), every car's weights :meth:`weights`.
         ``fields``: further :class:`RaceConfig` fields (``vehicles``, ``reward``,
-        ``render_mode``, ...), which override the spec's (e.g. per-car ``weights``)."""
+        ``render_mode``, ...), which override the spec's (e.g. per-car ``weights``). Every car
+        is of class ``car`` unless ``fields`` give ``vehicles``; the paper's class leaves the
+        cars to the scenario (whose cars are the paper's)."""
         race: dict[str, Any] = dict(track=self.track, laps=self.laps, race_distance=self.race_distance,
                                     max_steps=self.max_steps, on_collision=self.on_collision,
                                     on_off_track=self.on_off_track, weights=self.weights(), contact=self.contact,
                                     penalties=self.penalties, penalty_seconds=self.penalty_seconds,
                                     rules=self.rules, observation_units=self.observation_units)
+        if self.car != "paper":
+            race["vehicles"] = get_car(self.car)
         race.update(fields)
         return RaceConfig(num_agents=num_agents, scenario=scenario, **race)
 
@@ -109,3 +118,5 @@ def check_race_spec(spec: RaceSpec) -> None:
         raise ValueError(f"contact must be one of {CONTACT_MODES}, got {spec.contact!r}")
     check_stewarding(spec.penalties, spec.penalty_seconds, 3, spec.rules)
     check_observation_units(spec.observation_units)
+    if not isinstance(spec.car, str) or spec.car not in CAR_CLASSES:
+        raise ValueError(f"unknown car class {spec.car!r}: the classes are {car_names()} (racing cars lists them)")

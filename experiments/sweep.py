@@ -21,10 +21,11 @@ fields are (:func:`experiments.tournament.shuffle_field`), instead of once per r
 ``agent<i>.`` parameter then sets every car of entry i, and the summary pools them.
 
 Parameter names: the race's ``track``, ``laps``, ``race_distance``, ``max_steps``,
-``jerk_weight``, ``on_collision``, ``on_off_track``; ``weights.<field>`` (a
+``jerk_weight``, ``on_collision``, ``on_off_track``, ``car`` (every car's class,
+:mod:`racing_env.car_classes`); ``weights.<field>`` (a
 :class:`racing_env.costs.CostWeights` field, for every car), ``vehicles.<field>`` (a
-:class:`racing_env.vehicle.VehicleParams` field, for every car) and ``agent<i>.<field>`` (that field for agent ``i`` of the lineup: a cost
-weight or a car parameter of its car, known to every planner in the race, or an option of
+:class:`racing_env.vehicle.VehicleParams` number, for every car) and ``agent<i>.<field>`` (that field for agent ``i`` of the lineup: a cost
+weight, ``car`` (its class) or a car parameter of its car, known to every planner in the race, or an option of
 its agent spec such as ``max_iterations`` or ``trailing.c_collision``, see
 :mod:`planners.agents.registry`).
 
@@ -63,9 +64,11 @@ from experiments.runner import JobLog
 from experiments.standings import wilson_interval, won_race
 from experiments.tournament import expand_lineup, has_count, shuffle_field, split_count
 from planners.agents import with_options
+from racing_env.car_classes import CAR_CLASSES, car_names, get_car
 from racing_env.config import RaceConfig, is_number
+from racing_env.costs import racing_weights
 from racing_env.costs import CostWeights
-from racing_env.vehicle import VehicleParams
+from racing_env.vehicle import SCALAR_FIELDS
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -75,11 +78,11 @@ else:  # pragma: no cover - Python 3.10
 RESULTS = "results.jsonl"
 CONFIG = "sweep.json"
 RACE_PARAMETERS = RACE_FIELDS  # the race's fields a point may set (RaceSpec's)
-ADDED_LATER = ("on_collision", "on_off_track", "rules", "observation_units")  # left out of sweep.json at their defaults
+ADDED_LATER = ("on_collision", "on_off_track", "rules", "observation_units", "car")  # left out of sweep.json at their defaults
 NUMBER_PARAMETERS = ("laps", "race_distance", "max_steps", "jerk_weight")
 WEIGHT_FIELDS = tuple(f.name for f in dataclasses.fields(CostWeights))
-VEHICLE_FIELDS = tuple(f.name for f in dataclasses.fields(VehicleParams))
-CAR_FIELDS = WEIGHT_FIELDS + VEHICLE_FIELDS  # what ``weights.``/``vehicles.`` and ``agent<i>.`` set on a car
+VEHICLE_FIELDS = SCALAR_FIELDS  # the car's numbers (its limit table is the class's: ``car``, ``agent<i>.car``)
+CAR_FIELDS = WEIGHT_FIELDS + VEHICLE_FIELDS + ("car",)  # what ``weights.``/``vehicles.`` and ``agent<i>.`` set on a car
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -126,7 +129,9 @@ class SweepConfig(StepBudget, RaceSpec):
             check_parameter_name(name, self.specs)
             if not isinstance(values, tuple) or not values:
                 raise ValueError(f"parameter {name} needs a non-empty list of values, got {values!r}")
-            if name in NUMBER_PARAMETERS or name.partition(".")[2] in CAR_FIELDS:
+            if name.partition(".")[2] == "car":
+                _check_cars(name, values)
+            elif name in NUMBER_PARAMETERS or name.partition(".")[2] in CAR_FIELDS:
                 _check_numbers(name, values)
         tracks = [self.track, *dict(self.parameters).get("track", ())]
         bad = [track for track in tracks if not isinstance(track, str)]  # a Path would not go into sweep.json
@@ -212,13 +217,22 @@ class SweepConfig(StepBudget, RaceSpec):
         weights, vehicles = [], []
         for slot in range(cars):
             agent = slots[slot]
-            weights.append(race.weights().replace(**{**fields("weights.", WEIGHT_FIELDS),
-                                                     **fields(f"agent{agent}.", WEIGHT_FIELDS)}))
-            vehicles.append(VehicleParams(**{**fields("vehicles.", VEHICLE_FIELDS),
-                                             **fields(f"agent{agent}.", VEHICLE_FIELDS)}))
-        any_car = any(k.split(".", 1)[-1] in VEHICLE_FIELDS for k in point if "." in k)
+            vehicle = get_car(point.get(f"agent{agent}.car", race.car)).replace(
+                **{**fields("vehicles.", VEHICLE_FIELDS), **fields(f"agent{agent}.", VEHICLE_FIELDS)})
+            vehicles.append(vehicle)
+            weights.append(racing_weights(race.jerk_weight, vehicle).replace(
+                **{**fields("weights.", WEIGHT_FIELDS), **fields(f"agent{agent}.", WEIGHT_FIELDS)}))
+        any_car = race.car != "paper" or any(
+            k.split(".", 1)[-1] in VEHICLE_FIELDS + ("car",) for k in point if "." in k)
         return race.to_race_config(cars, "grid", weights=weights,
                                    vehicles=vehicles if any_car else None)  # None: the scenario's cars
+
+
+def _check_cars(name: str, values: tuple[Any, ...]) -> None:
+    """Refuse a value of ``agent<i>.car`` that is not a car class's name."""
+    for value in values:
+        if not isinstance(value, str) or value not in CAR_CLASSES:
+            raise ValueError(f"{name} must be a car class, one of {car_names()}, got {value!r}")
 
 
 def _check_numbers(name: str, values: tuple[Any, ...]) -> None:
@@ -257,13 +271,13 @@ def check_parameter_name(name: str, lineup: tuple[str, ...]) -> None:
     known_agent = head.startswith("agent") and index.isdigit() and int(index) < cars
     if name in RACE_PARAMETERS or ((head == "weights" or known_agent) and field in WEIGHT_FIELDS):
         return
-    if (head == "vehicles" or known_agent) and field in VEHICLE_FIELDS:
+    if ((head == "vehicles" or known_agent) and field in VEHICLE_FIELDS) or (known_agent and field == "car"):
         return
     if known_agent and field in _spec_option_types(lineup[int(index)]):
         return
     raise ValueError(f"unknown sweep parameter {name!r}; use one of {list(RACE_PARAMETERS)}, "
                      f"weights.<weight>, vehicles.<car> or agent<i>.<weight|car|option> (i < {cars}) with <weight> "
-                     f"one of {list(WEIGHT_FIELDS)}, <car> one of {list(VEHICLE_FIELDS)} and <option> an option of "
+                     f"one of {list(WEIGHT_FIELDS)}, <car> one of {list(VEHICLE_FIELDS + ('car',))} and <option> an option of "
                      f"agent i's spec (`racing agents` lists them)")
 
 

@@ -238,6 +238,7 @@ RACELINE_ACCEL_GAIN = 6.0  # [1/s] jerk = gain * (a_desired - a), clipped to the
 RACELINE_PREVIEW = 1.0 / RACELINE_ACCEL_GAIN  # [s] the line's curvature is read this far ahead: the acceleration lag
 RACELINE_SPEED_PREVIEW = 0.4  # [s] speeds and accelerations are read this far ahead: the jerk-limited ramp into braking
 RACELINE_MARGIN = 1.25  # [m] the line is kept this far inside the boundaries (half a car's width)
+RACELINE_OVERSPEED = 2.0  # [m/s] this much faster than the profile, braking takes the grip before turning
 RACELINE_ERROR_CAP = 2.0  # [m] the lateral error the stiffness acts on is capped here (the start, a pass)
 
 
@@ -305,7 +306,8 @@ class RacelineDriver:
         index: the car this controller drives (row of the joint state).
         vehicle: that car's parameters.
         pace: fraction of the limit's speed, in ``(0, 1]``.
-        margin: how far inside the boundaries the line (and a pass) is kept [m].
+        margin: how far inside the boundaries the line (and a pass) is kept [m], at the circuit's full
+            size (on a model at scale k, k times it: racing_env.track.scaled).
         line: ``"raceline"`` or ``"centerline"``.
         yielding: keep to the rules (True) or drive the line whoever is on it (False).
         time_gap: the time gap [s] kept to a car ahead on its path, >= 0.
@@ -324,7 +326,8 @@ class RacelineDriver:
 
         check_raceline_options(pace, margin, line, yielding, time_gap, standstill)
         self.track, self.index, self.vehicle = track, int(index), vehicle
-        self.pace, self.margin = float(pace), float(margin)
+        # the margin is at the circuit's full size: a model at scale k keeps k times it
+        self.pace, self.margin = float(pace), float(margin) * track.scale
         self.yielding, self.time_gap, self.standstill = bool(yielding), float(time_gap), float(standstill)
         self.fleet = fleet
         use_raceline = line == "raceline" and limits.has_raceline(track)
@@ -411,14 +414,19 @@ class RacelineDriver:
             ay_des = (kappa_ahead * v**2 - RACELINE_LATERAL_STIFFNESS * lateral_error
                       - RACELINE_LATERAL_DAMPING * error_rate)
             rho = vehicle.rho(v_pos)
-            ay_des = jnp.clip(ay_des, -rho, rho)
+            ax_des = track._interp(tables.ax, ahead_v) + RACELINE_SPEED_GAIN * (track._interp(tables.v, ahead_v) - v)
+            if self.yielding:
+                ax_des = jnp.minimum(ax_des, ax_cap)
+            # faster than the profile where it is: the braking it asks for keeps a share of the
+            # grip (growing with the excess), or a car at the lateral limit could not slow down
+            share = jnp.clip((v - track._interp(tables.v, s)) / RACELINE_OVERSPEED, 0.0, 1.0)
+            reserve = jnp.minimum(jnp.maximum(-ax_des, 0.0), share * rho)
+            lateral = jnp.where(reserve > 0, jnp.sqrt(jnp.maximum((rho - reserve) * (rho + reserve), 0.0)), rho)
+            ay_des = jnp.clip(ay_des, -lateral, lateral)
             # (rho - |ay|)(rho + |ay|), not rho^2 - ay^2: at the gg limit the factor is exactly 0,
             # where the difference of squares leaves a rounding error (with or without a fused
             # multiply-add) whose square root is ~1e-7 m/s^2
             room = jnp.sqrt(jnp.maximum((rho - jnp.abs(ay_des)) * (rho + jnp.abs(ay_des)), 0.0))
-            ax_des = track._interp(tables.ax, ahead_v) + RACELINE_SPEED_GAIN * (track._interp(tables.v, ahead_v) - v)
-            if self.yielding:
-                ax_des = jnp.minimum(ax_des, ax_cap)
             ax_des = jnp.clip(ax_des, -room, jnp.minimum(room, vehicle.ax_max(v_pos)))
             jx = RACELINE_ACCEL_GAIN * (ax_des - ax) / jx_max
             jy = RACELINE_ACCEL_GAIN * (ay_des - ay) / jy_max

@@ -101,7 +101,8 @@ class RaceConfig:
         weights: cost weights of the game the env builds (``env.game``), which the planners
             racing in it use: one ``CostWeights`` for all cars, one per car, or None: every car
             ``CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT)``, the other weights
-            at their defaults. Racing wants the jerk weight small
+            at their defaults, the jerk weights scaled for a car whose jerk limits are not the
+            paper car's 30 m/s^3 (:func:`racing_env.costs.racing_weights`). Racing wants the jerk weight small
             (:data:`racing_env.costs.RACING_JERK_WEIGHT`, 0.01): at ``CostWeights``' own default
             r = 1, the one for single solves, a 5 s horizon buys so little progress per unit of
             jerk that the planners barely accelerate. Tournaments, sweeps and training race with
@@ -217,7 +218,12 @@ class RaceConfig:
 
     def game_weights(self) -> CostWeights | Sequence[CostWeights]:
         """The cost weights of the game the env builds: ``weights``, or when None the racing
-        default, every car with jerk weight :data:`racing_env.costs.RACING_JERK_WEIGHT`."""
-        if self.weights is None:
+        default, every car with jerk weight :data:`racing_env.costs.RACING_JERK_WEIGHT` scaled
+        for its jerk limits (:func:`racing_env.costs.racing_weights`)."""
+        if self.weights is not None:
+            return self.weights
+        if self.vehicles is None:
             return racing_weights()
-        return self.weights
+        if isinstance(self.vehicles, VehicleParams):
+            return racing_weights(vehicle=self.vehicles)
+        return [racing_weights(vehicle=vehicle) for vehicle in self.vehicles]

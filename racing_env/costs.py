@@ -121,10 +121,21 @@ feedback iLQGame planner beats the lane keeper; a larger or a smaller weight doe
 """
 
 
-def racing_weights(jerk_weight: float = RACING_JERK_WEIGHT) -> CostWeights:
-    """The cost weights of every car in a race: the defaults with jerk weight ``jerk_weight``
-    [s^6/m^2] (``R = r I``)."""
-    return CostWeights(r_jx=jerk_weight, r_jy=jerk_weight)
+#: The paper car's jerk limits [m/s^3], the scale :data:`RACING_JERK_WEIGHT` was tuned at.
+PAPER_JERK_LIMIT = 30.0
+
+
+def racing_weights(jerk_weight: float = RACING_JERK_WEIGHT, vehicle: VehicleParams | None = None) -> CostWeights:
+    """The cost weights of a car in a race: the defaults with jerk weight ``jerk_weight``
+    [s^6/m^2] (``R = r I``) for the paper car's jerk limits, scaled for ``vehicle``'s (one car;
+    None: the paper car's) by ``(PAPER_JERK_LIMIT / jx_max)^2`` and ``(PAPER_JERK_LIMIT /
+    jy_max)^2``, so that the same share of a car's jerk limits costs the same: a car of a
+    class with larger limits (the AV-21's 81 m/s^3) is not held back by the weight tuned for
+    30 m/s^3 (docs/model.md, "The jerk weight of a race")."""
+    if vehicle is None:
+        return CostWeights(r_jx=jerk_weight, r_jy=jerk_weight)
+    return CostWeights(r_jx=jerk_weight * (PAPER_JERK_LIMIT / float(vehicle.jx_max)) ** 2,
+                       r_jy=jerk_weight * (PAPER_JERK_LIMIT / float(vehicle.jy_max)) ** 2)
 
 
 def stack_weights(weights: Sequence[CostWeights]) -> CostWeights:

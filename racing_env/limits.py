@@ -14,9 +14,10 @@ length ``sigma(s)`` and curvature ``kappa_line(s)``. With ``a = 1 - n kappa``:
 points, and places it on the track's Frenet frame (``n(s)``, ``chi(s)``).
 
 :func:`speed_profile` is the quasi-steady-state (QSS) speed profile of a car along a line,
-the fastest the point mass can drive it within its limits (:class:`VehicleParams`):
+the fastest the point mass can drive it within its limits (:class:`VehicleParams`: the
+same ``ax_max(V)`` and ``rho(V)``, formula or table, as the environment and the planners):
 
-* lateral: ``|kappa_line| V^2 <= rho(V) = rho_0 + rho_aero V^2`` and ``V <= v_max``;
+* lateral: ``|kappa_line| V^2 <= rho(V)`` and ``V <= v_max``;
 * drive: ``dV/dt <= min(ax_max(V), sqrt(rho(V)^2 - ay^2))`` (forward pass);
 * braking: ``-dV/dt <= sqrt(rho(V)^2 - ay^2)`` (backward pass; the environment brakes at
   most at ``rho``).
@@ -39,6 +40,7 @@ profile's lap time. Everything here is NumPy on arrays of the track's grid.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import functools
 import math
@@ -228,6 +230,8 @@ def racing_line(
     """
     if not track.closed:
         raise ValueError(f"racing_line: {track.name!r} is an open track; racing lines are for closed circuits")
+    if path is None and track.scale != 1.0:  # a circuit's model: its full-size line, scaled
+        return _scaled_raceline(track, margin)
     if path is None:
         if circuit_name(track.name) is None:
             raise ValueError(f"no racing line is shipped for track {track.name!r}: pass path= (rows x_m,y_m) "
@@ -328,7 +332,28 @@ def racing_line(
 
 @functools.lru_cache(maxsize=64)
 def _shipped_raceline(track: Track, margin: float) -> RacingLine:
+    if track.scale != 1.0:
+        return _scaled_raceline(track, margin)
     return racing_line(track, margin=margin)
+
+
+def _scaled_raceline(track: Track, margin: float) -> RacingLine:
+    """The shipped racing line of a circuit's scaled model (:func:`racing_env.track.scaled`):
+    the full-size circuit's line ``margin / scale`` inside its boundaries, every length times
+    the scale, on the model's grid (the same points)."""
+    from racing_env.track import circuit
+
+    if circuit_name(track.name) is None:
+        raise ValueError(f"no racing line is shipped for track {track.name!r} (at scale {track.scale:g}): use the "
+                         f"centre line; the shipped circuits are {circuit_names()}")
+    full = circuit(track.name)
+    if full.num_points != track.num_points or not np.isclose(full.length * track.scale, track.length):
+        raise ValueError(f"track {track.name!r} at scale {track.scale:g} is not the shipped circuit's model "
+                         "(build it with racing_env.track.circuit(name, scale) or scaled(circuit(name), scale))")
+    line = _shipped_raceline(full, margin / track.scale)
+    k = track.scale
+    return RacingLine(track=track, n=line.n * k, chi=line.chi, sigma=line.sigma * k, kappa=line.kappa / k,
+                      length=line.length * k, name=line.name)
 
 
 def get_line(track: Track, line: str | RacingLine = "raceline", margin: float = 0.0) -> RacingLine:
@@ -377,7 +402,8 @@ class SpeedProfile:
 
 
 def check_vehicle(vehicle: VehicleParams) -> None:
-    """Refuse a vehicle whose limits are not positive numbers (a lap-time limit needs them)."""
+    """Refuse a vehicle whose limits are not positive numbers, or a stacked one (a lap-time
+    limit is one car's)."""
     for name in ("v_max", "ax_max_0", "rho_0", "min_turn_radius"):
         value = np.asarray(getattr(vehicle, name), dtype=float)
         if value.shape != () or not (np.isfinite(value) and value > 0):
@@ -385,6 +411,54 @@ def check_vehicle(vehicle: VehicleParams) -> None:
     rho_aero = np.asarray(vehicle.rho_aero, dtype=float)
     if rho_aero.shape != () or not (np.isfinite(rho_aero) and rho_aero >= 0):
         raise ValueError(f"the lap-time limit needs one car with rho_aero >= 0, got {vehicle.rho_aero!r}")
+    if vehicle.table is not None and np.ndim(vehicle.table.speeds) != 1:
+        raise ValueError(f"the lap-time limit needs one car, got a stacked limit table of shape "
+                         f"{np.shape(vehicle.table.speeds)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class _Curve:
+    """One car's limits as functions of ``w = V^2`` on plain floats: the piecewise-linear
+    functions of :class:`racing_env.vehicle.LimitTable` (the formula as its two-point table),
+    for the profile's scalar loops."""
+
+    knots: tuple[float, ...]    # (K,) w at the table's speeds [m^2/s^2]
+    ax: tuple[float, ...]       # (K,) drive limit [m/s^2]
+    rho: tuple[float, ...]      # (K,) gg radius [m/s^2]
+
+    @staticmethod
+    def of(vehicle: VehicleParams) -> "_Curve":
+        table = vehicle.as_table().table
+        speeds = np.asarray(table.speeds, dtype=float)
+        return _Curve(tuple((speeds**2).tolist()), tuple(np.asarray(table.ax_max, dtype=float).tolist()),
+                      tuple(np.asarray(table.rho, dtype=float).tolist()))
+
+    def segment(self, w: float) -> int:
+        return min(max(bisect.bisect_right(self.knots, w) - 1, 0), len(self.knots) - 2)
+
+    def at(self, values: tuple[float, ...], w: float) -> float:
+        k = self.segment(w)
+        w0, w1 = self.knots[k], self.knots[k + 1]
+        return values[k] + (values[k + 1] - values[k]) / (w1 - w0) * (w - w0)
+
+    def lateral_limit(self, kappa: np.ndarray) -> np.ndarray:
+        """The largest ``w`` with ``|kappa| w <= rho(w)`` at each curvature ``(M,)``: the first
+        zero of ``|kappa| w - rho(w)`` (negative at ``w = 0``), ``inf`` where it has none."""
+        knots, rho = np.asarray(self.knots), np.asarray(self.rho)
+        k = np.abs(np.asarray(kappa, dtype=float))[:, None]
+        g = k * knots[None, :] - rho[None, :]          # (M, K); g[:, 0] = -rho(0) < 0
+        over = g >= 0
+        first = np.argmax(over, axis=1)               # first knot at or past the limit (0: none)
+        inside = over.any(axis=1) & (first > 0)
+        j = np.maximum(first, 1)
+        rows = np.arange(len(k))
+        g0, g1 = g[rows, j - 1], g[rows, j]
+        w_in = knots[j - 1] + (-g0) * (knots[j] - knots[j - 1]) / np.where(inside, g1 - g0, 1.0)
+        # beyond the last knot: g continues with the slope |kappa| - (rho's last slope)
+        slope = k[:, 0] - (rho[-1] - rho[-2]) / (knots[-1] - knots[-2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w_out = np.where(slope > 0, knots[-1] - g[:, -1] / np.where(slope > 0, slope, 1.0), np.inf)
+        return np.where(inside, w_in, w_out)
 
 
 def speed_profile(line: RacingLine, vehicle: VehicleParams = VehicleParams(),
@@ -406,25 +480,24 @@ def speed_profile(line: RacingLine, vehicle: VehicleParams = VehicleParams(),
         raise ValueError(f"v_start must be a speed >= 0 m/s or None, got {v_start!r}")
     track = line.track
     closed = track.closed
-    v_max, ax0 = float(vehicle.v_max), float(vehicle.ax_max_0)
-    rho0, rho_aero, r_min = float(vehicle.rho_0), float(vehicle.rho_aero), float(vehicle.min_turn_radius)
+    v_max = float(vehicle.v_max)
+    curve = _Curve.of(vehicle)
     kappa = np.abs(line.kappa)
     w_cap = v_max**2
-    with np.errstate(divide="ignore"):
-        w_lat = np.where(kappa > rho_aero, rho0 / np.maximum(kappa - rho_aero, 1e-300), np.inf)
-    w_lat = np.minimum(w_lat, w_cap)
+    w_lat = np.minimum(curve.lateral_limit(kappa), w_cap)
     m = track.num_points
     seg = np.diff(line.sigma) if not closed else np.diff(np.append(line.sigma, line.length))
+    ax_values, rho_values = curve.ax, curve.rho
 
     def drive(w: float, k: float) -> float:
         v2 = max(w, 0.0)
-        rho = rho0 + rho_aero * v2
+        rho = curve.at(rho_values, v2)
         room = rho * rho - (k * v2) ** 2
-        return 2.0 * min(ax0 * (1.0 - v2 / w_cap), math.sqrt(room) if room > 0 else 0.0)
+        return 2.0 * min(curve.at(ax_values, v2), math.sqrt(room) if room > 0 else 0.0)
 
     def brake(w: float, k: float) -> float:
         v2 = max(w, 0.0)
-        rho = rho0 + rho_aero * v2
+        rho = curve.at(rho_values, v2)
         room = rho * rho - (k * v2) ** 2
         return 2.0 * (math.sqrt(room) if room > 0 else 0.0)
 
@@ -545,8 +618,8 @@ def reference_lap_time(track: Track, vehicle: VehicleParams = VehicleParams()) -
 
 
 @functools.lru_cache(maxsize=256)
-def _cached_reference(track: Track, vehicle_fields: tuple[float, ...]) -> tuple[float, str] | None:
-    return reference_lap_time(track, VehicleParams(*vehicle_fields))
+def _cached_reference(track: Track, vehicle_key: tuple) -> tuple[float, str] | None:
+    return reference_lap_time(track, VehicleParams.from_key(vehicle_key))
 
 
 def race_limit(track: Track, vehicle: VehicleParams, laps: int, race_distance: float | None = None
@@ -558,8 +631,7 @@ def race_limit(track: Track, vehicle: VehicleParams, laps: int, race_distance: f
     tenths of a second slower than flying laps at the limit (0.7 s at Monza)."""
     if race_distance is not None or not track.closed:
         return None
-    fields = tuple(float(getattr(vehicle, f.name)) for f in dataclasses.fields(VehicleParams))
-    reference = _cached_reference(track, fields)
+    reference = _cached_reference(track, vehicle.key())
     if reference is None:
         return None
     lap, line = reference

@@ -129,8 +129,12 @@ def grid_starts(
     cars it holds (on an open one the grid starts at the track's start, and a finish line
     not ahead of every car is refused where the race is made). A grid that could put two
     footprints of ``vehicles`` (default: the paper's car) closer than :data:`START_MARGIN`,
-    whatever the jitter, is refused."""
-    jitter_widths = (1.0, 0.3, 1.0) if jitter else (0.0, 0.0, 0.0)
+    whatever the jitter, is refused. On a circuit's model (``track.scale`` k < 1, a 1:10
+    model: :func:`racing_env.track.scaled`) the distances are k times these and the speeds
+    ``sqrt(k)`` times (the full-size grid, scaled)."""
+    k = float(track.scale)
+    row_spacing, lateral_offset, speed = row_spacing * k, lateral_offset * k, speed * np.sqrt(k)
+    jitter_widths = (1.0 * k, 0.3 * k, 1.0 * np.sqrt(k)) if jitter else (0.0, 0.0, 0.0)
     check_grid_clearance(num_cars, row_spacing, lateral_offset, jitter_widths, _default_vehicles(num_cars, vehicles))
     depth = 0.5 * row_spacing * (num_cars - 1)
     room = 0.5 * float(track.length) - 5.0

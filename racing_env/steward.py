@@ -125,10 +125,10 @@ def check_stewarding(penalties: str, penalty_seconds: float, disqualify_after: i
 
 
 @functools.lru_cache(maxsize=64)
-def _line_speeds(track: Track, vehicle_fields: tuple[float, ...]) -> np.ndarray:
+def _line_speeds(track: Track, vehicle_key: tuple) -> np.ndarray:
     from racing_env import limits
 
-    vehicle = VehicleParams(*vehicle_fields)
+    vehicle = VehicleParams.from_key(vehicle_key)
     profile = limits.speed_profile(limits.centerline(track), vehicle,
                                    v_start=None if track.closed else float(vehicle.v_max))
     return np.asarray(profile.v, dtype=np.float64)
@@ -142,9 +142,7 @@ def make_steward(track: Track, vehicles: VehicleParams, num_cars: int, penalties
     """The :class:`Steward` of a race of ``num_cars`` cars ``vehicles`` (stacked or one for
     all) on ``track``, with the penalty mode ``penalties`` (:data:`PENALTY_MODES`)."""
     check_stewarding(penalties, penalty_seconds, disqualify_after, rules)
-    fields = [f.name for f in dataclasses.fields(VehicleParams)]
-    cars = [tuple(float(np.broadcast_to(np.asarray(getattr(vehicles, name)), (num_cars,))[i]) for name in fields)
-            for i in range(num_cars)]
+    cars = [car.key() for car in vehicles.cars(num_cars)]
     return Steward(
         rules_on=np.asarray([rule in rules for rule in RULES]),
         seconds=np.float64(penalty_seconds if penalties == "time" else 0.0),

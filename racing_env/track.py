@@ -74,6 +74,9 @@ class Track:
         length: total centreline length [m] (static).
         closed: whether the track is a loop (static).
         name: display name (static).
+        scale: the factor this track is a model of the circuit ``name`` at (static): 1 at
+            full size, 0.1 for a 1:10 model (:func:`scaled`); its racing line is the full-size
+            circuit's, scaled alike.
     """
 
     s: np.ndarray
@@ -86,6 +89,7 @@ class Track:
     length: float
     closed: bool
     name: str = "track"
+    scale: float = 1.0
 
     def __post_init__(self) -> None:
         arrays = {f: getattr(self, f) for f in _ARRAY_FIELDS}
@@ -353,8 +357,36 @@ class Track:
 
 
 jax.tree_util.register_dataclass(
-    Track, data_fields=list(_ARRAY_FIELDS), meta_fields=["length", "closed", "name"]
+    Track, data_fields=list(_ARRAY_FIELDS), meta_fields=["length", "closed", "name", "scale"]
 )
+
+
+def check_scale(scale: float) -> float:
+    """``scale`` as a float, refused unless a finite number > 0 (1: full size, 0.1: a 1:10 model)."""
+    if isinstance(scale, bool) or not isinstance(scale, (int, float, np.number)) or not (
+            np.isfinite(scale) and scale > 0):
+        raise ValueError(f"a track's scale must be a finite number > 0 (1: full size, 0.1: a 1:10 model), got {scale!r}")
+    return float(scale)
+
+
+def scaled(track: Track, scale: float) -> Track:
+    """``track`` as a model at ``scale`` (> 0): every length times ``scale`` (the grid, the
+    widths, the centre line's points), the curvature over it, the headings as they are; an
+    exact geometric copy, so a car whose speeds are ``sqrt(scale)`` times another's at the same
+    accelerations laps it in ``sqrt(scale)`` times the time.
+
+    Raises:
+        ValueError: for a scale that is not a finite number > 0.
+    """
+    scale = check_scale(scale)
+    if scale == 1.0:
+        return track
+    arrays = {f: np.asarray(getattr(track, f)) for f in _ARRAY_FIELDS}
+    for f in ("s", "width_left", "width_right", "x", "y"):
+        arrays[f] = arrays[f] * scale
+    arrays["kappa"] = arrays["kappa"] / scale
+    return Track(**arrays, length=track.length * scale, closed=track.closed, name=track.name,
+                 scale=track.scale * scale)
 
 
 # --------------------------------------------------------------------------------------
@@ -779,20 +811,24 @@ def circuit_name(name: str) -> str | None:
 
 
 @functools.lru_cache(maxsize=None)
-def circuit(name: str) -> Track:
-    """A shipped real circuit by name (any case), fitted by :func:`from_csv` with its defaults.
+def circuit(name: str, scale: float = 1.0) -> Track:
+    """A shipped real circuit by name (any case), fitted by :func:`from_csv` with its defaults,
+    at ``scale`` (:func:`scaled`; 0.1: a 1:10 model for the 1:10 car class).
 
     The fitted track is cached: the first load of a circuit fits its spline (about 0.1-0.3 s),
     later ones return the same immutable :class:`Track`.
 
     Raises:
-        ValueError: for a name that is no shipped circuit, listing the known ones.
+        ValueError: for a name that is no shipped circuit, listing the known ones, or a scale
+            that is not a finite number > 0.
     """
     canonical = circuit_name(name)
     if canonical is None:
         raise ValueError(f"unknown circuit {name!r}: the shipped circuits are {circuit_names()}")
-    if canonical != name:
-        return circuit(canonical)
+    scale = check_scale(scale)
+    if canonical != name or scale != 1.0:
+        full = circuit(canonical)
+        return full if scale == 1.0 else scaled(full, scale)
     return from_csv(_circuit_files()[canonical])
 
 
@@ -813,15 +849,22 @@ def track_names() -> list[str]:
     return list(BUILTIN_TRACKS) + circuit_names()
 
 
-def get_track(name_or_path: str | os.PathLike | Track) -> Track:
+def get_track(name_or_path: str | os.PathLike | Track, scale: float = 1.0) -> Track:
     """Resolve a track: a :class:`Track` (returned as is), a builtin name (see
     ``BUILTIN_TRACKS``), a shipped circuit's name in any case (``"Monza"``, ``"spa"``, see
-    :func:`circuit_names`; cached), or a path to a TUMFTM ``.csv`` file.
+    :func:`circuit_names`; cached), or a path to a TUMFTM ``.csv`` file; at ``scale``
+    (:func:`scaled`; 1, the default, as it is).
 
     Raises:
-        ValueError: for a string that is none of these, listing the known names.
+        ValueError: for a string that is none of these, listing the known names, or a scale
+            that is not a finite number > 0.
         TypeError: for anything else (None, a number, ...), listing what a track may be.
     """
+    scale = check_scale(scale)
+    if scale != 1.0:
+        if isinstance(name_or_path, str) and circuit_name(name_or_path) is not None:
+            return circuit(name_or_path, scale)
+        return scaled(get_track(name_or_path), scale)
     if isinstance(name_or_path, Track):
         return name_or_path
     if not isinstance(name_or_path, (str, os.PathLike)):

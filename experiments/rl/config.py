@@ -35,7 +35,8 @@ TRAINING_STARTS = ("grid", "anywhere", "mixed")  # where training episodes may s
 # fields added to TrainConfig after runs were saved, with the value those runs had
 ADDED_LATER = {"start": "grid", "imitate": None, "imitate_episodes": 20, "imitate_noise": 0.2,
                "imitate_spread": None, "vector": False, "learner": "sb3", "rules": list(DEFAULT_RULES),
-               "observation_units": "physical"}
+               "observation_units": "physical",
+               "car": "paper"}
 LEARNERS = ("sb3", "jax")  # TrainConfig.learner
 EVALUATION_RULE = "penalty"  # what contact (and, unless eval_off_track is set, leaving the track) does in evaluations
 
