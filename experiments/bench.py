@@ -391,7 +391,10 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     flops of one iteration (:func:`_iteration_flops`) and the rate they run at. Per solve: a
     cold solve (zero inputs) to convergence. Components: the parts of one N = 2 feedback
     iteration, timed inside a jitted loop, and the LQ recursion's cost per stage against
-    the state size (:func:`_lq_state_size_row`). Batch: 64 perturbations of the
+    the state size (:func:`_lq_state_size_row`). Roofline: the parts of one feedback
+    iteration and the whole at ``batch`` races under ``vmap`` on one core, their flops and
+    rates against a one-core GEMM and vmapped 12 x 12 products measured in the same child
+    process (:mod:`experiments.bench_roofline`). Batch: 64 perturbations of the
     paper's scene solved by :func:`planners.ilq_batch.solve_batch` vs one by one (64 calls of
     ``solve``), on one device and split across every local device (``racing bench`` exposes
     one CPU device per core, see :mod:`planners.devices`), in the default batching (on CPU
@@ -408,6 +411,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     would need (``gflop_per_s_at_target``) as a share of the dgemm rate: a share near or
     above 1 means no batching can meet the target on this machine.
     """
+    from experiments.bench_roofline import roofline_rows
     from experiments.timing import time_jax_call
     from planners import ilq, ilq_batch
 
@@ -432,6 +436,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     parts = _component_times(game, x0)
     yield {"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}}
     yield _lq_state_size_row()
+    yield from roofline_rows(batch)
     x0s = _perturbed_scenes(x0, batch)
     import jax
 
