@@ -135,10 +135,12 @@ def _time_parts(parts: dict[str, tuple[Callable, tuple]], rounds: int, calls: in
 
 
 def iteration_parts(races: int):
-    """``(parts, flops)``: per part of one feedback iteration (and ``whole_iteration``, and
-    ``whole_iteration_float32``) the vmapped function over ``races`` perturbed paper scenes
-    with its batched arguments, and the flops of one race's call (counted from its jaxpr).
-    The nominal trajectories are each scene's iterate after 5 iterations."""
+    """``(parts, flops)``: per part of one feedback iteration (and ``whole_iteration``,
+    ``whole_iteration_float32`` and ``lq_recursion_batched``, the LQ recursion as batched
+    products across the races, :func:`planners.lq_game.solve_feedback_own_batched`) the
+    function over ``races`` perturbed paper scenes (vmapped where it is per race) with its
+    batched arguments, and the flops of one race's share (counted from the jaxprs). The
+    nominal trajectories are each scene's iterate after 5 iterations."""
     import jax
     import jax.numpy as jnp
 
@@ -181,6 +183,10 @@ def iteration_parts(races: int):
             raise RuntimeError(f"{name} calls {sorted(count.uncounted)}, which the flop count cannot see into")
         flops[name] = count.total
         parts[name] = (jax.vmap(fn), args)
+    # the LQ recursion with the races as a batch dimension of its products
+    lq_args = (A, B, Q, q, Rii, rii)
+    flops["lq_recursion_batched"] = count_flops(lq_game.solve_feedback_own_batched, *lq_args).total // races
+    parts["lq_recursion_batched"] = (lq_game.solve_feedback_own_batched, lq_args)
     return parts, flops
 
 
@@ -189,7 +195,9 @@ def measure(races: int = 64, rounds: int = 7, calls: int = 5) -> list[dict[str, 
 
     One row per reference and per part: microseconds per race, its share of the whole
     iteration's time, Mflop per race, GFLOP/s, the share of the one-core GEMM rate and the
-    multiple of the small-matmul rate; the float32 row adds its speed-up over float64."""
+    multiple of the small-matmul rate; the float32 row adds its speed-up over float64, the
+    batched LQ recursion's row its speed-up over the per-race one (``vmap``, which runs the
+    races one after another)."""
     from racing_env import configure_for_racing
 
     configure_for_racing()
@@ -204,7 +212,7 @@ def measure(races: int = 64, rounds: int = 7, calls: int = 5) -> list[dict[str, 
     rows = [{"name": "roofline_reference_gemm_one_core", "gflop_per_s": gemm, "size": _GEMM_SIZE, "dtype": "float64"},
             {"name": "roofline_reference_small_matmul", "gflop_per_s": small64, "gflop_per_s_float32": small32,
              "size": _SMALL, "count": _SMALL_COUNT}]
-    for name in (*PARTS, "whole_iteration_float32"):
+    for name in (*PARTS, "lq_recursion_batched", "whole_iteration_float32"):
         rate = flops[name] * races / seconds[name] / 1e9
         small = small32 if name.endswith("float32") else small64
         row = {"name": f"roofline_{name}_B{races}", "us_per_race": 1e6 * seconds[name] / races,
@@ -212,6 +220,8 @@ def measure(races: int = 64, rounds: int = 7, calls: int = 5) -> list[dict[str, 
                "gflop_per_s": rate, "gemm_share": rate / gemm, "x_small_matmul": rate / small}
         if name.endswith("float32"):
             row["speedup_over_float64"] = whole / seconds[name]
+        if name == "lq_recursion_batched":
+            row["speedup_over_per_race"] = seconds["lq_recursion"] / seconds[name]
         if name == "whole_iteration":  # what the parts timed alone leave out (selects, status, loops)
             row["share_outside_parts"] = 1.0 - sum(seconds[part] for part in PARTS[:-1]) / whole
         rows.append(row)
