@@ -47,9 +47,12 @@ def roofline_rows(races: int = 64, timeout_s: float = 900.0) -> Iterator[dict[st
     """The roofline rows, measured in a child process pinned to this process's first CPU."""
     cpu = min(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    pin = (lambda: os.sched_setaffinity(0, {cpu})) if cpu is not None else None
-    done = subprocess.run([sys.executable, "-m", "experiments.bench_roofline", "--races", str(races)],
-                          env=env, preexec_fn=pin, capture_output=True, text=True, timeout=timeout_s, check=False)
+    # The child pins itself before it imports anything that starts threads (no preexec_fn:
+    # forking a process that runs JAX's threads is unsafe).
+    pin = f"import os; os.sched_setaffinity(0, {{{cpu}}}); " if cpu is not None else ""
+    code = f"{pin}import runpy; runpy.run_module('experiments.bench_roofline', run_name='__main__')"
+    done = subprocess.run([sys.executable, "-c", code, "--races", str(races)],
+                          env=env, capture_output=True, text=True, timeout=timeout_s, check=False)
     if done.returncode != 0:
         raise RuntimeError(f"the roofline measurement failed (exit {done.returncode}):\n{done.stderr[-3000:]}")
     for line in done.stdout.splitlines():
