@@ -137,7 +137,7 @@ def _time_parts(parts: dict[str, tuple[Callable, tuple]], rounds: int, calls: in
     return {name: float(np.median(d)) / calls for name, d in diffs.items()}
 
 
-def iteration_parts(races: int):
+def iteration_parts(races: int) -> tuple[dict[str, tuple[Callable, tuple]], dict[str, int]]:
     """``(parts, flops)``: per part of one feedback iteration (and ``whole_iteration``,
     ``whole_iteration_float32`` and ``lq_recursion_batched``, the LQ recursion as batched
     products across the races, :func:`planners.lq_game.solve_feedback_own_batched`) the

@@ -48,6 +48,8 @@ non-symmetric inputs are thus handled consistently with the cost definition.
 
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -320,7 +322,7 @@ def _inverse_small(M: Array) -> Array:
     return jnp.linalg.inv(M)
 
 
-def block_solve(S: Array, rhs: Array, contract=None) -> Array:
+def block_solve(S: Array, rhs: Array, contract: Callable[..., Array] | None = None) -> Array:
     """Solve ``sum_j S[i, :, j, :] X[j] = rhs[i]`` by block Gauss-Jordan elimination.
 
     Args:
@@ -387,7 +389,8 @@ def pivoted_solve(S: Array, rhs: Array) -> Array:
     return M[:, p:]
 
 
-def _feedback_own_step(N: int, n: int, m: int, dtype, feedforward_regularization, contract, sandwich):
+def _feedback_own_step(N: int, n: int, m: int, dtype: Any, feedforward_regularization: Array | float | None,
+                       contract: Callable[..., Array], sandwich: Callable[[Array, Array, Array], Array]) -> Callable:
     """One backward stage of :func:`solve_feedback_own`'s recursion for one game, as a
     ``lax.scan`` body ``((P, p), stage) -> ((P, p), (K, k))``, with its products computed by
     ``contract(spec, *operands)`` and ``X' M^i Y`` by ``sandwich(X, M, Y)``: fused
