@@ -129,3 +129,29 @@ def test_float32_real_time_agents_take_the_float64_agents_decisions_on_a_recorde
         tolerance = gain * delta + eps32
         difference = np.max(np.abs(actions["float32"] - actions["float64"]))
         assert difference <= tolerance, (step, difference, tolerance)
+
+
+@pytest.mark.slow  # a vectorised env and a GymnaxRace with a planner compiled into its step (about 40 s)
+def test_float32_planner_opponents_race_in_the_vectorised_faces_without_changing_the_races_dtype():
+    """The batched opponent (host races) and the compiled planner (GymnaxRace) take
+    ``precision=float32``: their solves run in float32, the race stays in its own float64."""
+    import gymnasium
+
+    from racing_env.vector import GymnaxRace
+
+    spec = REALTIME + ",precision=float32"
+    envs = gymnasium.make_vec("racing_env/Race-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                              opponents=[spec], track="trefoil")
+    observations, _ = envs.reset(seed=0)
+    for _ in range(3):
+        observations, *_ = envs.step(np.zeros((2, 2), np.float32))
+    assert np.all(np.isfinite(observations))
+    race = GymnaxRace(opponents=[spec], track="trefoil")
+    params = race.default_params
+    _, state = race.reset(jax.random.PRNGKey(0), params)
+    step = jax.jit(race.step)
+    for i in range(3):
+        observation, state, *_ = step(jax.random.PRNGKey(i), state, jnp.zeros(2), params)
+    assert np.all(np.isfinite(np.asarray(observation)))
+    floats = {str(leaf.dtype) for leaf in jax.tree_util.tree_leaves(state) if jnp.issubdtype(leaf.dtype, jnp.floating)}
+    assert floats == {"float64"}, floats
