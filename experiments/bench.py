@@ -391,7 +391,10 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     flops of one iteration (:func:`_iteration_flops`) and the rate they run at. Per solve: a
     cold solve (zero inputs) to convergence. Components: the parts of one N = 2 feedback
     iteration, timed inside a jitted loop, and the LQ recursion's cost per stage against
-    the state size (:func:`_lq_state_size_row`). Batch: 64 perturbations of the
+    the state size (:func:`_lq_state_size_row`). Roofline: the parts of one feedback
+    iteration and the whole at ``batch`` races under ``vmap`` on one core, their flops and
+    rates against a one-core GEMM and vmapped 12 x 12 products measured in the same child
+    process (:mod:`experiments.bench_roofline`). Batch: 64 perturbations of the
     paper's scene solved by :func:`planners.ilq_batch.solve_batch` vs one by one (64 calls of
     ``solve``), on one device and split across every local device (``racing bench`` exposes
     one CPU device per core, see :mod:`planners.devices`), in the default batching (on CPU
@@ -400,7 +403,8 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     members' iterations too); the batches and the sequential solves are timed in turns
     (:func:`_interleaved_calls`), so their ratios come from the same spells. Straggler: a
     batch in which one member runs to the iteration cap, vmapped lock-step against
-    regrouped and against the default (:func:`_straggler_row`). Convergence: how often cold
+    regrouped and against the default (:func:`_straggler_row`). float32: the lock-step batch
+    in both precisions (:func:`_precision_batch_row`). Convergence: how often cold
     solves of random scenes on a circuit converge, and in how many iterations
     (:func:`convergence_rows`). The batch row also states
     the batch's arithmetic (``gflop``, a lower bound: one step-size trial per iteration), the
@@ -408,6 +412,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     would need (``gflop_per_s_at_target``) as a share of the dgemm rate: a share near or
     above 1 means no batching can meet the target on this machine.
     """
+    from experiments.bench_roofline import roofline_rows
     from experiments.timing import time_jax_call
     from planners import ilq, ilq_batch
 
@@ -432,6 +437,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     parts = _component_times(game, x0)
     yield {"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}}
     yield _lq_state_size_row()
+    yield from roofline_rows(batch)
     x0s = _perturbed_scenes(x0, batch)
     import jax
 
@@ -470,6 +476,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
            "dgemm_share_at_target": target_ratio * gflop / run_seq / dgemm["gflop_per_s"],
            "target_ratio": target_ratio}
     yield _straggler_row(game, x0, repeats)
+    yield _precision_batch_row(game, x0, repeats)
     yield from convergence_rows(batch)
 
 
@@ -612,6 +619,32 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
             "iterations_median": float(np.median(iterations["lockstep"])),
             "iterations_max": int(iterations["lockstep"].max()),
             "same_iterations": all(np.array_equal(iterations["lockstep"], it) for it in iterations.values())}
+
+
+def _precision_batch_row(game, x0, repeats: int, batch: int = 64) -> dict[str, Any]:
+    """A lock-step batch (``batching="vmap"``) of ``batch`` perturbed paper scenes at the
+    default tolerance (1e-6), solved in float64 and in float32 (``precision="float32"``),
+    timed in turns: how many converge, their iterations (a lock-step batch runs until its
+    slowest member stops, so ``iterations_max`` is what every member pays), the batch time
+    and the largest gap between the two precisions' trajectories [m]."""
+    from planners import ilq_batch
+
+    x0s = _perturbed_scenes(x0, batch)
+    calls = {precision: (lambda precision=precision: ilq_batch.solve_batch(
+        game, x0s, mode="feedback", batching="vmap", precision=precision)) for precision in ("float64", "float32")}
+    timed = _interleaved_calls(calls, max(1, repeats // 2))
+    row: dict[str, Any] = {"name": f"feedback_batch{batch}_lockstep_float32_vs_float64"}
+    for precision, res in timed.results.items():
+        iterations = np.asarray(res.iterations)
+        row.update({f"converged_{precision}": int(np.sum(np.asarray(res.converged))),
+                    f"iterations_max_{precision}": int(iterations.max()),
+                    f"iterations_mean_{precision}": float(iterations.mean()),
+                    f"ms_{precision}": 1e3 * timed.median_s(precision),
+                    f"compile_s_{precision}": timed.compile_s(precision)})
+    row["speedup"] = row["ms_float64"] / row["ms_float32"]
+    row["max_trajectory_gap_m"] = float(np.max(np.abs(np.asarray(timed.results["float64"].xs)
+                                                      - np.asarray(timed.results["float32"].xs))))
+    return row
 
 
 # The agents' adaptive control regularization in the agents bench (lambda_u from 0.3, the

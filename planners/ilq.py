@@ -97,8 +97,10 @@ decreases it, the first trial inside the trust region is taken. ``step_control="
 applies a fixed ``eta = initial_step`` (the paper's plain update).
 
 Convergence: the state change of a full step (``max_t |x_new_t - x_hat_t|_inf`` scaled by
-``initial_step / eta``) is at most ``tolerance`` and the step was not shortened by the
-trust region. At a fixed point ``k = 0``: for ``mode="open_loop"`` exactly the first-order
+``initial_step / eta``), less the rounding of the trajectory at its scale
+(:func:`planners.precision.rounding_floor`: ~4e-13 m in float64, 2.2e-4 m in float32 at
+positions near 230 m, ``precision="float32"``), is at most ``tolerance`` and the step was not
+shortened by the trust region. At a fixed point ``k = 0``: for ``mode="open_loop"`` exactly the first-order
 open-loop Nash condition of the nonlinear game (:func:`planners.nash.nash_residual`), for
 ``mode="feedback"`` the feedback condition of the sequence of local LQ games.
 
@@ -126,9 +128,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from planners import local_game, lq_game, methods, nash
+from planners import local_game, lq_game, methods, nash, precision as precisions
 from planners.game_problem import GameProblem, as_problem, game_type_of, is_concrete, rollout, total_costs
-from planners.precision import require_x64
+from planners.precision import require_precision
 
 Array = jax.Array
 
@@ -146,6 +148,7 @@ __all__ = [
     "SolverOptions",
     "SolverResult",
     "as_array",
+    "at_precision",
     "check_adaptive_regularization",
     "check_budget_ms",
     "finish",
@@ -161,6 +164,7 @@ __all__ = [
     "solve",
     "solve_arrays",
     "solve_within",
+    "solver_dtype",
     "status_message",
     "total_costs",
     "validate_problem",
@@ -308,6 +312,12 @@ class SolverOptions:
             re-plan of a few iterations then barely moves the others' plans. The fixed
             points are the same (``k = 0``); a step counts toward convergence only when no
             player's ``eta`` was cut.
+        precision: ``"float64"`` (the default: the certificates and the paper's figures) or
+            ``"float32"``: the solve's arithmetic, whatever ``jax_enable_x64`` says (the
+            problem's parameters, the initial state and inputs are cast inside the jitted
+            solver; the result is in that dtype). Both test convergence with the
+            trajectory's rounding allowed for (:func:`planners.precision.rounding_floor`),
+            and float32 refuses a ``tolerance`` below its resolution (1.19e-7).
     """
 
     mode: str = methods.FEEDBACK
@@ -329,6 +339,7 @@ class SolverOptions:
     dynamics_curvature: bool = True
     best_iterate: bool = False
     player_steps: bool = False
+    precision: str = precisions.PRECISIONS[0]
 
     def split(self) -> tuple["SolverOptions", SolverNumbers]:
         """``(structure, numbers)``: ``structure`` is these options with every numeric field
@@ -398,6 +409,7 @@ class SolverOptions:
                 "feedforward_regularization needs control_regularization > 0 (the lambda_u it "
                 f"puts on the feed-forward terms), got {self.control_regularization!r}"
             )
+        precisions.check_precision(self.precision)
         if self.convexify not in _CONVEXIFY:
             raise ValueError(f"convexify must be one of {_CONVEXIFY}, got {self.convexify!r}")
         if int(self.max_iterations) < 1:
@@ -428,6 +440,7 @@ class SolverOptions:
             value = getattr(self, name)
             if not (np.isfinite(value) and ok):
                 raise ValueError(f"SolverOptions.{name} must be {allowed[name]}, got {value!r}")
+        precisions.check_tolerance(self.precision, self.tolerance)
 
 
 def _plain_number(name: str, value):
@@ -771,10 +784,29 @@ class SolverCarry(NamedTuple):
     best: BestIterate | None = None
 
 
+def solver_dtype(options: SolverOptions, x0: Array, us0: Array):
+    """The dtype a solve computes in: float32 for ``precision="float32"``; for float64 the
+    widest float of ``x0``, ``us0`` and JAX's default (float64 with ``jax_enable_x64``)."""
+    if options.precision == "float32":
+        return jnp.float32
+    return jnp.result_type(x0.dtype, us0.dtype, float)
+
+
+def at_precision(problem: GameProblem, options: SolverOptions) -> GameProblem:
+    """``problem`` with its floating-point parameters in the solve's dtype
+    (``options.precision="float32"``: cast to float32, inside the jitted solvers, so that no
+    operation of an iteration is promoted to float64); unchanged for float64."""
+    if options.precision == "float32":
+        return precisions.cast_floating(problem, jnp.float32)
+    return problem
+
+
 def initial_carry(problem: GameProblem, x0: Array, us0: Array, options: SolverOptions) -> SolverCarry:
-    """The solver state before the first iteration: ``x0 (n,)``, ``us0 (T, N, m)``."""
+    """The solver state before the first iteration: ``x0 (n,)``, ``us0 (T, N, m)`` (cast to
+    the solve's dtype, :func:`solver_dtype`; ``problem`` in that precision,
+    :func:`at_precision`)."""
     T, N, m = problem.horizon, problem.num_players, problem.input_dim
-    dtype = jnp.result_type(x0.dtype, us0.dtype, float)
+    dtype = solver_dtype(options, x0, us0)
     x0 = x0.reshape(-1).astype(dtype)
     us0 = us0.astype(dtype)
     xs0 = rollout(problem, x0, us0)
@@ -820,7 +852,7 @@ def iterate(problem: GameProblem, c: SolverCarry, options: SolverOptions) -> Sol
         # A step that reverses the recent direction of travel (negative inner product with
         # a decaying sum of the previous unit steps) was too long for a contraction.
         reversed_ = jnp.vdot(step, c.last_step) < 0
-        unit = step / jnp.maximum(jnp.sqrt(jnp.vdot(step, step)), 1e-300)
+        unit = step / jnp.maximum(jnp.sqrt(jnp.vdot(step, step)), jnp.finfo(dtype).tiny)
         direction = options.damping_memory * c.last_step + unit
     if damping:
         # Overshoot damping: after a reversal the next search starts at eta * step_decay.
@@ -836,7 +868,13 @@ def iterate(problem: GameProblem, c: SolverCarry, options: SolverOptions) -> Sol
     else:
         cap = jnp.asarray(options.initial_step, dtype)
     lam = c.control_regularization
-    small = measure <= options.tolerance
+    # Convergence: the full step within the tolerance plus the rounding of the trajectory
+    # at its scale (planners.precision.rounding_floor; tolerance 0 keeps its meaning, "run
+    # every iteration"). The rounding is ~4e-13 m in float64; in float32 a fixed point's
+    # rollouts differ by it (float32 spacing of speeds near 20 m/s: 1.9e-6), which a plain
+    # max-norm test at 1e-6 would never pass.
+    floor = jnp.where(options.tolerance > 0, precisions.rounding_floor(c.xs), 0.0)
+    small = jnp.maximum(dev - floor, 0.0) * (options.initial_step / eta) <= options.tolerance
     certifies = True
     if adaptive:
         # Levenberg-Marquardt: more damping of the LQ step after a reversal (the iterates
@@ -964,6 +1002,7 @@ def _solve_compiled(problem: GameProblem, x0: Array, us0: Array, numbers: Solver
     """The jitted function behind :func:`solve_arrays`: the options as their static
     ``structure`` and traced ``numbers`` (:meth:`SolverOptions.split`)."""
     options = structure.with_numbers(numbers)
+    problem = at_precision(problem, options)
     c = initial_carry(problem, x0, us0, options)
     return result(problem, finish(problem, iterate_while_running(problem, c, options), options), x0.shape)
 
@@ -971,18 +1010,19 @@ def _solve_compiled(problem: GameProblem, x0: Array, us0: Array, numbers: Solver
 @functools.partial(jax.jit, static_argnames=("structure",))
 def _start(problem: GameProblem, x0: Array, us0: Array, numbers: SolverNumbers, *,
            structure: SolverOptions) -> SolverCarry:
-    return initial_carry(problem, x0, us0, structure.with_numbers(numbers))
+    return initial_carry(at_precision(problem, structure), x0, us0, structure.with_numbers(numbers))
 
 
 @functools.partial(jax.jit, static_argnames=("structure",))
 def _iterate_once(problem: GameProblem, c: SolverCarry, numbers: SolverNumbers, *,
                   structure: SolverOptions) -> SolverCarry:
-    return iterate(problem, c, structure.with_numbers(numbers))
+    return iterate(at_precision(problem, structure), c, structure.with_numbers(numbers))
 
 
 @functools.partial(jax.jit, static_argnames=("structure", "x_shape"))
 def _finished_result(problem: GameProblem, c: SolverCarry, numbers: SolverNumbers, *,
                      structure: SolverOptions, x_shape) -> SolverResult:
+    problem = at_precision(problem, structure)
     return result(problem, finish(problem, c, structure.with_numbers(numbers)), x_shape)
 
 
@@ -992,8 +1032,8 @@ def solve_within(problem: GameProblem, x0: Array, us0: Array, options: SolverOpt
     :func:`iterate` per call, until the solve stops by itself or the budget has run out
     (status ``BUDGET_EXHAUSTED``); at least one iteration runs. With
     ``options.best_iterate`` the best iterate is returned (:func:`finish`). Needs concrete
-    inputs (it reads the status between iterations). Needs 64-bit floats, as :func:`solve`."""
-    require_x64("planners.ilq.solve_within")
+    inputs (it reads the status between iterations). Needs 64-bit floats for float64, as :func:`solve`."""
+    require_precision(options.precision, "planners.ilq.solve_within")
     deadline = time.perf_counter() + budget_s
     structure, numbers = jit_arguments(options)
     c = _start(problem, x0, us0, numbers, structure=structure)
@@ -1158,11 +1198,12 @@ def solve(
         :class:`SolverResult`. For a RaceGame, ``xs`` has shape ``(T+1, N, 6)``.
 
     Works under ``jax.vmap``/``jax.jit`` (validation then only happens on concrete inputs).
-    Needs 64-bit floats (``jax_enable_x64``): its tolerances go down to 1e-8..1e-12, and
-    with x64 off it raises ``RuntimeError`` saying how to turn them on.
+    In float64 (the default ``precision``) it needs 64-bit floats (``jax_enable_x64``): its
+    tolerances go down to 1e-8..1e-12, and with x64 off it raises ``RuntimeError`` saying
+    how to turn them on; ``precision="float32"`` solves in float32 either way.
     """
-    require_x64("planners.ilq.solve")
     options = resolve_options(options, overrides)
+    require_precision(options.precision, "planners.ilq.solve")
     problem, game_type = as_problem(problem_or_game)
     _convexify(problem, options)  # a clear error for an unusable convexification
     check_adaptive_regularization(options, problem.num_players)

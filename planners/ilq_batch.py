@@ -20,7 +20,7 @@ import numpy as np
 from planners import ilq
 from planners.batching import one_at_a_time
 from planners.game_problem import GameProblem, as_problem
-from planners.precision import require_x64
+from planners.precision import require_precision
 
 Array = jax.Array
 
@@ -82,12 +82,13 @@ def solve_batch(
     and the process solves many batches (or the compilation cache is on). With ``"map"``
     no member waits for another, and ``regroup_every`` is ignored.
 
-    Needs 64-bit floats (``jax_enable_x64``), as :func:`planners.ilq.solve`.
+    Needs 64-bit floats (``jax_enable_x64``) in float64, as :func:`planners.ilq.solve`
+    (``precision="float32"`` solves in float32 either way).
     """
-    require_x64("planners.ilq_batch.solve_batch")
     if batching not in _BATCHING:
         raise ValueError(f"batching must be one of {_BATCHING}, got {batching!r}")
     options = ilq.resolve_options(options, overrides)
+    require_precision(options.precision, "planners.ilq_batch.solve_batch")
     problem, game_type = as_problem(problem_or_game)
     ilq.check_adaptive_regularization(options, problem.num_players)
     x0s = jnp.asarray(x0s)
@@ -186,6 +187,7 @@ def _member(kind: str, problem: GameProblem, args, options: ilq.SolverOptions, s
     ``"continue"`` (``args`` = a state; at most ``steps`` iterations) or ``"finish"``."""
     if kind == "solve":
         return ilq.solve_arrays(problem, *args, options)
+    problem = ilq.at_precision(problem, options)
     if kind == "start":
         return ilq.initial_carry(problem, *args, options)
     if kind == "continue":

@@ -20,6 +20,9 @@ Solvers:
   input cost involves only its own input (``R^{ij} = r^{ij} = 0`` for ``i != j``, the
   structure of the iterative LQ games), with ``Q^i >= 0``: a faster recursion (no LAPACK
   calls, products of small operands written as fused element-wise code).
+* :func:`solve_feedback_own_batched`: :func:`solve_feedback_own` for a batch of games in one
+  recursion whose products are batched dots across the games (the layout an accelerator
+  wants; on CPU ``racing bench`` times it against the per-game form).
 * :func:`solve_open_loop`: open-loop Nash equilibrium, ``u_t^i = -k_t^i``, from each player's
   Pontryagin conditions with an affine costate ``lambda_t^i = M_t^i x_t + m_t^i``.
 * :func:`solve_open_loop_own`: the same for own-input costs, without ``n x n`` solves
@@ -45,6 +48,8 @@ non-symmetric inputs are thus handled consistently with the cost definition.
 
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -61,6 +66,7 @@ __all__ = [
     "pivoted_solve",
     "solve_feedback",
     "solve_feedback_own",
+    "solve_feedback_own_batched",
     "solve_open_loop",
     "solve_open_loop_own",
     "validate_lq_game",
@@ -316,7 +322,7 @@ def _inverse_small(M: Array) -> Array:
     return jnp.linalg.inv(M)
 
 
-def block_solve(S: Array, rhs: Array) -> Array:
+def block_solve(S: Array, rhs: Array, contract: Callable[..., Array] | None = None) -> Array:
     """Solve ``sum_j S[i, :, j, :] X[j] = rhs[i]`` by block Gauss-Jordan elimination.
 
     Args:
@@ -331,13 +337,15 @@ def block_solve(S: Array, rhs: Array) -> Array:
     first-order conditions of a feedback LQ game, whose diagonal blocks
     ``R^{ii} + B^i' P^i B^i`` are positive definite when ``P^i >= 0``: the first pivot is
     then always regular, and for ``N = 2`` the second is the Schur complement, regular
-    exactly when ``S`` is. For general matrices use ``jnp.linalg.solve``.
+    exactly when ``S`` is. For general matrices use ``jnp.linalg.solve``. ``contract``
+    computes its products (default :func:`_contract`, fused element-wise code).
     """
+    c = _contract if contract is None else contract
     N, m = S.shape[0], S.shape[1]
     M = jnp.concatenate([S.reshape(N, m, N * m), rhs], axis=-1)  # (N, m, N m + k)
     for b in range(N):
-        row = _contract("ab,bw->aw", _inverse_small(M[b, :, b * m:(b + 1) * m]), M[b])
-        M = M - _contract("iab,bw->iaw", M[:, :, b * m:(b + 1) * m], row)
+        row = c("ab,bw->aw", _inverse_small(M[b, :, b * m:(b + 1) * m]), M[b])
+        M = M - c("iab,bw->iaw", M[:, :, b * m:(b + 1) * m], row)
         M = M.at[b].set(row)
     return M[..., N * m:]
 
@@ -381,24 +389,26 @@ def pivoted_solve(S: Array, rhs: Array) -> Array:
     return M[:, p:]
 
 
-def _feedback_own_recursion(A, B, Q, q, Rii, rii, feedforward_regularization=None):
-    """The recursion of :func:`solve_feedback_own` for one game: small products as fused
-    element-wise code (:func:`_contract`), the coupled gains by :func:`block_solve`."""
-    N, n, m = B.shape[1], B.shape[2], B.shape[3]
-    Q, Rii = _sym(Q), _sym(Rii)
-    eye_N = jnp.eye(N, dtype=Rii.dtype)
-    c = _contract
+def _feedback_own_step(N: int, n: int, m: int, dtype: Any, feedforward_regularization: Array | float | None,
+                       contract: Callable[..., Array], sandwich: Callable[[Array, Array, Array], Array]) -> Callable:
+    """One backward stage of :func:`solve_feedback_own`'s recursion for one game, as a
+    ``lax.scan`` body ``((P, p), stage) -> ((P, p), (K, k))``, with its products computed by
+    ``contract(spec, *operands)`` and ``X' M^i Y`` by ``sandwich(X, M, Y)``: fused
+    element-wise code for one game (:func:`_contract`, :func:`_sandwich`), dots in the batched
+    form (:func:`solve_feedback_own_batched`, where ``vmap`` makes them batched products)."""
+    eye_N = jnp.eye(N, dtype=dtype)
+    c = contract
     # lambda I on the own blocks for the feed-forward rows, made once, in the weights' dtype
     # (a float64 lambda must not promote a float32 recursion)
     lam_I = (None if feedforward_regularization is None
-             else jnp.asarray(feedforward_regularization, Rii.dtype)
-             * eye_N[:, None, :, None] * jnp.eye(m, dtype=Rii.dtype)[None, :, None, :])
+             else jnp.asarray(feedforward_regularization, dtype)
+             * eye_N[:, None, :, None] * jnp.eye(m, dtype=dtype)[None, :, None, :])
 
     def gains(S, rhs_K, rhs_k):
         if lam_I is None:
-            sol = block_solve(S, jnp.concatenate([rhs_K, rhs_k[..., None]], axis=-1))
+            sol = block_solve(S, jnp.concatenate([rhs_K, rhs_k[..., None]], axis=-1), contract)
             return sol[..., :n], sol[..., n]
-        return block_solve(S, rhs_K), block_solve(S + lam_I, rhs_k[..., None])[..., 0]
+        return block_solve(S, rhs_K, contract), block_solve(S + lam_I, rhs_k[..., None], contract)[..., 0]
 
     def step(carry, stage):
         P, p = carry  # (N, n, n), (N, n) at t+1
@@ -412,7 +422,7 @@ def _feedback_own_recursion(A, B, Q, q, Rii, rii, feedforward_regularization=Non
         beta = -c("jam,jm->a", B_t, k)  # closed-loop drift
         P_new = (
             Q_t
-            + _sandwich(F, P, F)
+            + sandwich(F, P, F)
             + c("ima,imb->iab", K, c("iml,ilb->imb", R_t, K))
         )
         p_new = (
@@ -422,9 +432,49 @@ def _feedback_own_recursion(A, B, Q, q, Rii, rii, feedforward_regularization=Non
         )
         return (_sym(P_new), p_new), (K, k)
 
+    return step
+
+
+def _feedback_own_recursion(A, B, Q, q, Rii, rii, feedforward_regularization=None):
+    """The recursion of :func:`solve_feedback_own` for one game: small products as fused
+    element-wise code (:func:`_contract`), the coupled gains by :func:`block_solve`."""
+    N, n, m = B.shape[1], B.shape[2], B.shape[3]
+    Q, Rii = _sym(Q), _sym(Rii)
+    step = _feedback_own_step(N, n, m, Rii.dtype, feedforward_regularization, _contract, _sandwich)
     stages = (A, B, Q[:-1], q[:-1], Rii, rii)
     _, (K, k) = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True)
     return K, k
+
+
+def _dot_sandwich(X: Array, M: Array, Y: Array) -> Array:
+    """``X' M^i Y`` for every player as dots (the batched form's :func:`_sandwich`)."""
+    return jnp.einsum("ba,ibc,cd->iad", X, M, Y)
+
+
+@jax.jit
+def solve_feedback_own_batched(
+    A: Array, B: Array, Q: Array, q: Array, Rii: Array, rii: Array,
+    feedforward_regularization: Array | float | None = None,
+) -> tuple[Array, Array]:
+    """:func:`solve_feedback_own` for a batch of games at once: every array has a leading
+    batch axis (``A (Z, T, n, n)``, ``B (Z, T, N, n, m)``, ``Q (Z, T+1, N, n, n)``,
+    ``q (Z, T+1, N, n)``, ``Rii (Z, T, N, m, m)``, ``rii (Z, T, N, m)``; returns
+    ``K (Z, T, N, m, n)``, ``k (Z, T, N, m)``), ``feedforward_regularization`` shared.
+
+    The layout of the batch: one ``lax.scan`` over the stages whose body works on all ``Z``
+    games, every product a batched dot (``dot_general`` with the games as a batch
+    dimension) instead of the fused element-wise code one game runs, so that a stage is a
+    few batched matrix products rather than ``Z`` small recursions one after another (what
+    ``jax.vmap`` of :func:`solve_feedback_own` does). Equal to the per-game form to rounding
+    (tests/test_lq_game.py); which is faster is a property of the machine:
+    ``racing bench --only solvers`` times both (docs/performance.md).
+    """
+    N, n, m = B.shape[2], B.shape[3], B.shape[4]
+    Q, Rii = _sym(Q), _sym(Rii)
+    step = jax.vmap(_feedback_own_step(N, n, m, Rii.dtype, feedforward_regularization, jnp.einsum, _dot_sandwich))
+    stages = tuple(jnp.swapaxes(a, 0, 1) for a in (A, B, Q[:, :-1], q[:, :-1], Rii, rii))  # stages leading
+    _, (K, k) = jax.lax.scan(step, (Q[:, -1], q[:, -1]), stages, reverse=True)
+    return jnp.swapaxes(K, 0, 1), jnp.swapaxes(k, 0, 1)
 
 
 _feedback_own = one_at_a_time(_feedback_own_recursion)

@@ -326,3 +326,24 @@ def test_jax_learner_row_times_updates_after_the_compiling_one():
     assert row["races"] == "compiled" and row["steps"] == 2 * 16 * 8
     assert row["steps_per_s"] > 0 and row["first_update_s"] > 0
     assert bench._target_verdict(row) is not None
+
+
+@pytest.mark.slow  # a child process compiles the parts and the whole iteration (about 2 min)
+def test_roofline_rows_cover_every_part_against_both_references():
+    from experiments.bench_roofline import PARTS, roofline_rows
+
+    rows = {row["name"]: row for row in roofline_rows(races=2)}
+    assert rows["roofline_reference_gemm_one_core"]["gflop_per_s"] > 0
+    assert rows["roofline_reference_small_matmul"]["gflop_per_s"] > 0
+    names = [f"roofline_{part}_B2" for part in (*PARTS, "lq_recursion_batched", "whole_iteration_float32")]
+    for name in names:
+        row = rows[name]
+        assert row["us_per_race"] > 0 and row["mflop_per_race"] > 0, row
+        assert np.isclose(row["gemm_share"] * rows["roofline_reference_gemm_one_core"]["gflop_per_s"],
+                          row["gflop_per_s"])
+    whole = rows["roofline_whole_iteration_B2"]["mflop_per_race"]
+    # the iteration holds each part once (one step-size trial), plus its own bookkeeping
+    assert sum(rows[f"roofline_{part}_B2"]["mflop_per_race"] for part in PARTS[:-1]) <= whole
+    # float32 runs the same arithmetic; the batched LQ recursion the same recursion (as dots)
+    assert rows["roofline_whole_iteration_float32_B2"]["mflop_per_race"] == whole
+    assert rows["roofline_lq_recursion_batched_B2"]["mflop_per_race"] >= rows["roofline_lq_recursion_B2"]["mflop_per_race"]

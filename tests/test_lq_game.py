@@ -661,3 +661,22 @@ def test_feedforward_regularization_keeps_the_dtype_of_the_game():
         assert K.dtype == k.dtype == np.float32
         _, k64 = solver(*game, 0.3)
         assert rel_gap(k, k64) < 1e-4  # float32 rounding
+
+
+@pytest.mark.parametrize("N, feedforward", [(2, None), (2, 0.7), (3, None)])
+def test_batched_feedback_recursion_equals_the_per_game_one(N, feedforward):
+    """The races as a batch dimension of the products (solve_feedback_own_batched) against
+    the per-game recursion under vmap: the same arithmetic in another order, so equal to
+    rounding (1e-12 on gains and feed-forward terms of order 1)."""
+    from planners.lq_game import solve_feedback_own_batched
+
+    games = [random_game(seed=70 + s, N=N, T=6) for s in range(3)]
+    own = [(A, B, Q, q, np.stack([R[:, i, i] for i in range(N)], 1), np.stack([r[:, i, i] for i in range(N)], 1))
+           for A, B, Q, q, R, r in games]
+    batch = tuple(jnp.asarray(np.stack(parts)) for parts in zip(*own))
+    extra = () if feedforward is None else (feedforward,)
+    K_b, k_b = solve_feedback_own_batched(*batch, *extra)
+    K_v, k_v = jax.vmap(lambda *game: solve_feedback_own(*game, *extra))(*batch)
+    assert K_b.shape == K_v.shape and k_b.shape == k_v.shape
+    assert rel_gap(K_b, K_v) < 1e-12 and rel_gap(k_b, k_v) < 1e-12
+    assert float(np.max(np.abs(np.asarray(K_v)))) > 0.1  # the gains are not trivially zero

@@ -40,7 +40,7 @@ from planners import ilq, ilqr, rival_game
 from planners.agents.receding_horizon import RECOVERED_SPEED, STOPPED_SPEED
 from planners.agents.warm_start import restore_accelerations
 from planners.game_problem import as_problem
-from planners.precision import require_x64
+from planners.precision import cast_floating, require_precision
 from racing_env.costs import CostWeights, responsibility_scale
 from racing_env.dynamics import AX, AY, CHI, N_LAT, S, STATE_DIM, V
 
@@ -77,7 +77,7 @@ class CompiledPlanner:
     weight variants and solver options it shares."""
 
     def __init__(self, planner: Any) -> None:
-        require_x64(f"the compiled planner {planner.spec!r}")
+        require_precision(planner.options.precision, f"the compiled planner {planner.spec!r}")
         agent = planner.agent
         self.index = planner.index
         self.game = planner.game
@@ -165,20 +165,25 @@ class CompiledPlanner:
             shifted = restore_accelerations(shifted, plan.xs[by], x, self.game.dt)
         return jnp.where(plan.has_plan, shifted, zeros)
 
+    def _solve_arrays(self, problem, x0: jax.Array, us0: jax.Array, dtype) -> ilq.SolverResult:
+        """:func:`planners.ilq.solve_arrays` with the planner's options, its floats in the race's
+        ``dtype`` (a ``precision="float32"`` solve inside a float64 race)."""
+        return cast_floating(ilq.solve_arrays(problem, x0, us0, self.options), dtype)
+
     def _solve(self, game, x: jax.Array, init: jax.Array):
         """``(us (T, N, 2), xs (T+1, N, 6), K (T, 2, 6N), converged)`` of one re-plan."""
         if self.is_ilqr:
             predicted = ilqr.predict_constant_velocity(game, x)
             template = self.ego_template
             problem = template.replace(params=template.params._replace(game=game, predicted=predicted))
-            res = ilq.solve_arrays(problem, x[self.index], init[:, self.index][:, None], self.options)
+            res = self._solve_arrays(problem, x[self.index], init[:, self.index][:, None], x.dtype)
             xs = predicted.at[:, self.index].set(res.xs)
             us = jnp.zeros_like(init).at[:, self.index].set(res.us[:, 0])
             return us, xs, jnp.zeros((self.horizon, 2, self.num_cars * STATE_DIM), xs.dtype), res.converged
         if self.rivals is not None:
             return self._solve_local(game, x, init)
         problem, _ = as_problem(game)
-        res = ilq.solve_arrays(problem, x, init, self.options)
+        res = self._solve_arrays(problem, x, init, x.dtype)
         K = res.K[:, self.index] if self.feedback else jnp.zeros((self.horizon, 2, x.size), x.dtype)
         return res.us, res.xs, K, res.converged
 
@@ -190,7 +195,7 @@ class CompiledPlanner:
         others = ilqr.predict_constant_velocity(game, x)[:, order[P:]]
         params = rival_game.RivalParams(game=game, order=order, predicted=others[:, :self.obstacles])
         problem = rival_game.local_problem(P, STATE_DIM, game.input_dim, self.horizon, params)
-        res = ilq.solve_arrays(problem, x[order[:P]].reshape(-1), init[:, order[:P]], self.options)
+        res = self._solve_arrays(problem, x[order[:P]].reshape(-1), init[:, order[:P]], x.dtype)
         xs, us, K = rival_game.to_field_batch(order[None], res.xs[None], res.us[None],
                                               res.K[None] if self.feedback else None, init[None], others[None])
         K = K[0] if self.feedback else jnp.zeros((self.horizon, 2, x.size), x.dtype)

@@ -39,7 +39,7 @@ from planners.agents.weights import (
     with_player_weights,
 )
 from planners.methods import CONSTANT_VELOCITY, FEEDBACK, FEEDBACK_GAME, GAME_MODES, ILQR, LANE_KEEPING, OPEN_LOOP_GAME
-from planners.precision import require_x64
+from planners.precision import require_precision
 from racing_env.costs import check_responsibility
 from racing_env.dynamics import V
 from racing_env.observation import cars_racing
@@ -275,7 +275,8 @@ class RecedingHorizonAgent(BaseAgent):
         return cls(**{**grouped, **kwargs})
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
-        require_x64(f"the planner {self.spec!r}")  # its solver's tolerances; before any work of the race
+        # float64 solves need x64 (their tolerances); before any work of the race
+        require_precision(self.solver_options.get("precision", "float64"), f"the planner {self.spec!r}")
         super().reset(seed, index, env_info)
         weights = weights_for(self.game, self.index, self.belief_weights)
         others = [j for j in range(self.game.num_players) if j != self.index]
