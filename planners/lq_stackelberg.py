@@ -16,9 +16,10 @@ Solvers:
   ``u_t^i = -k_t^i``: the leader commits to its whole input sequence, minimising its cost
   subject to the follower's open-loop best response to that sequence (one dense linear
   system in the leader's ``T m`` inputs; not time-consistent).
-* :func:`feedback_stackelberg_hessians`: the Hessians of the follower's and of the
-  leader's stage problems along the feedback solution; the solution is a (unique)
-  stage-wise Stackelberg solution where all of them are positive definite.
+* :func:`feedback_stackelberg_stages`: the feedback solution with what each stage's
+  problems are made of: the follower's reaction to the leader's input and the Hessians of
+  both stage problems (the solution is a unique stage-wise Stackelberg solution where all
+  of them are positive definite).
 * :func:`validate_stackelberg_game`: refuses games the solvers are not for.
 
 The derivation and what is (and is not) guaranteed: docs/solvers.md, "Stackelberg
@@ -30,6 +31,7 @@ validation: call :func:`validate_stackelberg_game` once, outside ``jit``.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -41,7 +43,8 @@ from planners.lq_game import closed_loop_values, validate_lq_game
 Array = jax.Array
 
 __all__ = [
-    "feedback_stackelberg_hessians",
+    "StackelbergStages",
+    "feedback_stackelberg_stages",
     "solve_feedback_stackelberg",
     "solve_open_loop_stackelberg",
     "validate_stackelberg_game",
@@ -110,7 +113,8 @@ def validate_stackelberg_game(A, B, Q, q, R, r, leader: int = 0) -> None:
 
 
 def _feedback_stackelberg_recursion(A, B, Q, q, R, r, leader):
-    """The backward recursion for one game; returns ``K, k`` and the stage Hessians."""
+    """The backward recursion for one game: ``K, k``, the reaction gains ``G`` and the
+    stage Hessians."""
     n = A.shape[-1]
     l, f = leader, 1 - leader
     Q, R = _sym(Q), _sym(R)
@@ -142,11 +146,11 @@ def _feedback_stackelberg_recursion(A, B, Q, q, R, r, leader):
         k = jnp.stack([k_l, k_f] if l == 0 else [k_f, k_l])
         # both values carried back along the closed loop (what the strategies cost)
         values = closed_loop_values(A_t, B_t, Q_t, q_t, R_t, r_t, P, p, K, k)
-        return values, (K, k, _sym(H_f), _sym(H_l))
+        return values, (K, k, G, _sym(H_f), _sym(H_l))
 
     stages = (A, B, Q[:-1], q[:-1], R, r)
-    _, (K, k, H_f, H_l) = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True)
-    return K, k, H_f, H_l
+    _, (K, k, G, H_f, H_l) = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True)
+    return K, k, G, H_f, H_l
 
 
 # One game at a time under vmap (its LAPACK solves stay single calls), one wrapper per
@@ -159,8 +163,8 @@ _feedback_stackelberg = {
 
 @functools.partial(jax.jit, static_argnames=("leader",))
 def _feedback_stackelberg_all(A, B, Q, q, R, r, leader):
-    """Gains and stage Hessians in one compiled program (per shape and leader), which both
-    public functions share."""
+    """The solution and its stages in one compiled program (per shape and leader), which
+    both public functions share."""
     return _feedback_stackelberg[leader](A, B, Q, q, R, r)
 
 
@@ -185,7 +189,7 @@ def solve_feedback_stackelberg(
        :func:`planners.lq_game.solve_feedback`.
 
     A stage-wise Stackelberg solution where every ``H_f`` and ``H_l``
-    (:func:`feedback_stackelberg_hessians`) is positive definite: always so when every
+    (:func:`feedback_stackelberg_stages`) is positive definite: always so when every
     ``Q^i`` and every ``R^{ij}`` is positive semi-definite and ``R^{ii}`` positive definite.
 
     Args:
@@ -198,26 +202,43 @@ def solve_feedback_stackelberg(
       ``u_t^i = -K_t^i x_t - k_t^i``.
     """
     _check_leader(leader)
-    K, k, _, _ = _feedback_stackelberg_all(A, B, Q, q, R, r, leader)
+    K, k, _, _, _ = _feedback_stackelberg_all(A, B, Q, q, R, r, leader)
     return K, k
 
 
-def feedback_stackelberg_hessians(
+class StackelbergStages(NamedTuple):
+    """The feedback Stackelberg solution and its stage problems (:func:`feedback_stackelberg_stages`).
+
+    Attributes:
+      K: ``(T, 2, m, n)``, k: ``(T, 2, m)``: the strategies ``u^i = -K^i x - k^i``.
+      reaction: ``G (T, m, m)``: the follower's stage input moves by ``-G du^l`` when the
+        leader's moves by ``du^l`` (at the same state, the continuation unchanged).
+      H_follower: ``(T, m, m)``, ``R^{ff} + B^f' P^f B^f``: the Hessian of the follower's
+        cost-to-go in its stage input.
+      H_leader: ``(T, m, m)``: the Hessian of the leader's cost-to-go in its stage input
+        with the follower reacting.
+    """
+
+    K: Array
+    k: Array
+    reaction: Array
+    H_follower: Array
+    H_leader: Array
+
+
+def feedback_stackelberg_stages(
     A: Array, B: Array, Q: Array, q: Array, R: Array, r: Array, leader: int = 0
-) -> tuple[Array, Array]:
-    """The Hessians of the stage problems along the feedback Stackelberg solution.
+) -> StackelbergStages:
+    """The feedback Stackelberg solution with its stage problems' reaction and Hessians.
 
     Args: as :func:`solve_feedback_stackelberg`.
 
     Returns:
-      ``H_follower (T, m, m)``: ``R^{ff} + B^f' P^f B^f``, the Hessian of the follower's
-      cost-to-go in its stage input; ``H_leader (T, m, m)``: the Hessian of the leader's
-      cost-to-go in its stage input with the follower reacting. Both positive definite at
+      :class:`StackelbergStages`. ``H_follower`` and ``H_leader`` positive definite at
       every stage: each stage's reaction and leader input are unique minimisers.
     """
     _check_leader(leader)
-    _, _, H_f, H_l = _feedback_stackelberg_all(A, B, Q, q, R, r, leader)
-    return H_f, H_l
+    return StackelbergStages(*_feedback_stackelberg_all(A, B, Q, q, R, r, leader))
 
 
 # --------------------------------------------------------------------------------------

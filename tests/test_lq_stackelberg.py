@@ -30,7 +30,7 @@ from planners.lq_game import (  # noqa: E402
     solve_open_loop,
 )
 from planners.lq_stackelberg import (  # noqa: E402
-    feedback_stackelberg_hessians,
+    feedback_stackelberg_stages,
     solve_feedback_stackelberg,
     solve_open_loop_stackelberg,
     validate_stackelberg_game,
@@ -117,7 +117,7 @@ def test_feedback_follower_is_a_best_response(leader, kind):
     f = 1 - leader
     K_br, k_br = feedback_best_response(game, K, k, f)
     assert rel_gap(K[:, f], K_br) < TOL and rel_gap(k[:, f], k_br) < TOL
-    H_f, H_l = as_np(*feedback_stackelberg_hessians(*game, leader=leader))
+    H_f, H_l = as_np(*feedback_stackelberg_stages(*game, leader=leader)[3:])
     assert np.linalg.eigvalsh(H_f).min() > 0 and np.linalg.eigvalsh(H_l).min() > 0
     if kind == "no linear terms":
         assert np.max(np.abs(k)) == 0.0
@@ -129,11 +129,13 @@ def test_feedback_leader_solves_each_stage_problem(leader):
     strategies: the leader's stage problem (minimise its cost-to-go over both stage inputs
     subject to the follower's stationarity) is solved by the returned strategies, for every
     state (the affine map of x), and its reduced Hessian is ``H_leader``, positive definite;
-    the follower's stage Hessian is ``H_follower``."""
+    the follower's stage Hessian is ``H_follower`` and its reaction ``reaction``."""
     game = stackelberg_game(10 + leader)
     A, B, Q, q, R, r = game
     K, k = as_np(*solve_feedback_stackelberg(*game, leader=leader))
-    H_f, H_l = as_np(*feedback_stackelberg_hessians(*game, leader=leader))
+    stages = feedback_stackelberg_stages(*game, leader=leader)
+    G, H_f, H_l = as_np(*stages[2:])
+    assert rel_gap(stages.K, K) == 0.0 and rel_gap(stages.k, k) == 0.0
     l, f = leader, 1 - leader
     for t in range(T):
         if t + 1 < T:
@@ -158,7 +160,9 @@ def test_feedback_leader_solves_each_stage_problem(leader):
         assert rel_gap(k[t, l], z_offset[:m]) < TOL and rel_gap(k[t, f], z_offset[m:]) < TOL, t
         # second order: the follower's Hessian, and the leader's on the constraint's null space
         assert rel_gap(H_f[t], C[:, m:]) < TOL
-        Z = np.concatenate([np.eye(m), -np.linalg.solve(C[:, m:], C[:, :m])])  # u^f = -G u^l
+        reaction = np.linalg.solve(C[:, m:], C[:, :m])  # u^f moves by -reaction du^l
+        assert rel_gap(G[t], reaction) < TOL
+        Z = np.concatenate([np.eye(m), -reaction])
         assert rel_gap(H_l[t], Z.T @ H @ Z) < TOL
         assert np.linalg.eigvalsh(H_l[t]).min() > 0 and np.linalg.eigvalsh(H_f[t]).min() > 0
 
@@ -171,7 +175,7 @@ def test_a_leader_deviation_costs_the_leader_its_quadratic_form():
     definite second-order term: a minimum)."""
     game = stackelberg_game(20)
     K, k = as_np(*solve_feedback_stackelberg(*game, leader=0))
-    _, H_l = as_np(*feedback_stackelberg_hessians(*game, leader=0))
+    _, H_l = as_np(*feedback_stackelberg_stages(*game, leader=0)[3:])
     rng = np.random.default_rng(21)
     for t in (0, T // 2, T - 1):
         x = rng.standard_normal(n)
@@ -203,7 +207,7 @@ def test_one_stage_game_leader_gains_exactly_its_quadratic_form_over_nash():
         A, B = game[0], game[1]
         K_s, k_s = solve_feedback_stackelberg(*game, leader=0)
         K_n, k_n = solve_feedback(*game)
-        _, H_l = as_np(*feedback_stackelberg_hessians(*game, leader=0))
+        _, H_l = as_np(*feedback_stackelberg_stages(*game, leader=0)[3:])
         for _ in range(3):
             x0 = jnp.asarray(rng.standard_normal(n))
             xs, us = lq_rollout_feedback(A, B, K_s, k_s, x0)
@@ -222,7 +226,7 @@ def test_every_stage_leader_does_no_worse_than_the_stage_nash_point(leader):
     game = stackelberg_game(40 + leader)
     A, B, Q, q, R, r = game
     K, k = as_np(*solve_feedback_stackelberg(*game, leader=leader))
-    _, H_l = as_np(*feedback_stackelberg_hessians(*game, leader=leader))
+    _, H_l = as_np(*feedback_stackelberg_stages(*game, leader=leader)[3:])
     l, f = leader, 1 - leader
     rng = np.random.default_rng(41)
     for t in range(T):
