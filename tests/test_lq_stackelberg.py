@@ -295,6 +295,7 @@ def test_swapping_the_players_swaps_the_solution():
     assert rel_gap(k_ol, k_ol2[:, ::-1]) < 1e-10 and rel_gap(xs, xs2) < 1e-10
 
 
+@pytest.mark.slow
 def test_vmap_matches_one_by_one():
     games = [stackelberg_game(70 + s) for s in range(3)]
     batch = [jnp.asarray(np.stack(a)) for a in zip(*games)]

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import racing_env  # noqa: F401  (float64: tests/conftest.py)
-from planners import ilq, lq_game, lq_stackelberg
+from planners import ilq, ilq_batch, lq_game, lq_stackelberg
 from planners.stackelberg import STACKELBERG_SOLUTION, certify_stackelberg
 from racing_env.scenarios import paper_game
 
@@ -39,6 +39,25 @@ def test_one_step_lands_on_the_lq_stackelberg_solution(leader):
         K_n, k_n = lq_game.solve_feedback(*args)
         _, us_nash = lq_game.lq_rollout_feedback(p["A"], p["B"], K_n, k_n, x0)
         assert np.max(np.abs(np.asarray(us_nash) - np.asarray(res.us))) > 1e-3
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("batching", ["vmap", "map"])
+def test_a_batch_equals_its_single_solves(batching):
+    """Batched Stackelberg solves (both batchings) equal the single ones, members that need
+    different numbers of iterations included (trust region: the first steps are cut)."""
+    problem, _, x0, us0 = random_lq_game(seed=5)
+    x0s = np.stack([np.asarray(x0) * s for s in (1.0, 4.0, -2.0)])
+    batch = ilq_batch.solve_batch(problem, x0s, us0, mode="stackelberg", leader=1, trust_radius=1.0,
+                                  batching=batching)
+    iterations = set()
+    for b, x in enumerate(x0s):
+        single = ilq.solve(problem, x, us0, mode="stackelberg", leader=1, trust_radius=1.0)
+        assert bool(batch.converged[b]) and bool(single.converged)
+        np.testing.assert_allclose(batch.us[b], single.us, atol=1e-9)
+        np.testing.assert_allclose(batch.K[b], single.K, atol=1e-9)
+        iterations.add(int(single.iterations))
+    assert len(iterations) > 1
 
 
 def test_stackelberg_mode_refuses_what_it_is_not_for():
