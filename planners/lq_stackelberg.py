@@ -329,8 +329,9 @@ def solve_open_loop_stackelberg(
     weights) is positive definite when every ``Q^i`` and ``R^{ij}`` is positive
     semi-definite and ``R^{ll} > 0``; then the solution is the unique minimiser, and the
     leader's cost is no higher than at any point of the follower's reaction, the open-loop
-    Nash equilibrium included. Cost: ``O((T m)^3)``, a few milliseconds for ``T = 50``,
-    ``m = 2``.
+    Nash equilibrium included. Cost: dense products over the horizon and one ``T m``
+    solve, about 25 ms for ``T = 50``, ``n = 12``, ``m = 2`` on a CPU core (the feedback
+    solution of the same game: under 2 ms).
 
     Args:
       A: ``(T, n, n)``. B: ``(T, 2, n, m)``. Q: ``(T+1, 2, n, n)``. q: ``(T+1, 2, n)``.
