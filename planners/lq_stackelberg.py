@@ -43,6 +43,7 @@ from planners.lq_game import closed_loop_values, validate_lq_game
 Array = jax.Array
 
 __all__ = [
+    "LEADERS",
     "StackelbergStages",
     "feedback_stackelberg_stages",
     "solve_feedback_stackelberg",
