@@ -406,7 +406,7 @@ def _solution_arrays(problem: GameProblem, solution, mode: str | None, dtype) ->
         raise ValueError(f"the solution's gains K must have shape (T, N, m, n) = {(T, N, m, n)}, got {K.shape}")
     if mode is None:
         mode = methods.FEEDBACK if np.any(K != 0) else methods.OPEN_LOOP
-    if mode not in methods.SOLVER_MODES:
+    if mode not in methods.NASH_MODES:
         raise ValueError(f"mode must be 'feedback' or 'open_loop', got {mode!r}")
     if mode == methods.FEEDBACK and gains is None:
         raise ValueError("a feedback certificate needs the solution's gains: pass the SolverResult, not its inputs")

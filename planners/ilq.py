@@ -35,7 +35,10 @@ only with status ``CONVERGED``.
 One solver serves three planners of the paper (``reference/ilqgame-racing-paper.tex``,
 Algorithm 1): feedback iLQGame (``mode="feedback"``, each iteration solves the feedback
 Nash equilibrium of the local LQ game, :mod:`planners.lq_game`), open-loop iLQGame
-(``mode="open_loop"``) and iLQR (``N = 1``, :mod:`planners.ilqr`).
+(``mode="open_loop"``) and iLQR (``N = 1``, :mod:`planners.ilqr`); and, beyond the paper,
+two-player leader-follower games (``mode="stackelberg"``: the local games' feedback
+Stackelberg solutions, :mod:`planners.lq_stackelberg`; certificate:
+:mod:`planners.stackelberg`).
 
 One iteration (:func:`iterate`)
 -------------------------------
@@ -68,7 +71,8 @@ Around the nominal trajectory ``(x_hat, u_hat)``:
    only); it does change feedback ones (``K`` depends on ``Q``);
 4. solve the LQ game in deviation coordinates. Feedback: ``du = -K dx - k``
    (:func:`~planners.lq_game.solve_feedback_own`, or the general pivoting
-   :func:`~planners.lq_game.solve_feedback` with ``convexify="none"``). Open loop: the
+   :func:`~planners.lq_game.solve_feedback` with ``convexify="none"``); Stackelberg: the same
+   form from :func:`~planners.lq_stackelberg.solve_feedback_stackelberg`. Open loop: the
    local game starts at ``dx_0 = 0``, so :func:`~planners.lq_game.solve_open_loop_own`
    with a zero initial deviation gives the whole update ``du_t = -k_t`` and ``K = 0``;
    then ``eta * k`` is exactly the equilibrium of the local game with its linear terms
@@ -128,7 +132,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from planners import local_game, lq_game, methods, nash, precision as precisions
+from planners import local_game, lq_game, lq_stackelberg, methods, nash, precision as precisions
 from planners.game_problem import GameProblem, as_problem, game_type_of, is_concrete, rollout, total_costs
 from planners.precision import require_precision
 
@@ -151,12 +155,14 @@ __all__ = [
     "at_precision",
     "check_adaptive_regularization",
     "check_budget_ms",
+    "check_players",
     "finish",
     "forward",
     "initial_carry",
     "iterate",
     "iterate_while_running",
     "jit_arguments",
+    "local_lq_game",
     "regularize",
     "resolve_options",
     "result",
@@ -247,7 +253,12 @@ class SolverOptions:
     them run the same compiled solver (:meth:`split`).
 
     Attributes:
-        mode: ``"feedback"`` or ``"open_loop"`` Nash equilibrium of the local LQ games.
+        mode: ``"feedback"`` or ``"open_loop"`` Nash equilibrium of the local LQ games, or
+            ``"stackelberg"``: their feedback Stackelberg solution (two players only,
+            :func:`~planners.lq_stackelberg.solve_feedback_stackelberg`), player ``leader``
+            leading.
+        leader: the leading player's index (0 or 1) in ``mode="stackelberg"``; ignored
+            otherwise.
         max_iterations: iteration cap (>= 1).
         tolerance: convergence when a full step changes the state trajectory by at most this
             much (max-norm over stages and state entries, state units).
@@ -321,6 +332,7 @@ class SolverOptions:
     """
 
     mode: str = methods.FEEDBACK
+    leader: int = 0
     max_iterations: int = 100
     tolerance: float = 1e-6
     step_control: str = "trust_region"
@@ -380,6 +392,9 @@ class SolverOptions:
                 raise ValueError(f"SolverOptions.{name} must be True or False, got {getattr(self, name)!r}")
         if self.mode not in methods.SOLVER_MODES:
             raise ValueError(f"mode must be one of {methods.SOLVER_MODES}, got {self.mode!r}")
+        if isinstance(self.leader, (bool, np.bool_)) or self.leader not in lq_stackelberg.LEADERS:
+            raise ValueError(f"SolverOptions.leader must be one of {lq_stackelberg.LEADERS} (the leading "
+                             f"player's index, mode='stackelberg'), got {self.leader!r}")
         if self.step_control not in _STEP_CONTROLS:
             raise ValueError(
                 f"step_control must be one of {_STEP_CONTROLS}, got {self.step_control!r}"
@@ -558,21 +573,37 @@ def regularize(Q: Array, Rii: Array, options: SolverOptions, convexify: str,
     return Q, Rii
 
 
-def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions,
-             control_regularization: Array | float):
-    """Linearise, quadratise and solve the local LQ game: ``K (T, N, m, n)``, ``k (T, N, m)``
-    (``control_regularization``: the current ``lambda_u``, see :func:`regularize`)."""
+def local_lq_game(problem: GameProblem, xs: Array, us: Array, options: SolverOptions,
+                  control_regularization: Array | float | None = None):
+    """The local LQ game an iteration solves around ``xs (T+1, n)``, ``us (T, N, m)``:
+    ``A, B, Q, q, Rii, rii`` (own-input weights, :func:`planners.lq_game.solve_feedback_own`'s
+    arrays), linearised, quadratised per ``options.convexify`` and ``dynamics_curvature``,
+    and regularised (:func:`regularize`; ``control_regularization``: the current
+    ``lambda_u``, default the options')."""
     convexify = _convexify(problem, options)
     A, B = local_game.linearize(problem, xs, us)
     Q, q, Rii, rii = local_game.quadratize(problem, xs, us, convexify == "gauss_newton",
                                  options.dynamics_curvature)
     Q, Rii = regularize(Q, Rii, options, convexify, control_regularization)
+    return A, B, Q, q, Rii, rii
+
+
+def _lq_step(problem: GameProblem, xs: Array, us: Array, options: SolverOptions,
+             control_regularization: Array | float):
+    """Linearise, quadratise and solve the local LQ game: ``K (T, N, m, n)``, ``k (T, N, m)``
+    (``control_regularization``: the current ``lambda_u``, see :func:`regularize`)."""
+    convexify = _convexify(problem, options)
+    A, B, Q, q, Rii, rii = local_lq_game(problem, xs, us, options, control_regularization)
     lam_k = control_regularization if options.feedforward_regularization else None
     if options.mode == methods.FEEDBACK and convexify != "none":
         # Every Q^i is PSD: the own-input solver's block elimination is safe.
         K, k = lq_game.solve_feedback_own(A, B, Q, q, Rii, rii, lam_k)
     elif options.mode == methods.FEEDBACK:
         K, k = lq_game.solve_feedback(A, B, Q, q, *local_game.own_to_full(Rii, rii), lam_k)
+    elif options.mode == methods.STACKELBERG:
+        check_players(options, problem.num_players)
+        K, k = lq_stackelberg.solve_feedback_stackelberg(A, B, Q, q, *local_game.own_to_full(Rii, rii),
+                                                         leader=int(options.leader))
     else:
         # Deviation coordinates: the local game starts at dx_0 = 0, not at x_0.
         k, _ = lq_game.solve_open_loop_own(A, B, Q, q, Rii, rii, jnp.zeros_like(xs[0]))
@@ -1115,13 +1146,23 @@ def check_adaptive_regularization(options: SolverOptions, num_players: int) -> N
     ``lambda_u`` that changes with every reversal moves the point the iterates converge to.
     With ``feedforward_regularization`` the gains do not see ``lambda_u``, and it is allowed.
     """
-    if (options.adaptive_regularization and options.mode == methods.FEEDBACK and num_players > 1
+    if (options.adaptive_regularization and options.mode != methods.OPEN_LOOP and num_players > 1
             and not options.feedforward_regularization):
         raise ValueError(
             "adaptive_regularization is for open-loop games and one-player problems (ilqgame-ol, "
-            "ilqr): in a feedback game the gains, and with them the equilibrium, depend on the "
+            "ilqr): in a feedback or Stackelberg game the gains, and with them the solution, depend on the "
             "adapted control_regularization; add feedforward_regularization=true to damp the "
             "feed-forward terms only"
+        )
+
+
+def check_players(options: SolverOptions, num_players: int) -> None:
+    """Refuse ``mode="stackelberg"`` for a game of other than two players (one leader, one
+    follower)."""
+    if options.mode == methods.STACKELBERG and num_players != 2:
+        raise ValueError(
+            f"mode='stackelberg' needs a game of exactly 2 players (a leader and a follower), got "
+            f"{num_players}; games of other sizes: mode='feedback' or 'open_loop'"
         )
 
 
@@ -1207,6 +1248,7 @@ def solve(
     problem, game_type = as_problem(problem_or_game)
     _convexify(problem, options)  # a clear error for an unusable convexification
     check_adaptive_regularization(options, problem.num_players)
+    check_players(options, problem.num_players)
     x0 = as_array(x0)
     if not jnp.issubdtype(x0.dtype, jnp.floating):
         x0 = x0.astype(jnp.result_type(float))

@@ -177,8 +177,8 @@ def find_equilibria(problem_or_game, x0, mode: str = methods.OPEN_LOOP, starts: 
     from planners import ilq
     from planners.ilq_batch import solve_batch
 
-    if mode not in methods.SOLVER_MODES:
-        raise ValueError(f"mode must be one of {methods.SOLVER_MODES}, got {mode!r}")
+    if mode not in methods.NASH_MODES:
+        raise ValueError(f"mode must be one of {methods.NASH_MODES}, got {mode!r}")
     if not cluster_tolerance >= 0:
         raise ValueError(f"cluster_tolerance must be >= 0, got {cluster_tolerance!r}")
     problem, _ = as_problem(problem_or_game)

@@ -60,6 +60,7 @@ Array = jax.Array
 
 __all__ = [
     "block_solve",
+    "closed_loop_values",
     "lq_costs",
     "lq_rollout_feedback",
     "lqr",
@@ -226,23 +227,42 @@ def _feedback_recursion(A, B, Q, q, R, r, feedforward_regularization=None):
             K = jnp.linalg.solve(S, rhs_K.reshape(N * m, n)).reshape(N, m, n)
             k = jnp.linalg.solve(S + lam_I, rhs_k.reshape(N * m)).reshape(N, m)
 
-        F = A_t - jnp.einsum("jam,jmb->ab", B_t, K)  # closed-loop dynamics
-        beta = -jnp.einsum("jam,jm->a", B_t, k)  # closed-loop drift
-        P_new = (
-            Q_t
-            + jnp.einsum("ab,ibc,cd->iad", F.T, P, F)
-            + jnp.einsum("jma,ijml,jlb->iab", K, R_t, K)
-        )
-        p_new = (
-            q_t
-            + jnp.einsum("ab,ib->ia", F.T, p + P @ beta)
-            + jnp.einsum("jma,ijm->ia", K, jnp.einsum("ijml,jl->ijm", R_t, k) - r_t)
-        )
-        return (_sym(P_new), p_new), (K, k)
+        return closed_loop_values(A_t, B_t, Q_t, q_t, R_t, r_t, P, p, K, k), (K, k)
 
     stages = (A, B, Q[:-1], q[:-1], R, r)
     _, (K, k) = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True)
     return K, k
+
+
+def closed_loop_values(A_t, B_t, Q_t, q_t, R_t, r_t, P, p, K, k) -> tuple[Array, Array]:
+    """Every player's value at stage ``t`` when all play ``u^j = -K^j x - k^j`` there.
+
+    With the closed loop ``F = A - sum_j B^j K^j``, ``beta = -sum_j B^j k^j`` and the values
+    ``1/2 x'P^i x + p^i'x`` at ``t+1``::
+
+        P_t^i = Q^i + F' P^i F + sum_j K^j' R^{ij} K^j
+        p_t^i = q^i + F' (p^i + P^i beta) + sum_j K^j' (R^{ij} k^j - r^{ij})
+
+    Args (one stage): A_t ``(n, n)``, B_t ``(N, n, m)``, Q_t ``(N, n, n)``, q_t ``(N, n)``,
+    R_t ``(N, N, m, m)`` (symmetric), r_t ``(N, N, m)``, P ``(N, n, n)``, p ``(N, n)``,
+    K ``(N, m, n)``, k ``(N, m)``.
+
+    Returns:
+      ``P_t (N, n, n)`` (symmetrised) and ``p_t (N, n)``.
+    """
+    F = A_t - jnp.einsum("jam,jmb->ab", B_t, K)  # closed-loop dynamics
+    beta = -jnp.einsum("jam,jm->a", B_t, k)  # closed-loop drift
+    P_new = (
+        Q_t
+        + jnp.einsum("ab,ibc,cd->iad", F.T, P, F)
+        + jnp.einsum("jma,ijml,jlb->iab", K, R_t, K)
+    )
+    p_new = (
+        q_t
+        + jnp.einsum("ab,ib->ia", F.T, p + P @ beta)
+        + jnp.einsum("jma,ijm->ia", K, jnp.einsum("ijml,jl->ijm", R_t, k) - r_t)
+    )
+    return _sym(P_new), p_new
 
 
 # One game at a time under vmap: its pivoting solves then stay single LAPACK calls, which

@@ -21,6 +21,7 @@ __all__ = [
     "GAME_MODES",
     "ILQR",
     "LANE_KEEPING",
+    "NASH_MODES",
     "OPEN_LOOP",
     "OPEN_LOOP_GAME",
     "PLANNERS",
@@ -29,6 +30,7 @@ __all__ = [
     "RANDOM",
     "RL",
     "SOLVER_MODES",
+    "STACKELBERG",
 ]
 
 # Solver modes of the iterative LQ game solver (planners.ilq.SolverOptions.mode).
@@ -36,7 +38,12 @@ FEEDBACK = "feedback"
 """Feedback Nash equilibria of the local LQ games: strategies ``u = u_hat - K (x - x_hat)``."""
 OPEN_LOOP = "open_loop"
 """Open-loop Nash equilibria of the local LQ games: input sequences ``u_hat``."""
-SOLVER_MODES = (FEEDBACK, OPEN_LOOP)
+STACKELBERG = "stackelberg"
+"""Feedback (stage-wise) Stackelberg solutions of the local LQ games of two players, a leader
+(:attr:`planners.ilq.SolverOptions.leader`) and a follower: strategies ``u = u_hat - K (x - x_hat)``."""
+NASH_MODES = (FEEDBACK, OPEN_LOOP)
+"""The solver modes whose solutions are Nash equilibria (what certificates and landscapes check)."""
+SOLVER_MODES = (FEEDBACK, OPEN_LOOP, STACKELBERG)
 
 # Agents (spec names). The strings are user-facing: never rename them.
 FEEDBACK_GAME = "ilqgame-fb"

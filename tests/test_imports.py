@@ -23,8 +23,8 @@ PACKAGES = ("racing_env", "planners", "experiments")
 ALLOWED = {"racing_env": set(), "planners": {"racing_env"}, "experiments": {"racing_env", "planners"}}
 # The generic solver knows only the game protocol (GameProblem): neither these modules nor
 # anything they import reaches racing_env; a RaceGame gets to them through planners.race_problem.
-GENERIC_SOLVER = ("planners.lq_game", "planners.local_game", "planners.ilq", "planners.ilq_batch", "planners.nash",
-                  "planners.game_problem")
+GENERIC_SOLVER = ("planners.lq_game", "planners.lq_stackelberg", "planners.local_game", "planners.ilq",
+                  "planners.ilq_batch", "planners.nash", "planners.game_problem")
 
 
 def modules_of(root: Path, packages: tuple[str, ...]) -> dict[str, tuple[Path, bool]]:

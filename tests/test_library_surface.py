@@ -176,7 +176,8 @@ def test_cli_names_are_the_registrys():
     walk(cli.build_parser())
     assert parsers[("tournament", "agents")].default is None  # DEMO_AGENTS, unless --lineup names the field
     assert " ".join(cli.DEMO_AGENTS) in parsers[("tournament", "agents")].help
-    assert set(methods.SOLVER_MODES) <= set(parsers[("convergence", "modes")].choices)
+    # the Nash modes (the convergence study has no Stackelberg rows)
+    assert set(methods.NASH_MODES) <= set(parsers[("convergence", "modes")].choices)
     assert tuple(parsers[("train", "algo")].choices) == SB3_ALGOS
 
 

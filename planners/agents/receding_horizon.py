@@ -229,8 +229,9 @@ class RecedingHorizonAgent(BaseAgent):
 
     @staticmethod
     def _solver_option_types() -> dict[str, type]:
+        # leader: the Stackelberg mode's, which no agent plans in yet
         return {f.name: type(f.default) for f in dataclasses.fields(ilq.SolverOptions)
-                if f.name not in ("mode", "max_iterations")}
+                if f.name not in ("mode", "max_iterations", "leader")}
 
     @classmethod
     def spec_options(cls) -> dict[str, type]:
@@ -245,7 +246,7 @@ class RecedingHorizonAgent(BaseAgent):
 
     @classmethod
     def spec_defaults(cls) -> dict[str, Any]:
-        defaults = {f.name: f.default for f in dataclasses.fields(ilq.SolverOptions)}
+        defaults = {f.name: f.default for f in dataclasses.fields(ilq.SolverOptions) if f.name != "leader"}
         loop = inspect.signature(RecedingHorizonAgent.__init__).parameters  # the loop's own defaults
         defaults.update({name: loop[name].default for name in
                          ("max_iterations", "replan_every", "pad", "warm_start", "restore_accelerations",
