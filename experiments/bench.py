@@ -17,6 +17,8 @@ from typing import Any, Callable, Iterator, NamedTuple
 
 import numpy as np
 
+from experiments.bench_scenes import BENCH_V_MAX, perturbed_scenes, solver_game
+
 from experiments.files import write_json_atomically
 
 
@@ -84,27 +86,6 @@ def _gym_view_row(steps: int, repeats: int) -> dict[str, Any]:
     rate, rates = _median_rate(run, repeats)
     return {"name": "gym_step_vs_lane_keeper", "steps_per_s": rate, "us_per_step": 1e6 / rate,
             "repeats": [round(r, 1) for r in rates]}
-
-
-#: v_max [m/s] of the bench's cars: the paper's ego and opponent, then the three-car scene's
-#: second opponent.
-_BENCH_V_MAX = (20.0, 25.0, 24.0)
-
-
-def _solver_game(num_cars: int):
-    """The paper's scene for 2 cars; for 3 cars a second opponent 2 m to the right."""
-    from experiments.paper import paper_game
-    from racing_env import CostWeights, RaceGame, VehicleParams
-
-    game, x0 = paper_game()
-    if num_cars == 2:
-        return game, x0
-    vehicles = [VehicleParams(v_max=v) for v in _BENCH_V_MAX]
-    game = RaceGame.create(game.track, vehicles, CostWeights(), dt=game.dt, horizon=game.horizon)
-    third = x0[1].copy()
-    third[2] = -2.0
-    third[0] -= 4.0
-    return game, np.vstack([x0, third])
 
 
 def _interleaved_ms(parts: dict[str, tuple[Callable, Any]], rounds: int = 9, calls: int = 20) -> dict[str, float]:
@@ -363,7 +344,7 @@ def _iteration_rows(fixed_iterations: int, rounds: int) -> Iterator[dict[str, An
 
     calls, targets, flops = {}, {}, {}
     for num in (2, 3):
-        game, x0 = _solver_game(num)
+        game, x0 = solver_game(num)
         for mode in ("feedback", "open_loop"):
             name = f"{mode}_iteration_N{num}_T{game.horizon}"
             calls[name] = (lambda game=game, x0=x0, mode=mode:
@@ -424,7 +405,7 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
     iteration_rows = list(_iteration_rows(fixed_iterations, rounds=max(repeats, _ITERATION_ROUNDS)))
     yield from iteration_rows
     for num in (2, 3):
-        game, x0 = _solver_game(num)
+        game, x0 = solver_game(num)
         # the open-loop solve also with the residual line search (no target: an option)
         for name, options in (("feedback", {"mode": "feedback"}), ("open_loop", {"mode": "open_loop"}),
                               ("open_loop_residual", {"mode": "open_loop", "step_control": "residual"})):
@@ -433,12 +414,12 @@ def bench_solvers(repeats: int = 5, batch: int = 64) -> Iterator[dict[str, Any]]
                    "converged": bool(res.converged), "iterations": int(res.iterations),
                    "compile_s": first - run,
                    "target_ms": 50.0 if num == 2 and name != "open_loop_residual" else None}
-    game, x0 = _solver_game(2)
+    game, x0 = solver_game(2)
     parts = _component_times(game, x0)
     yield {"name": "feedback_iteration_components_N2_ms", **{k: round(v, 4) for k, v in parts.items()}}
     yield _lq_state_size_row()
     yield from roofline_rows(batch)
-    x0s = _perturbed_scenes(x0, batch)
+    x0s = perturbed_scenes(x0, batch)
     import jax
 
     devices = jax.local_devices()
@@ -532,7 +513,7 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
 
     if int(repeats) < 1 or int(num_cars) < 1:
         raise ValueError(f"need repeats >= 1 and num_cars >= 1, got {repeats!r} and {num_cars!r}")
-    v_max = _BENCH_V_MAX + (22.0,) * max(0, num_cars - 3)
+    v_max = BENCH_V_MAX + (22.0,) * max(0, num_cars - 3)
     vehicles = [VehicleParams(v_max=v) for v in v_max[:num_cars]]
     weights = None if jerk_weight is None else CostWeights(r_jx=jerk_weight, r_jy=jerk_weight)
     # checked before the work
@@ -582,16 +563,6 @@ def convergence_rows(count: int = 64, seed: int = 0, repeats: int = 3,
         yield row
 
 
-def _perturbed_scenes(x0: np.ndarray, batch: int) -> np.ndarray:
-    """``batch`` copies of the paper's scene, the opponent's lateral offset and speed drawn
-    at random (seed 0): ``(batch, 2, 6)``."""
-    rng = np.random.default_rng(0)
-    x0s = np.repeat(x0[None], batch, axis=0)
-    x0s[:, 1, 2] += rng.uniform(-0.5, 0.5, batch)  # different lateral offsets of the opponent
-    x0s[:, 1, 1] += rng.uniform(-1.0, 1.0, batch)
-    return x0s
-
-
 def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> dict[str, Any]:
     """A batch with a straggler: of these 63 perturbed scenes one does not converge in the
     100 iterations (the others take 10-17). Vmapped lock-step ``solve_batch`` against
@@ -601,7 +572,7 @@ def _straggler_row(game, x0, repeats: int, batch: int = 63, every: int = 10) -> 
     every regrouped size) apart."""
     from planners import ilq_batch
 
-    x0s = _perturbed_scenes(x0, batch)
+    x0s = perturbed_scenes(x0, batch)
     calls = {
         "lockstep": lambda: ilq_batch.solve_batch(game, x0s, mode="feedback", batching="vmap"),
         "regrouped": lambda: ilq_batch.solve_batch(game, x0s, mode="feedback", batching="vmap", regroup_every=every),
@@ -629,7 +600,7 @@ def _precision_batch_row(game, x0, repeats: int, batch: int = 64) -> dict[str, A
     and the largest gap between the two precisions' trajectories [m]."""
     from planners import ilq_batch
 
-    x0s = _perturbed_scenes(x0, batch)
+    x0s = perturbed_scenes(x0, batch)
     calls = {precision: (lambda precision=precision: ilq_batch.solve_batch(
         game, x0s, mode="feedback", batching="vmap", precision=precision)) for precision in ("float64", "float32")}
     timed = _interleaved_calls(calls, max(1, repeats // 2))
@@ -725,7 +696,7 @@ def bench_field() -> Iterator[dict[str, Any]]:
 def bench_certificates(rounds: int = 7, cars: tuple[int, ...] = (2, 3)) -> Iterator[dict[str, Any]]:
     """The cost of a certificate (:func:`planners.certificates.certify`) beside the cost of a solve.
 
-    Per number of cars (the scenes of :func:`_solver_game`) and mode: a cold solve (zero
+    Per number of cars (the scenes of :func:`solver_game`) and mode: a cold solve (zero
     inputs) to convergence, the cheap certificate (gradients, dense own-input Hessians, the
     stage-wise condition for feedback) and the full one (plus the best-response iLQR
     solves) of that solution, timed in turns (:func:`_interleaved_calls`); milliseconds per
@@ -737,7 +708,7 @@ def bench_certificates(rounds: int = 7, cars: tuple[int, ...] = (2, 3)) -> Itera
     from planners.certificates import certify
 
     for num in cars:
-        game, x0 = _solver_game(num)
+        game, x0 = solver_game(num)
         for mode in ("open_loop", "feedback"):
             solution = ilq.solve(game, x0, mode=mode)
             calls = {

@@ -147,14 +147,14 @@ def iteration_parts(races: int) -> tuple[dict[str, tuple[Callable, tuple]], dict
     import jax
     import jax.numpy as jnp
 
-    from experiments.bench import _perturbed_scenes, _solver_game
+    from experiments.bench_scenes import perturbed_scenes, solver_game
     from planners import ilq, ilq_batch, local_game, lq_game, race_problem
     from planners.flops import count_flops
 
-    game, x0 = _solver_game(2)
+    game, x0 = solver_game(2)
     problem = race_problem.problem_from_race_game(game)
     options = ilq.SolverOptions(mode="feedback")
-    x0s = _perturbed_scenes(x0, races)
+    x0s = perturbed_scenes(x0, races)
     res = ilq_batch.solve_batch(game, x0s, mode="feedback", max_iterations=5, tolerance=0.0)
     xs = jnp.asarray(res.xs).reshape(races, game.horizon + 1, -1)
     us, K, k = jnp.asarray(res.us), jnp.asarray(res.K), jnp.asarray(res.k)

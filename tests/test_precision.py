@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import racing_env
-from experiments.bench import _perturbed_scenes
+from experiments.bench_scenes import perturbed_scenes
 from experiments.paper import paper_game
 from planners import ilq, precision, race_problem
 from planners.agents import make_agent
@@ -76,7 +76,7 @@ def test_float32_solves_converge_where_float64_does(paper):
     cap at tolerance 1e-6 before the rounding floor (its convergence measure stalled at
     2^-19, float32's spacing of speeds near 20 m/s)."""
     game, x0 = paper
-    stalled = _perturbed_scenes(x0, 64)[52]
+    stalled = perturbed_scenes(x0, 64)[52]
     for scene in (x0, stalled):
         r64 = ilq.solve(game, scene, mode="feedback", tolerance=1e-6)
         r32 = ilq.solve(game, scene, mode="feedback", tolerance=1e-6, precision="float32")

@@ -132,10 +132,10 @@ def test_gauss_newton_quadratization_holds_no_library_call(cars):
     import jax
     import jax.numpy as jnp
 
-    from experiments.bench import _solver_game
+    from experiments.bench_scenes import solver_game
     from planners import local_game, race_problem
 
-    game, x0 = _solver_game(cars)
+    game, x0 = solver_game(cars)
     problem = race_problem.problem_from_race_game(game)
     xs = jnp.tile(jnp.asarray(x0).reshape(1, -1), (game.horizon + 1, 1))
     us = jnp.zeros((game.horizon, cars, 2))
