@@ -55,6 +55,7 @@ def test_the_spec_lists_and_parses_certify():
         make_agent("ilqr:certify=1")
 
 
+@pytest.mark.slow  # a long end: the default run stays within its budget
 def test_certified_race_records_carry_the_share_of_the_verdicts(monkeypatch):
     """Both game agents certify every re-plan in a race; the record's certified_share is the
     share recounted from their per-step verdicts."""

@@ -50,6 +50,7 @@ def test_each_agent_drives_monzas_first_kilometre_with_the_fastest_class(spec):
     assert top > 0.9 * float(car.v_max)  # the class's speed, not the paper car's 25 m/s
 
 
+@pytest.mark.slow  # a long end: the default run stays within its budget
 def test_the_racing_line_driver_laps_suzuka_with_the_fastest_class_on_the_track():
     """Into Suzuka's esses the profile brakes at the lateral limit: a driver a little faster
     than it there must brake before it turns (RACELINE_OVERSPEED), or it slides off."""

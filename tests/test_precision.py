@@ -92,6 +92,7 @@ def test_float32_solves_converge_where_float64_does(paper):
         assert np.max(np.abs(np.asarray(r64.xs) - np.asarray(r32.xs))) <= bound
 
 
+@pytest.mark.slow  # a long end: the default run stays within its budget
 def test_float32_real_time_agents_take_the_float64_agents_decisions_on_a_recorded_race():
     """A race of the real-time planner (float64) against the lane keeper is recorded; a
     float64 and a float32 agent then act on the recorded states, each warm-started from its

@@ -464,6 +464,7 @@ def test_killed_tournament_process_resumes_to_the_same_table(tmp_path):
     assert _without_timing(resumed) == _without_timing(full)
 
 
+@pytest.mark.slow  # a long end: the default run stays within its budget
 def test_game_agents_beat_the_lane_keeper(tmp_path):
     """Every game planner beats the lane keeper over a lap of the trefoil, from both slots.
 
