@@ -242,6 +242,7 @@ def test_open_loop_from_feedback_rows_start_from_each_scenes_feedback_solution()
     assert fb["iterations"] != ol_fb["iterations"]  # the rows are two different solves
 
 
+@pytest.mark.slow  # a long end: the default run stays within its budget
 def test_rl_rows_measure_the_vectorised_env_and_its_opponents():
     from experiments import bench_rl
 
