@@ -105,3 +105,21 @@ def test_a_model_trained_on_physical_observations_reads_a_scaled_race_exactly(tm
         np.testing.assert_allclose(agent.to_model_units, 1.0 / np.asarray(env.params.obs_scale[1]), rtol=1e-15)
         np.testing.assert_allclose(agent.predict_many(obs["car_1"][None])[0], expected, rtol=0, atol=1e-5)
         assert np.all((np.abs(expected) > 1e-2) & (np.abs(expected) < 1))  # not zero, not clipped
+
+
+def test_a_batched_model_opponent_in_the_vectorised_env_converts_as_the_single_agent(tmp_path):
+    """The vectorised env hands a model opponent the race env (not only its game), so a model
+    trained on physical units converts the scaled races' observations, as the single agent
+    does."""
+    from planners.agents.jax_policy import actor_critic, save_model
+    from racing_env.vector import RaceVectorEnv
+
+    size = racing_env.parallel_env(track="trefoil", num_agents=2).observation_space("car_1").shape[0]
+    params = actor_critic((8,)).init(jax.random.PRNGKey(0), np.zeros(size, np.float32))["params"]
+    path = save_model(tmp_path / "physical.npz", (8,), params, np.zeros(size), np.ones(size),
+                      observation_units="physical")
+    envs = RaceVectorEnv(num_envs=2, opponents=[f"rl:{path}"], track="trefoil")
+    factors = envs.opponents[1].agent.to_model_units
+    np.testing.assert_allclose(factors, 1.0 / np.asarray(envs.params.obs_scale[1]), rtol=1e-15)
+    physical = RaceVectorEnv(num_envs=2, opponents=[f"rl:{path}"], track="trefoil", observation_units="physical")
+    assert physical.opponents[1].agent.to_model_units is None
