@@ -31,9 +31,9 @@ gg radius at top speed ``a_ref = rho(v_max)`` on a track of mean half-width ``w_
 
 Scaling is a product by fixed weights (the same for every step of a race), so the two units
 convert exactly: ``scaled = physical * observation_scale(...)``. The weights are the race's
-``RaceParams.obs_scale``. Without it, stable-baselines3's PPO at its defaults finished no lap of
-the default race in 442k steps: the curvature that announces a bend was a thousandth of the
-speed's scale at the network's input (docs/rl.md).
+``RaceParams.obs_scale``. In physical units the curvature that announces a bend is a
+thousandth of the speed's scale at a network's input, and stable-baselines3's PPO at its
+defaults does not learn to lap on them (docs/rl.md).
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ import numpy as np
 
 from racing_env.dynamics import AX, AY, CHI, N_LAT, S, V
 from racing_env.track import Track
+from racing_env.vehicle import VehicleParams
 
 OWN_FEATURES = 8
 OTHER_FEATURES = 7
@@ -62,21 +63,22 @@ def check_observation_units(units: str) -> None:
         raise ValueError(f"observation_units must be one of {OBSERVATION_UNITS}, got {units!r}")
 
 
-def observation_scale(track: Track, v_max: np.ndarray, a_ref: np.ndarray, num_preview: int,
-                      observed_rivals: int | None = None, units: str = "scaled") -> np.ndarray:
+def observation_scale(track: Track, vehicles: VehicleParams, num_preview: int, observed_rivals: int | None = None,
+                      units: str = "scaled") -> np.ndarray:
     """The weights each car's observation is multiplied by, ``(N, O)`` float64 (module
     docstring): all ones for ``physical``.
 
     Args:
         track: the race's track (its mean half-width is the lateral scale).
-        v_max: ``(N,)`` the cars' top speeds [m/s].
-        a_ref: ``(N,)`` the cars' gg radius at top speed [m/s^2].
+        vehicles: the cars' parameters, fields ``(N,)``: their top speeds ``v_max`` [m/s] and
+            gg radius at top speed ``a_ref = rho(v_max)`` [m/s^2] set the scales.
         num_preview: number of preview distances P.
         observed_rivals: the race's nearest-rival blocks K, or None (every other car).
         units: one of :data:`OBSERVATION_UNITS`.
     """
     check_observation_units(units)
-    v_max, a_ref = np.atleast_1d(np.asarray(v_max, np.float64)), np.atleast_1d(np.asarray(a_ref, np.float64))
+    v_max = np.atleast_1d(np.asarray(vehicles.v_max, np.float64))
+    a_ref = np.atleast_1d(np.asarray(vehicles.rho(v_max), np.float64))
     num_cars = v_max.shape[0]
     size = observation_size(num_cars, num_preview, observed_rivals)
     if units == "physical":

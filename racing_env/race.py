@@ -225,8 +225,8 @@ def race_params(config: RaceConfig, track: Track, game: RaceGame, finish_s: floa
         steward=make_steward(track, game.vehicles, config.num_agents, config.penalties, config.penalty_seconds,
                              config.severity_speed or 0.0, config.disqualify_after, config.rules,
                              incident_gap_steps=max(1, round(INCIDENT_GAP_S / config.dt))),
-        obs_scale=observation_scale(track, game.vehicles.v_max, game.vehicles.rho(game.vehicles.v_max),
-                                    len(config.preview_distances), config.observed_rivals, config.observation_units),
+        obs_scale=observation_scale(track, game.vehicles, len(config.preview_distances), config.observed_rivals,
+                                    config.observation_units),
         rival_slots=np.zeros(config.observed_rivals or 0),
     )
 

@@ -12,7 +12,7 @@ import racing_env
 from experiments.race_spec import RaceSpec
 from racing_env.config import RaceConfig
 from racing_env.observation import GAP_SECONDS, OTHER_FEATURES, OWN_FEATURES, observation_scale
-from racing_env.vehicle import VehicleParams
+from racing_env.vehicle import VehicleParams, stack_vehicles
 
 STEPS = 30
 # Two float32 roundings apart at most: the env casts each observation (computed in float64
@@ -55,10 +55,8 @@ def test_the_weights_are_the_stated_scales_of_the_car_and_the_track():
     25 m/s * GAP_SECONDS, curvature times 25^2 / 14.5 m; a car twice as fast has half the
     speed weight. Headings, the fraction to go and the racing flags stay as they are."""
     track = racing_env.parallel_env(track="trefoil").track
-    car, fast = VehicleParams(), VehicleParams(v_max=50.0)
-    v_max = np.array([car.v_max, fast.v_max])
-    a_ref = np.array([car.rho(car.v_max), fast.rho(fast.v_max)])
-    weights = observation_scale(track, v_max, a_ref, num_preview=2)
+    cars = stack_vehicles([VehicleParams(), VehicleParams(v_max=50.0)])
+    weights = observation_scale(track, cars, num_preview=2)
     a = 12.0 + 0.004 * 625.0
     own = [1 / 25, 1 / 6, 1, 1 / a, 1 / a, 1 / 6, 1 / 6, 1]
     rival = [1 / (25 * GAP_SECONDS), 1 / 6, 1 / 25, 1, 1 / a, 1 / a, 1]
@@ -66,8 +64,8 @@ def test_the_weights_are_the_stated_scales_of_the_car_and_the_track():
     np.testing.assert_allclose(weights[0], own + rival + ahead, rtol=1e-15)
     assert weights[1, 0] == pytest.approx(weights[0, 0] / 2, rel=1e-15)
     assert weights.shape == (2, OWN_FEATURES + OTHER_FEATURES + 6)
-    np.testing.assert_array_equal(observation_scale(track, v_max, a_ref, 2, units="physical"), 1.0)
-    assert observation_scale(track, v_max, a_ref, 2, observed_rivals=3).shape == (2, OWN_FEATURES + 3 * OTHER_FEATURES + 6)
+    np.testing.assert_array_equal(observation_scale(track, cars, 2, units="physical"), 1.0)
+    assert observation_scale(track, cars, 2, observed_rivals=3).shape == (2, OWN_FEATURES + 3 * OTHER_FEATURES + 6)
 
 
 def test_unknown_units_are_refused_with_the_allowed_ones_named():

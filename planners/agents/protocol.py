@@ -110,10 +110,8 @@ def units_conversion(env_info: Any, index: int, model_units: str | None) -> np.n
         return None
     check_observation_units(model_units)
     game = game_of(env_info)
-    vehicles = game.vehicles
-    v_max = np.asarray(vehicles.v_max, np.float64)
-    scale = {units: observation_scale(game.track, v_max, np.asarray(vehicles.rho(v_max)),
-                                      len(config.preview_distances), config.observed_rivals, units)[index]
+    scale = {units: observation_scale(game.track, game.vehicles, len(config.preview_distances),
+                                      config.observed_rivals, units)[index]
              for units in (model_units, config.observation_units)}
     return scale[model_units] / scale[config.observation_units]
 
