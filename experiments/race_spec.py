@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
-from typing import Any
+from typing import Any, Sequence
 
 from racing_env.car_classes import CAR_CLASSES, car_names, get_car
 from racing_env.config import RaceConfig, check_incident_rules, check_race_length
@@ -52,7 +52,8 @@ class RaceSpec:
             (:data:`racing_env.observation.OBSERVATION_UNITS`): ``scaled`` (the default) or
             ``physical``.
         car: every car's class (:data:`racing_env.car_classes.CAR_CLASSES`: ``paper``, the
-            default, ``tum``, ``av21``, ``f1tenth``).
+            default, ``tum``, ``av21``, ``f1tenth``), but for the cars whose agent spec names
+            its own (``car=NAME``, :func:`planners.agents.split_car`; :meth:`car_classes`).
     """
 
     track: str = "trefoil"
@@ -83,20 +84,46 @@ class RaceSpec:
         (:func:`racing_env.costs.racing_weights`)."""
         return racing_weights(self.jerk_weight, get_car(self.car))
 
-    def to_race_config(self, num_agents: int, scenario: str = "grid", **fields: Any) -> RaceConfig:
+    def car_classes(self, lineup: Sequence[str | None]) -> list[str]:
+        """The class of each car of ``lineup`` (agent specs by starting slot, None for a car
+        without one): the spec's ``car=NAME`` where it gives one, else the race's ``car``.
+
+        Raises:
+            ValueError: for a class name that is no class, listing the classes.
+        """
+        from planners.agents.registry import split_car
+
+        return [self.car if spec is None else (split_car(spec)[1] or self.car) for spec in lineup]
+
+    def to_race_config(self, num_agents: int, scenario: str = "grid", cars: Sequence[str] | None = None,
+                       **fields: Any) -> RaceConfig:
         """This race for ``num_agents`` cars from ``scenario``
         (:data:`racing_env.scenarios.SCENARIOS`), every car's weights :meth:`weights`.
-        ``fields``: further :class:`RaceConfig` fields (``vehicles``, ``reward``,
-        ``render_mode``, ...), which override the spec's (e.g. per-car ``weights``). Every car
-        is of class ``car`` unless ``fields`` give ``vehicles``; the paper's class leaves the
-        cars to the scenario (whose cars are the paper's)."""
+        ``cars``: the class of each car (``num_agents`` names, e.g. :meth:`car_classes` of a
+        lineup), each car then with the jerk weight scaled for its own class; None: every car
+        of class ``car``. ``fields``: further :class:`RaceConfig` fields (``vehicles``,
+        ``reward``, ``render_mode``, ...), which override the spec's (e.g. per-car
+        ``weights``). The paper's class for every car leaves the cars to the scenario (whose
+        cars are the paper's)."""
         race: dict[str, Any] = dict(track=self.track, laps=self.laps, race_distance=self.race_distance,
                                     max_steps=self.max_steps, on_collision=self.on_collision,
                                     on_off_track=self.on_off_track, weights=self.weights(), contact=self.contact,
                                     penalties=self.penalties, penalty_seconds=self.penalty_seconds,
                                     rules=self.rules, observation_units=self.observation_units)
-        if self.car != "paper":
-            race["vehicles"] = get_car(self.car)
+        if cars is not None:
+            if len(cars) != num_agents:
+                raise ValueError(f"{len(cars)} car classes for a race of {num_agents} cars")
+            for name in cars:
+                check_car(name)
+        if cars is not None and len(set(cars)) > 1:
+            vehicles = [get_car(name) for name in cars]
+            race["vehicles"] = vehicles
+            race["weights"] = [racing_weights(self.jerk_weight, vehicle) for vehicle in vehicles]
+        else:
+            car = self.car if cars is None else cars[0]
+            if car != "paper":
+                race["vehicles"] = get_car(car)
+                race["weights"] = racing_weights(self.jerk_weight, race["vehicles"])
         race.update(fields)
         return RaceConfig(num_agents=num_agents, scenario=scenario, **race)
 
@@ -118,5 +145,11 @@ def check_race_spec(spec: RaceSpec) -> None:
         raise ValueError(f"contact must be one of {CONTACT_MODES}, got {spec.contact!r}")
     check_stewarding(spec.penalties, spec.penalty_seconds, 3, spec.rules)
     check_observation_units(spec.observation_units)
-    if not isinstance(spec.car, str) or spec.car not in CAR_CLASSES:
-        raise ValueError(f"unknown car class {spec.car!r}: the classes are {car_names()} (racing cars lists them)")
+    check_car(spec.car)
+
+
+def check_car(name: str) -> None:
+    """Refuse a car class name that is no class (:data:`racing_env.car_classes.CAR_CLASSES`),
+    listing the classes."""
+    if not isinstance(name, str) or name not in CAR_CLASSES:
+        raise ValueError(f"unknown car class {name!r}: the classes are {car_names()} (racing cars lists them)")

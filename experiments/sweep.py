@@ -191,6 +191,13 @@ class SweepConfig(StepBudget, RaceSpec):
             specs.append(with_options(spec, options))
         return specs
 
+    def agent_cars(self, point: dict[str, Any]) -> list[str]:
+        """Each agent's car class (by agent index) at ``point``: its ``agent<i>.car`` there,
+        else its spec's ``car=NAME`` (:func:`planners.agents.split_car`), else the point's (or
+        the sweep's) ``car``."""
+        race = self.race_spec() if "car" not in point else dataclasses.replace(self.race_spec(), car=point["car"])
+        return [point.get(f"agent{agent}.car", car) for agent, car in enumerate(race.car_classes(self.specs))]
+
     def points(self) -> list[dict[str, Any]]:
         """Every combination of the parameters' values, in order (the last varies fastest)."""
         names = [name for name, _ in self.parameters]
@@ -215,15 +222,15 @@ class SweepConfig(StepBudget, RaceSpec):
                     if k.startswith(prefix) and k.split(".", 1)[1] in names}
 
         weights, vehicles = [], []
+        classes = self.agent_cars(point)
         for slot in range(cars):
             agent = slots[slot]
-            vehicle = get_car(point.get(f"agent{agent}.car", race.car)).replace(
+            vehicle = get_car(classes[agent]).replace(
                 **{**fields("vehicles.", VEHICLE_FIELDS), **fields(f"agent{agent}.", VEHICLE_FIELDS)})
             vehicles.append(vehicle)
             weights.append(racing_weights(race.jerk_weight, vehicle).replace(
                 **{**fields("weights.", WEIGHT_FIELDS), **fields(f"agent{agent}.", WEIGHT_FIELDS)}))
-        any_car = race.car != "paper" or any(
-            k.split(".", 1)[-1] in VEHICLE_FIELDS + ("car",) for k in point if "." in k)
+        any_car = set(classes) != {"paper"} or any(k.split(".", 1)[-1] in VEHICLE_FIELDS for k in point if "." in k)
         return race.to_race_config(cars, "grid", weights=weights,
                                    vehicles=vehicles if any_car else None)  # None: the scenario's cars
 
@@ -367,9 +374,10 @@ def run_job(config: SweepConfig, job: dict[str, Any], plans: bool = False) -> di
 
     order = config.slot_agents(job)  # the agent index in each slot
     specs = config.lineup_specs(job["point"])
+    classes = config.agent_cars(job["point"])
     record, _ = race_lineup(config.race_config(job["point"], slots=order), [specs[a] for a in order],
                             job["seed"], step_budget_s=config.step_budget_s, enforce_budget=config.enforce_budget,
-                            plans=plans)
+                            plans=plans, cars=[classes[a] for a in order])
     if config.field:
         by_agent = [{**car, "slot": slot, "entry": agent} for slot, (car, agent) in enumerate(zip(record["cars"], order))]
     else:

@@ -72,6 +72,11 @@ class TournamentConfig(StepBudget, RaceSpec):
     must be the lineup's size; ``versus`` and the fixed two-car starts do not apply. The
     lineup is kept expanded, each spec as ``agents`` writes it.
 
+    ``car``: every car's class, but an agent whose spec names its own (``"ilqgame-fb:car=av21"``,
+    ``"rl:car=f1tenth:PATH"``: :func:`planners.agents.split_car`) drives a car of that class
+    in every race; its planners plan with their own car's limits and know the rivals' (the
+    game's cars are the race's). Each car's record says its ``car_class``.
+
     ``jerk_weight`` is the planners' jerk weight r (R = r I) in the race's game; the default
     is :data:`racing_env.costs.RACING_JERK_WEIGHT`, the env's own racing default.
 
@@ -135,6 +140,7 @@ class TournamentConfig(StepBudget, RaceSpec):
             if not same:
                 raise ValueError(f"versus must be one of the agents {list(self.agents)}, got {self.versus!r}")
             object.__setattr__(self, "versus", same[0])
+        self.car_classes(self.agents)  # an agent's car=NAME names a class
         self.check_budget()
 
     def _set_lineup(self) -> None:
@@ -307,16 +313,18 @@ def _failed_setup(message: str):
     return policy
 
 
-def race_config(config: TournamentConfig) -> RaceConfig:
+def race_config(config: TournamentConfig, lineup: Sequence[str] | None = None) -> RaceConfig:
     """The race a tournament's lineups run: its start (a seeded rolling grid by default) on
     its track, its length, step cap and incident rules, and the planners' jerk weight in
-    the game."""
-    return config.to_race_config(config.cars, config.scenario)
+    the game; with ``lineup`` (the specs by starting slot) each car of the class its spec
+    names (``car=NAME``), the others of the tournament's ``car``."""
+    cars = None if lineup is None else config.car_classes(lineup)
+    return config.to_race_config(config.cars, config.scenario, cars=cars)
 
 
 def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: float | None = None,
                 render_every: int = 0, plans: bool = False, replay: bool = True,
-                enforce_budget: bool = False) -> tuple[dict[str, Any], list[np.ndarray]]:
+                enforce_budget: bool = False, cars: Sequence[str] | None = None) -> tuple[dict[str, Any], list[np.ndarray]]:
     """Race agent specs (one per starting slot) on grid ``seed``; returns ``(record, frames)``.
 
     The record holds the finishing ``order`` (specs), the ``gap`` to the second car (None
@@ -336,13 +344,16 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     (with the planners' plans when ``plans``), which :class:`experiments.runner.JobLog`
     writes beside the records; frames (every ``render_every``-th step) are labelled with the
     specs and show the plans when ``plans``.
+    ``cars``: the class of each car (:meth:`experiments.race_spec.RaceSpec.car_classes`, the
+    classes ``race`` was built with), recorded as each car's ``car_class`` (None without).
     """
     from experiments.race import run_race
     from planners.agents import make_agent
     from racing_env.limits import race_limit
 
-    if len(lineup) != race.num_agents:
-        raise ValueError(f"a lineup of {len(lineup)} specs for a race of {race.num_agents} cars")
+    if len(lineup) != race.num_agents or (cars is not None and len(cars) != race.num_agents):
+        raise ValueError(f"a lineup of {len(lineup)} specs ({'no' if cars is None else len(cars)} car classes) "
+                         f"for a race of {race.num_agents} cars")
     env = RacingParallelEnv(race)
     agents, policies = [], []
     for i, spec in enumerate(lineup):
@@ -378,14 +389,15 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
         gap = {"metres": float(final_s[winner] - final_s[second])}
     racing = np.asarray(result.status) == RACING  # (T+1, N): who was still in the race at each step
     made, lost = overtakes_by_car(xs[:, :, 0], racing)
-    cars = []
+    classes, cars = cars, []
     for i, (spec, car) in enumerate(zip(lineup, result.summary)):
         agent = agents[i]
         limit = race_limit(env.track, env.game.vehicles.car(i), race.laps, race.race_distance)
         summary = agent.summary() if agent is not None and hasattr(agent, "summary") else {}
         times = result.act_times[i]
         cars.append({
-            "agent": spec, "car": car["agent"], "start_place": start_places[i], "place": places[i],
+            "agent": spec, "car": car["agent"], "car_class": None if classes is None else classes[i],
+            "start_place": start_places[i], "place": places[i],
             # the race time: the crossing plus the steward's time penalties (``penalty``)
             "finish_time": finish[i], "crossing_time": car["finish_time"], "penalty": car["penalty"],
             "faults": car["faults"],
@@ -421,8 +433,9 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
 def run_one_race(config: TournamentConfig, race: dict[str, Any], render_every: int = 0, plans: bool = False):
     """Race one scheduled lineup; returns ``(record, frames)`` (the record with its replay,
     with the planners' plans when ``plans``). Faults are recorded, never raised."""
-    record, frames = race_lineup(race_config(config), race["lineup"], race["seed"], step_budget_s=config.step_budget_s,
-                                 enforce_budget=config.enforce_budget, render_every=render_every, plans=plans)
+    record, frames = race_lineup(race_config(config, race["lineup"]), race["lineup"], race["seed"],
+                                 step_budget_s=config.step_budget_s, enforce_budget=config.enforce_budget,
+                                 render_every=render_every, plans=plans, cars=config.car_classes(race["lineup"]))
     return {"id": race["id"], "grid": race["grid"], "seed": race["seed"], **record}, frames
 
 
@@ -534,7 +547,7 @@ def run_tournament(config: TournamentConfig, out: Path, gif: bool = True, progre
     check_specs(config.agents)
     # the race itself, so that one the env refuses (a finish line no start is behind, a
     # track file it cannot read) fails before anything is written
-    RacingParallelEnv(race_config(config))
+    RacingParallelEnv(race_config(config, schedule(config)[0]["lineup"]))
     with one_writer(out, "tournament"):
         log = JobLog(out, schedule(config), log=RESULTS, settings_file=CONFIG,
                      settings=settings_json(config, config.added_later(ADDED_LATER)),

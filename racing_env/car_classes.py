@@ -216,3 +216,25 @@ def get_car(name: str) -> VehicleParams:
     if not isinstance(name, str) or name.strip().lower() not in CAR_CLASSES:
         raise ValueError(f"unknown car class {name!r}: the classes are {car_names()}")
     return CAR_CLASSES[name.strip().lower()].vehicle()
+
+
+#: The fields of a car that, with its limit curves, say which class it is (:func:`class_of`).
+_IDENTITY_FIELDS = ("length", "width", "v_max", "jx_max", "jy_max", "min_turn_radius", "mass")
+
+
+def class_of(vehicle: VehicleParams) -> str | None:
+    """The name of the class ``vehicle`` (one car, e.g. ``game.vehicles.car(i)``) is a car of,
+    or None for a car of none: its numbers (:data:`_IDENTITY_FIELDS`) and its drive limit and
+    gg radius at the class's table speeds and top speed all equal the class's, to a relative
+    1e-9 (a car stacked with others has its curve on more speeds, whose values lie on it)."""
+    for name, car_class in CAR_CLASSES.items():
+        car = car_class.vehicle()
+        if not all(np.isclose(float(np.asarray(getattr(vehicle, field))), float(np.asarray(getattr(car, field))),
+                              rtol=1e-9, atol=0.0) for field in _IDENTITY_FIELDS):
+            continue
+        speeds = np.append(np.asarray(car.as_table().table.speeds, dtype=float), float(car.v_max))
+        if all(np.allclose(np.asarray(curve(vehicle), dtype=float), np.asarray(curve(car), dtype=float),
+                           rtol=1e-9, atol=1e-12)
+               for curve in (lambda c: c.ax_max(speeds), lambda c: c.rho(speeds))):
+            return name
+    return None

@@ -210,7 +210,7 @@ class TrainConfig(RaceSpec):
         for name, _ in self.hyperparameters:
             if name not in known:
                 raise ValueError(f"{self.learner} {self.algo} has no hyperparameter {name!r}; it takes {sorted(known)}")
-        for copy in range(min(self.envs, 2)):  # the race of every start the copies use (its own limits)
+        for copy in range(min(self.envs, max(2, self.cars))):  # every start and learner car the copies use
             self.race_config(copy=copy)
 
     @property
@@ -252,13 +252,36 @@ class TrainConfig(RaceSpec):
             return "grid" if copy % 2 == 0 else "anywhere"
         return self.start
 
-    def race_config(self, training: bool = True, copy: int = 0) -> RaceConfig:
-        """The race the learner trains in (``training``; copy ``copy`` of it) or is evaluated
-        in (tournament rules, with ``eval_off_track`` if set)."""
+    def opponent_cars(self) -> list[str]:
+        """The class of each opponent car, in car order: an opponent spec's ``car=NAME``
+        (:func:`planners.agents.split_car`), else the race's ``car``. A pool's drivers are
+        drawn per episode into the same cars: its specs must agree on the class."""
+        classes = self.car_classes(self.opponents)
+        if not self.pool:
+            return classes
+        if len(set(classes)) > 1:
+            raise ValueError(f"a pool draws every opponent car's driver per episode, so its specs must agree on the "
+                             f"car's class: {list(self.opponents)} name {sorted(set(classes))}")
+        return classes[:1] * (self.cars - 1)
+
+    def car_classes_with_learner(self, learner: int) -> list[str]:
+        """Every car's class with the learner (of the race's ``car``) in slot ``learner``
+        and the opponents' cars in the other slots in order (:meth:`opponent_cars`)."""
+        classes = self.opponent_cars()
+        classes.insert(learner, self.car)
+        return classes
+
+    def race_config(self, training: bool = True, copy: int = 0, learner: int | None = None) -> RaceConfig:
+        """The race the learner trains in (``training``; copy ``copy`` of it, where the
+        learner drives car ``copy % cars``) or is evaluated in (tournament rules, with
+        ``eval_off_track`` if set), the learner in slot ``learner`` (default ``copy % cars``):
+        the learner's car of the race's ``car``, each opponent's of its spec's class."""
+        cars = self.car_classes_with_learner(copy % self.cars if learner is None else learner)
         if training:
-            return self.to_race_config(self.cars, self.scenario(copy), reward=RewardConfig(**dict(self.reward)))
+            return self.to_race_config(self.cars, self.scenario(copy), cars=cars,
+                                       reward=RewardConfig(**dict(self.reward)))
         # the tournaments' rules: incidents penalised, not retiring, unless eval_off_track says otherwise
-        return self.to_race_config(self.cars, "grid", on_collision=EVALUATION_RULE,
+        return self.to_race_config(self.cars, "grid", cars=cars, on_collision=EVALUATION_RULE,
                                    on_off_track=self.eval_off_track or EVALUATION_RULE)
 
 

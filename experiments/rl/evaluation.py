@@ -24,7 +24,6 @@ def evaluate(config: TrainConfig, model_path: Path, timesteps: int) -> dict[str,
     from experiments.tournament import race_lineup
 
     learner = f"rl:{config.algo}:{model_path}"
-    race = config.race_config(training=False)
     by_lineup = {}
     with _global_rngs_kept():  # SB3Agent.reset seeds the global RNGs, which training draws from
         for label, opponents in config.evaluation_lineups():
@@ -34,7 +33,8 @@ def evaluate(config: TrainConfig, model_path: Path, timesteps: int) -> dict[str,
                 for slot in range(config.cars):
                     lineup = list(opponents)
                     lineup.insert(slot, learner)
-                    record, _ = race_lineup(race, lineup, seed)
+                    record, _ = race_lineup(config.race_config(training=False, learner=slot), lineup, seed,
+                                            cars=config.car_classes_with_learner(slot))
                     races.append((slot, record))
     record = summarize_evaluation([race for races in by_lineup.values() for race in races], timesteps)
     if config.pool:

@@ -607,6 +607,7 @@ def _run_training(config: TrainConfig, out: Path, fresh: bool, progress: bool) -
     report: dict[str, Any] = {"config": wanted, "status": "running", "timesteps": 0}
     model = _build_model(config, out, resume_from)
     model.observation_units = config.observation_units  # saved with the model: SB3Agent reads it
+    model.car_class = config.car  # the learner's car's class, saved with the model alike
     report["model_settings"] = {name: getattr(model, name) for name in model_settings(config)
                                 if isinstance(getattr(model, name, None), (int, float, str, bool))}
     if resume_from is not None:

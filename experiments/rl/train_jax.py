@@ -242,9 +242,9 @@ def _policy_file(out: Path, timesteps: int) -> Path:
 
 
 def save_policy_file(learner: ppo_jax.Learner, settings: ppo_jax.PPOSettings, path: Path,
-                     observation_units: str) -> Path:
+                     observation_units: str, car_class: str | None = None) -> Path:
     """The policy of ``learner`` as a model file (:func:`planners.agents.jax_policy.save_model`),
-    trained on observations in ``observation_units``."""
+    trained on observations in ``observation_units`` in a car of class ``car_class``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     if settings.normalize:
         mean, var = np.asarray(learner.obs_stats[0]), np.asarray(learner.obs_stats[1])
@@ -253,7 +253,7 @@ def save_policy_file(learner: ppo_jax.Learner, settings: ppo_jax.PPOSettings, pa
         var = np.full_like(mean, 1.0 - ppo_jax.EPSILON)
     clip = settings.clip_obs if settings.normalize else np.finfo(np.float32).max
     return save_model(path, settings.hidden, jax.device_get(learner.params), mean, var, clip, ppo_jax.EPSILON,
-                      observation_units)
+                      observation_units, car_class)
 
 
 class _Point(NamedTuple):
@@ -265,9 +265,9 @@ class _Point(NamedTuple):
     updates: int
 
 
-def _checkpoint(out: Path, point: _Point, races, settings, observation_units: str) -> None:
+def _checkpoint(out: Path, point: _Point, races, settings, observation_units: str, car_class: str) -> None:
     """The policy at ``point`` and, in ``resume.pkl``, everything a resumption needs."""
-    save_policy_file(point.learner, settings, _policy_file(out, point.timesteps), observation_units)
+    save_policy_file(point.learner, settings, _policy_file(out, point.timesteps), observation_units, car_class)
     state = {"version": _STATE_VERSION, "timesteps": point.timesteps, "updates": point.updates, "kind": races.kind,
              "learner": jax.device_get(point.learner), "races": races.saved(point.races)}
     replace_atomically(lambda tmp: tmp.write_bytes(pickle.dumps(state)), out / CHECKPOINTS / RESUME)
@@ -342,18 +342,18 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
                               description=_bar_text(episodes, per_update / elapsed))
             t0 = time.perf_counter()
             if next_checkpoint is not None and point.timesteps >= next_checkpoint:
-                _checkpoint(out, point, races, settings, config.observation_units)
+                _checkpoint(out, point, races, settings, config.observation_units, config.car)
                 next_checkpoint = next_multiple(point.timesteps, config.checkpoint_every)
             if next_eval is not None and point.timesteps >= next_eval:
                 _evaluate(config, out, point, settings, console)
                 next_eval = next_multiple(point.timesteps, config.eval_every)
             evaluations_s += time.perf_counter() - t0
-        _checkpoint(out, point, races, settings, config.observation_units)
-        save_policy_file(point.learner, settings, out / JAX_MODEL, config.observation_units)
+        _checkpoint(out, point, races, settings, config.observation_units, config.car)
+        save_policy_file(point.learner, settings, out / JAX_MODEL, config.observation_units, config.car)
         evaluate_final(config, out / JAX_MODEL, point.timesteps, out, console)
         report["status"] = "completed"
     except KeyboardInterrupt:
-        _checkpoint(out, point, races, settings, config.observation_units)
+        _checkpoint(out, point, races, settings, config.observation_units, config.car)
         drop_episodes_after(out, point.timesteps)
         report["status"] = "interrupted"
         console.print(f"interrupted at {point.timesteps:,} steps: checkpoint saved; run the same command to resume")
@@ -380,7 +380,7 @@ def run_jax_training(config, out: Path, fresh: bool = False, progress: bool = Tr
 def _evaluate(config, out: Path, point: _Point, settings, console) -> None:
     path = _policy_file(out, point.timesteps)
     if not path.exists():
-        save_policy_file(point.learner, settings, path, config.observation_units)
+        save_policy_file(point.learner, settings, path, config.observation_units, config.car)
     record_evaluation(config, path, point.timesteps, out, console)
 
 

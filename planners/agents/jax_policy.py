@@ -19,6 +19,9 @@ The model file is one ``.npz`` (NumPy's archive, readable without JAX):
   (:data:`racing_env.observation.OBSERVATION_UNITS`; a file without it, written before the
   units could be chosen, was trained on ``physical`` ones). A race observed in other units is
   converted exactly (:func:`planners.agents.protocol.units_conversion`);
+* ``car_class``: the class of the car it trained in (:mod:`racing_env.car_classes`; a file
+  without it does not say). Racing another class's car is warned about
+  (:func:`planners.agents.protocol.warn_other_car`), not refused;
 * ``params/<module>/<name>``: the network's weights (float32), flax's parameter tree flattened
   with ``/``.
 
@@ -33,7 +36,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from planners.agents.protocol import BaseAgent, observation_space_of, units_conversion
+from planners.agents.protocol import BaseAgent, observation_space_of, units_conversion, warn_other_car
 from planners.methods import RL
 
 __all__ = ["JAX_MODEL_SUFFIX", "MODEL_FORMAT", "JaxPolicyAgent", "ObsNormalizer", "PolicyModel",
@@ -125,7 +128,8 @@ class PolicyModel:
     observation statistics, and its compiled :func:`deterministic_action`."""
 
     def __init__(self, hidden: Sequence[int], params: dict, obs_mean: np.ndarray, obs_var: np.ndarray,
-                 clip_obs: float = 10.0, epsilon: float = 1e-8, observation_units: str = "scaled") -> None:
+                 clip_obs: float = 10.0, epsilon: float = 1e-8, observation_units: str = "scaled",
+                 car_class: str | None = None) -> None:
         import jax
 
         self.hidden = tuple(int(h) for h in hidden)
@@ -134,6 +138,7 @@ class PolicyModel:
         self.obs_var = np.asarray(obs_var, dtype=np.float64)
         self.clip_obs, self.epsilon = float(clip_obs), float(epsilon)
         self.observation_units = observation_units
+        self.car_class = car_class
         self.module = actor_critic(self.hidden)
         module, clip, eps = self.module, self.clip_obs, self.epsilon
         self._act = jax.jit(lambda p, o, m, v: deterministic_action(module, p, o, m, v, clip, eps))
@@ -151,8 +156,9 @@ class PolicyModel:
 
 
 def save_model(path: str | Path, hidden: Sequence[int], params: dict, obs_mean, obs_var, clip_obs: float = 10.0,
-               epsilon: float = 1e-8, observation_units: str = "scaled") -> Path:
-    """Write the model file (module docstring) to ``path`` atomically; returns the path."""
+               epsilon: float = 1e-8, observation_units: str = "scaled", car_class: str | None = None) -> Path:
+    """Write the model file (module docstring) to ``path`` atomically; returns the path.
+    ``car_class``: the class of the car it trained in (None: left out, the file does not say)."""
     import os
 
     from flax import traverse_util
@@ -164,7 +170,8 @@ def save_model(path: str | Path, hidden: Sequence[int], params: dict, obs_mean, 
     np.savez(tmp, format=np.asarray(MODEL_FORMAT), hidden=np.asarray(hidden, dtype=np.int64),
              obs_mean=np.asarray(obs_mean, dtype=np.float64), obs_var=np.asarray(obs_var, dtype=np.float64),
              clip_obs=np.asarray(clip_obs), epsilon=np.asarray(epsilon),
-             observation_units=np.asarray(observation_units), **flat)
+             observation_units=np.asarray(observation_units),
+             **({} if car_class is None else {"car_class": np.asarray(car_class)}), **flat)
     os.replace(tmp, path)
     return path
 
@@ -187,8 +194,9 @@ def load_model(path: str | Path) -> PolicyModel:
     params = traverse_util.unflatten_dict({tuple(key.split("/")[1:]): jnp.asarray(value)
                                            for key, value in arrays.items() if key.startswith("params/")})
     units = str(arrays.get("observation_units", UNITS_BEFORE_CHOICE))
+    car_class = str(arrays["car_class"]) if "car_class" in arrays else None
     return PolicyModel(arrays["hidden"].tolist(), params, arrays["obs_mean"], arrays["obs_var"],
-                       float(arrays["clip_obs"]), float(arrays["epsilon"]), units)
+                       float(arrays["clip_obs"]), float(arrays["epsilon"]), units, car_class)
 
 
 class JaxPolicyAgent(BaseAgent):
@@ -216,6 +224,7 @@ class JaxPolicyAgent(BaseAgent):
                 f"of this {self.game.num_players}-car race observes {space.shape}: trained with another number "
                 "of cars or preview distances?")
         self.to_model_units = units_conversion(env_info, self.index, self.model.observation_units)
+        warn_other_car(self.path, self.model.car_class, self.game, self.index)
 
     def predict_many(self, observations: np.ndarray) -> np.ndarray:
         """Actions ``(R, 2)`` for the race's observations ``(R, O)`` (the batched opponents'

@@ -21,7 +21,8 @@ from typing import Any, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-__all__ = ["Agent", "BaseAgent", "empty_record", "game_of", "observation_space_of", "reset_agents", "units_conversion"]
+__all__ = ["Agent", "BaseAgent", "empty_record", "game_of", "observation_space_of", "reset_agents", "units_conversion",
+           "warn_other_car"]
 
 
 @runtime_checkable
@@ -114,6 +115,30 @@ def units_conversion(env_info: Any, index: int, model_units: str | None) -> np.n
                                       config.observed_rivals, units)[index]
              for units in (model_units, config.observation_units)}
     return scale[model_units] / scale[config.observation_units]
+
+
+def warn_other_car(model: str, trained_car: str | None, game: Any, index: int) -> str | None:
+    """Warn (``UserWarning``) when a model trained in a car of class ``trained_car`` drives
+    car ``index`` of ``game``, a car of another class (:func:`racing_env.car_classes.class_of`;
+    a car of no class counts as another); returns the warning's text, or None where the
+    classes agree or the model does not say (``trained_car`` None). Not refused: the
+    observations are scaled by each car's own top speed and grip, so a policy may carry over,
+    but its dynamics are another car's."""
+    import warnings
+
+    from racing_env.car_classes import class_of
+
+    if trained_car is None or game is None:
+        return None
+    driven = class_of(game.vehicles.car(index))
+    if driven == trained_car:
+        return None
+    text = (f"{model} was trained in a car of class {trained_car!r} and drives car {index}, "
+            f"{'a car of class ' + repr(driven) if driven else 'a car of no class'}: its observations are scaled by "
+            f"this car's top speed and grip, but the car is another (give the agent car={trained_car} to race it "
+            f"in its own car)")
+    warnings.warn(text, UserWarning, stacklevel=3)
+    return text
 
 
 def empty_record() -> dict:

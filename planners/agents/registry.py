@@ -11,12 +11,20 @@ Python (:func:`make_agent`): an agent name, optionally followed by ``:`` and com
     lane-keeping:target_speed=20,target_n=1.5
     rl:path/to/model.zip                             a saved stable-baselines3 policy
     rl:path/to/model.npz                             a policy saved by the JAX learner
+    ilqgame-fb:car=av21                              the agent in a car of another class
+    rl:car=f1tenth:path/to/model.zip                 (an rl: spec takes it before its path)
 
 The names are those of :mod:`planners.methods`, and :data:`AGENTS` maps each to its class,
 whose ``spec`` attribute is that name. Values are converted to the option's type (``int``,
 ``float``, ``bool`` as true/false) and checked by the agent's constructor, so a bad spec
 fails when the agent is made, before any race. The meaning of every option, for
 ``racing agents`` and the docs, is :data:`OPTION_HELP`. See docs/agents.md.
+
+``car=NAME`` (:data:`CAR_OPTION`) is not the agent's but the race's: the class of the car
+the agent drives in a lineup (:mod:`racing_env.car_classes`). The commands that race a
+lineup read it with :func:`split_car` and build each car of its class, so that every
+planner plans with its own car's limits and knows its rivals' (the game's per-car
+vehicles); :func:`make_agent` checks the name and leaves it out of the agent's options.
 """
 
 from __future__ import annotations
@@ -51,12 +59,14 @@ __all__ = [
     "AGENT_SPECS",
     "AGENT_SUMMARIES",
     "OPTION_HELP",
+    "CAR_OPTION",
     "agent_options",
     "check_specs",
     "convert_options",
     "describe_options",
     "make_agent",
     "option_help",
+    "split_car",
     "split_spec",
     "split_spec_list",
     "with_options",
@@ -101,7 +111,7 @@ def make_agent(spec: str, **kwargs: Any) -> Agent:
     valid = list(AGENTS) + [f"{RL}:<path/to/model.zip>", f"{RL}:<algo>:<path>"]
     if not isinstance(spec, str):
         raise ValueError(f"agent spec must be a string, one of {valid}; got {spec!r}")
-    key = spec.strip()
+    key, _ = split_car(spec)  # the car's class is the race's (the lineup's builder reads it)
     if not key:
         raise ValueError(f"agent spec is empty; valid specs: {', '.join(valid)}")
     if key.lower().startswith(f"{RL}:"):
@@ -128,6 +138,61 @@ def make_agent(spec: str, **kwargs: Any) -> Agent:
         raise ValueError(f"unknown agent spec {spec!r}; valid specs: {', '.join(valid)}")
     cls = AGENTS[name]
     return cls.from_spec_options(convert_options(name, raw, cls.spec_options()), **kwargs)
+
+
+CAR_OPTION = "car"
+"""The spec option that names the class of the agent's car in a lineup (:func:`split_car`)."""
+
+
+def split_car(spec: str) -> tuple[str, str | None]:
+    """``(spec without its car, the car's class)`` of a spec with a ``car=NAME`` option
+    (``ilqgame-fb:car=av21,max_iterations=50`` -> ``("ilqgame-fb:max_iterations=50",
+    "av21")``), or ``(spec, None)`` without one. An ``rl:`` spec gives it before the model's
+    path, as it gives the algorithm: ``rl:car=av21:path`` or ``rl:sac:car=av21:path``.
+
+    Raises:
+        ValueError: for a name that is no car class (listing the classes) or a spec that
+            gives ``car`` twice.
+    """
+    from racing_env.car_classes import CAR_CLASSES, car_names
+
+    if not isinstance(spec, str):
+        return spec, None
+    key = spec.strip()
+
+    def checked(name: str) -> str:
+        lowered = name.strip().lower()
+        if lowered not in CAR_CLASSES:
+            raise ValueError(f"agent spec {spec!r}: unknown car class {name.strip()!r}; the classes are "
+                             f"{car_names()} (racing cars lists them)")
+        return lowered
+
+    if key.lower().startswith(f"{RL}:"):
+        heads, rest, car = [], key[len(RL) + 1:], None
+        while True:  # the prefixes before the path: an algorithm name and the car
+            head, sep, tail = rest.partition(":")
+            option, eq, value = head.partition("=")
+            if sep and eq and option.strip().lower() == CAR_OPTION:
+                if car is not None:
+                    raise ValueError(f"agent spec {spec!r} gives {CAR_OPTION} twice")
+                car, rest = checked(value), tail
+            elif sep and not eq and not heads and head.strip().lower() in _rl_algos():
+                heads.append(head)
+                rest = tail
+            else:
+                break
+        return ":".join([RL, *heads, rest]), car
+    name, options = split_spec(key)
+    if CAR_OPTION not in options:
+        return spec, None
+    car = checked(options.pop(CAR_OPTION))
+    return (f"{name}:" + ",".join(f"{k}={v}" for k, v in options.items())) if options else name, car
+
+
+def _rl_algos() -> tuple[str, ...]:
+    from planners.agents.sb3 import SB3_ALGOS  # the RL layer, only for rl: specs
+
+    return SB3_ALGOS
 
 
 def check_specs(specs: Iterable[str]) -> None:

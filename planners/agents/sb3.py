@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from planners.agents.protocol import BaseAgent, observation_space_of, units_conversion
+from planners.agents.protocol import BaseAgent, observation_space_of, units_conversion, warn_other_car
 from planners.methods import RL
 
 __all__ = ["SB3Agent", "SB3_ALGOS", "VECNORMALIZE_SUFFIX", "vecnormalize_path"]
@@ -55,7 +55,9 @@ class SB3Agent(BaseAgent):
     units it was trained on (its ``observation_units`` attribute, which ``racing train`` sets)
     reads them in any race: a race observed in the other units is converted exactly
     (:func:`planners.agents.protocol.units_conversion`); a model that does not say reads the
-    race's observations as they come.
+    race's observations as they come. A model that records the class of the car it trained
+    in (its ``car_class`` attribute, which ``racing train`` sets) warns when it drives a car
+    of another class (:func:`planners.agents.protocol.warn_other_car`).
 
     Args:
         path: the ``.zip`` written by ``model.save``.
@@ -91,6 +93,7 @@ class SB3Agent(BaseAgent):
         stats = vecnormalize_path(self.path)
         self.normalizer = _observation_normalizer(stats, self.model) if stats.exists() else None
         self.observation_units = getattr(self.model, "observation_units", None)
+        self.car_class = getattr(self.model, "car_class", None)
         self.to_model_units: np.ndarray | None = None  # (O,) factors, set by reset
 
     def reset(self, seed: int | None, index: int, env_info: Any) -> None:
@@ -107,6 +110,7 @@ class SB3Agent(BaseAgent):
                 "racing train --init-model carries it into a race with more cars.)"
             )
         self.to_model_units = units_conversion(env_info, self.index, self.observation_units)
+        warn_other_car(self.path, self.car_class, self.game, self.index)
         if seed is not None:
             try:
                 self.model.set_random_seed(seed)
