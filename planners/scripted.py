@@ -311,7 +311,8 @@ class RacelineDriver:
         line: ``"raceline"`` or ``"centerline"``.
         yielding: keep to the rules (True) or drive the line whoever is on it (False).
         time_gap: the time gap [s] kept to a car ahead on its path, >= 0.
-        standstill: the bumper-to-bumper gap [m] kept behind a car ahead, > 0.
+        standstill: the bumper-to-bumper gap [m] kept behind a car ahead, > 0, at the circuit's full
+            size (on a model, scale times it, as ``margin``).
         fleet: every car's parameters, stacked ``(N,)`` fields (the footprints of the others);
             None: every car is the size of this one.
     """
@@ -328,7 +329,8 @@ class RacelineDriver:
         self.track, self.index, self.vehicle = track, int(index), vehicle
         # the margin is at the circuit's full size: a model at scale k keeps k times it
         self.pace, self.margin = float(pace), float(margin) * track.scale
-        self.yielding, self.time_gap, self.standstill = bool(yielding), float(time_gap), float(standstill)
+        self.yielding, self.time_gap = bool(yielding), float(time_gap)
+        self.standstill = float(standstill) * track.scale  # at full size too
         self.fleet = fleet
         use_raceline = line == "raceline" and limits.has_raceline(track)
         self.line_name = "raceline" if use_raceline else "centerline"
@@ -361,7 +363,7 @@ class RacelineDriver:
         track, margin, standstill = self.track, self.margin, self.standstill
         lengths, widths = self._footprints(x.shape[0], x.dtype)
         cars = traffic.traffic(x, self.index, track, lengths, widths, racing)
-        look = traffic.reach(speed, standstill, lengths[self.index])
+        look = traffic.reach(speed, standstill, lengths[self.index], track.scale)
         s_cars = s + cars.ds
         line_at_cars = track._interp(tables.n, s_cars)
         on_line = traffic.on_path(cars, traffic.path_offsets(cars, n, n_ref, line_at_cars, speed), look)
@@ -409,7 +411,8 @@ class RacelineDriver:
                 # it is held beside
                 chi_ref = jnp.where(adjusted, jnp.zeros_like(chi_ref), chi_ref)
                 kappa_ahead = jnp.where(adjusted, track.kappa_at(ahead).astype(dtype), kappa_ahead)
-            lateral_error = jnp.clip(n - n_target, -RACELINE_ERROR_CAP, RACELINE_ERROR_CAP)
+            cap = RACELINE_ERROR_CAP * track.scale
+            lateral_error = jnp.clip(n - n_target, -cap, cap)
             error_rate = v * (jnp.sin(chi) - jnp.sin(chi_ref))
             ay_des = (kappa_ahead * v**2 - RACELINE_LATERAL_STIFFNESS * lateral_error
                       - RACELINE_LATERAL_DAMPING * error_rate)
@@ -419,7 +422,7 @@ class RacelineDriver:
                 ax_des = jnp.minimum(ax_des, ax_cap)
             # faster than the profile where it is: the braking it asks for keeps a share of the
             # grip (growing with the excess), or a car at the lateral limit could not slow down
-            share = jnp.clip((v - track._interp(tables.v, s)) / RACELINE_OVERSPEED, 0.0, 1.0)
+            share = jnp.clip((v - track._interp(tables.v, s)) / (RACELINE_OVERSPEED * np.sqrt(track.scale)), 0.0, 1.0)
             reserve = jnp.minimum(jnp.maximum(-ax_des, 0.0), share * rho)
             lateral = jnp.where(reserve > 0, jnp.sqrt(jnp.maximum((rho - reserve) * (rho + reserve), 0.0)), rho)
             ay_des = jnp.clip(ay_des, -lateral, lateral)

@@ -40,6 +40,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from racing_env.dynamics import AX, N_LAT, S, V
 from racing_env.track import Track
@@ -70,6 +71,8 @@ class Traffic(NamedTuple):
         n, v, ax: the cars' lateral offsets [m], speeds [m/s], longitudinal accelerations [m/s^2].
         half_length: ``l_ik = (l_i + l_k) / 2`` [m]; half_width: ``w_ik = (w_i + w_k) / 2`` [m].
         present: racing, finite and not the driver itself.
+        scale: the track's ``scale`` k (1 at full size, 0.1 on a 1:10 model): the rules'
+            distances are k times the constants above, their speeds ``sqrt(k)`` times.
     """
 
     ds: jax.Array
@@ -80,6 +83,7 @@ class Traffic(NamedTuple):
     half_length: jax.Array
     half_width: jax.Array
     present: jax.Array
+    scale: float = 1.0
 
 
 def traffic(x: jax.Array, index: int, track: Track, lengths: jax.Array, widths: jax.Array,
@@ -103,13 +107,14 @@ def traffic(x: jax.Array, index: int, track: Track, lengths: jax.Array, widths: 
     ds = jnp.where(present, ds, _FAR)
     gap = jnp.where(present, ds * scale - half_length, _FAR)
     return Traffic(ds=ds, gap=gap, n=clean[:, N_LAT], v=clean[:, V], ax=clean[:, AX], half_length=half_length,
-                   half_width=half_width, present=present)
+                   half_width=half_width, present=present, scale=float(track.scale))
 
 
-def reach(speed: jax.Array, standstill: float, length: jax.Array) -> jax.Array:
+def reach(speed: jax.Array, standstill: float, length: jax.Array, scale: float = 1.0) -> jax.Array:
     """How far ahead [m] the driver looks for cars at ``speed`` [m/s]: ``TRAFFIC_LOOKAHEAD``
-    seconds, plus its length, the standstill gap and ``TRAFFIC_REACH``."""
-    return TRAFFIC_LOOKAHEAD * speed + length + standstill + TRAFFIC_REACH
+    seconds, plus its length, the standstill gap and ``TRAFFIC_REACH`` (times the track's
+    ``scale``)."""
+    return TRAFFIC_LOOKAHEAD * speed + length + standstill + TRAFFIC_REACH * scale
 
 
 def path_offsets(cars: Traffic, own_n: jax.Array, own_target: jax.Array, target_at_cars: jax.Array,
@@ -127,7 +132,7 @@ def path_offsets(cars: Traffic, own_n: jax.Array, own_target: jax.Array, target_
 def on_path(cars: Traffic, offsets: jax.Array, look: jax.Array) -> jax.Array:
     """``(N,)`` bool: the cars ahead within ``look`` [m] whose centres are within
     ``w_ik + LATERAL_CLEARANCE`` of the driver's path (``offsets`` of :func:`path_offsets`)."""
-    return cars.present & (cars.ds > 0.0) & (cars.ds < look) & (offsets < cars.half_width + LATERAL_CLEARANCE)
+    return cars.present & (cars.ds > 0.0) & (cars.ds < look) & (offsets < cars.half_width + LATERAL_CLEARANCE * cars.scale)
 
 
 def following_acceleration(cars: Traffic, ahead: jax.Array, speed: jax.Array, time_gap: float,
@@ -145,7 +150,7 @@ def following_acceleration(cars: Traffic, ahead: jax.Array, speed: jax.Array, ti
     closing = jnp.maximum(speed - cars.v, 0.0)
     desired = standstill + time_gap * speed
     cruise = cars.ax + FOLLOW_SPEED_GAIN * (cars.v - speed) + FOLLOW_GAP_GAIN * (cars.gap - desired)
-    room = jnp.maximum(cars.gap - standstill - FOLLOW_LAG * closing, 0.05)
+    room = jnp.maximum(cars.gap - standstill - FOLLOW_LAG * closing, 0.05 * cars.scale)
     brake = jnp.where(closing > 0.0, jnp.minimum(cars.ax, 0.0) - closing**2 / (2.0 * room), jnp.inf)
     return jnp.min(jnp.where(ahead, jnp.minimum(cruise, brake), jnp.inf))
 
@@ -173,9 +178,9 @@ def pass_target(cars: Traffic, on_line: jax.Array, line_speed_at_cars: jax.Array
     its side)."""
     leader = jnp.argmin(jnp.where(on_line, cars.ds, jnp.inf))
     has_leader = jnp.any(on_line)
-    slower = cars.v[leader] < line_speed_at_cars[leader] - PASS_SPEED_MARGIN
+    slower = cars.v[leader] < line_speed_at_cars[leader] - PASS_SPEED_MARGIN * np.sqrt(cars.scale)
     n_leader, s_leader = cars.n[leader], own_s + cars.ds[leader]
-    clearance = cars.half_width[leader] + PASS_CLEARANCE
+    clearance = cars.half_width[leader] + PASS_CLEARANCE * cars.scale
     samples = jnp.stack([own_s, s_leader, s_leader + 2.0 * cars.half_length[leader]])
     left_edge = jnp.min(track.width_left_at(samples)) - margin
     right_edge = jnp.min(track.width_right_at(samples)) - margin
@@ -185,7 +190,7 @@ def pass_target(cars: Traffic, on_line: jax.Array, line_speed_at_cars: jax.Array
     def side(sign):
         n_pass = n_leader + sign * clearance
         inside = sign * n_pass <= jnp.where(sign > 0, left_edge, right_edge)
-        clear = ~jnp.any(lane & (jnp.abs(cars.n - n_pass) < cars.half_width + PASS_CLEARANCE))
+        clear = ~jnp.any(lane & (jnp.abs(cars.n - n_pass) < cars.half_width + PASS_CLEARANCE * cars.scale))
         room = jnp.where(sign > 0, track.width_left_at(s_leader) - n_leader, track.width_right_at(s_leader) + n_leader)
         return n_pass, inside & clear, room + PASS_COMMITMENT * sign * (own_n - n_leader)
 
@@ -214,8 +219,8 @@ def alongside(cars: Traffic, own_n: jax.Array, standstill: float) -> Alongside:
     dn = cars.n - own_n
     in_lane = (jnp.abs(dn) < cars.half_width) & (jnp.abs(cars.ds) >= cars.half_length)
     beside = cars.present & (cars.ds > -(cars.half_length + standstill)) & \
-        (cars.ds < cars.half_length + ALONGSIDE_AHEAD) & ~in_lane
-    keep = cars.half_width + ALONGSIDE_CLEARANCE
+        (cars.ds < cars.half_length + ALONGSIDE_AHEAD * cars.scale) & ~in_lane
+    keep = cars.half_width + ALONGSIDE_CLEARANCE * cars.scale
     upper = jnp.min(jnp.where(beside & (dn >= 0.0), cars.n - keep, jnp.inf))
     lower = jnp.max(jnp.where(beside & (dn < 0.0), cars.n + keep, -jnp.inf))
     return Alongside(beside=beside, lower=lower, upper=upper)

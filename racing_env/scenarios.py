@@ -129,13 +129,17 @@ def grid_starts(
     cars it holds (on an open one the grid starts at the track's start, and a finish line
     not ahead of every car is refused where the race is made). A grid that could put two
     footprints of ``vehicles`` (default: the paper's car) closer than :data:`START_MARGIN`,
-    whatever the jitter, is refused. On a circuit's model (``track.scale`` k < 1, a 1:10
-    model: :func:`racing_env.track.scaled`) the distances are k times these and the speeds
-    ``sqrt(k)`` times (the full-size grid, scaled)."""
+    whatever the jitter, is refused. The distances are the paper's car's (4.7 m x 2.0 m) on a
+    full-size circuit: on a circuit's model (``track.scale`` k < 1, a 1:10 model:
+    :func:`racing_env.track.scaled`) they are :func:`grid_size` times these (k, or more for
+    cars larger than the paper's car at k: the 1:10 class is 0.58 m x 0.31 m) and the speeds
+    ``sqrt(k)`` times (the full-size grid, scaled); the clearance is ``k * START_MARGIN``."""
     k = float(track.scale)
-    row_spacing, lateral_offset, speed = row_spacing * k, lateral_offset * k, speed * np.sqrt(k)
-    jitter_widths = (1.0 * k, 0.3 * k, 1.0 * np.sqrt(k)) if jitter else (0.0, 0.0, 0.0)
-    check_grid_clearance(num_cars, row_spacing, lateral_offset, jitter_widths, _default_vehicles(num_cars, vehicles))
+    cars = _default_vehicles(num_cars, vehicles)
+    size = grid_size(k, cars)
+    row_spacing, lateral_offset, speed = row_spacing * size, lateral_offset * size, speed * np.sqrt(k)
+    jitter_widths = (1.0 * size, 0.3 * size, 1.0 * np.sqrt(k)) if jitter else (0.0, 0.0, 0.0)
+    check_grid_clearance(num_cars, row_spacing, lateral_offset, jitter_widths, cars, START_MARGIN * k)
     depth = 0.5 * row_spacing * (num_cars - 1)
     room = 0.5 * float(track.length) - 5.0
     if track.closed and depth > room:
@@ -153,13 +157,27 @@ def grid_starts(
 
 START_MARGIN = 0.5
 """[m] The least clearance between two cars' footprints that a start grid may give, on the
-worst draw of its jitter (the grid's footprints are aligned with the track)."""
+worst draw of its jitter (the grid's footprints are aligned with the track), on a full-size
+circuit (on a model at scale k: k times it)."""
+
+
+def grid_size(scale: float, vehicles: Sequence[VehicleParams]) -> float:
+    """The factor on a full-size grid's distances for ``vehicles`` on a track at ``scale``:
+    the scale, or the largest car's length and width over the paper's car's (4.7 m, 2.0 m)
+    where more (a grid made for the paper's car, widened to hold them). 1 for the full-size
+    classes on a full-size circuit."""
+    paper = VehicleParams()
+    length = max(float(v.length) for v in vehicles) / float(paper.length)
+    width = max(float(v.width) for v in vehicles) / float(paper.width)
+    return max(float(scale), length, width)
 
 
 def check_grid_clearance(num_cars: int, row_spacing: float, lateral_offset: float,
-                         jitter: tuple[float, float, float], vehicles: Sequence[VehicleParams]) -> None:
+                         jitter: tuple[float, float, float], vehicles: Sequence[VehicleParams],
+                         margin: float = START_MARGIN) -> None:
     """Refuse a grid whose worst jittered draw puts two footprints of ``vehicles`` (the
-    largest of them) closer than :data:`START_MARGIN` [m]: apart along the track or across it."""
+    largest of them) closer than ``margin`` [m] (:data:`START_MARGIN` on a full-size
+    circuit): apart along the track or across it."""
     if num_cars < 2:
         return
     length = max(float(v.length) for v in vehicles)
@@ -171,9 +189,9 @@ def check_grid_clearance(num_cars: int, row_spacing: float, lateral_offset: floa
     along = np.abs(s[pairs[0]] - s[pairs[1]]) - 2.0 * jitter[0] - length
     across = np.abs(n[pairs[0]] - n[pairs[1]]) - 2.0 * jitter[1] - width
     clearance = float(np.min(np.maximum(along, across)))
-    if clearance < START_MARGIN:
+    if clearance < margin:
         raise ValueError(f"this grid (row_spacing={row_spacing:g} m, lateral_offset={lateral_offset:g} m) can start "
-                         f"two cars {clearance:.2f} m apart, under the {START_MARGIN:g} m every start keeps: "
+                         f"two cars {clearance:.2f} m apart, under the {margin:g} m every start keeps: "
                          f"space the rows or the columns further")
 
 

@@ -134,14 +134,30 @@ def _line_speeds(track: Track, vehicle_key: tuple) -> np.ndarray:
     return np.asarray(profile.v, dtype=np.float64)
 
 
+#: The steward's distances [m], lateral speed [m/s] and curvature [1/m] on a full-size
+#: circuit (:func:`make_steward` scales them to a model of one).
+DRIVE_THROUGH, ACROSS_SPEED, DEFEND_GAP, STRAIGHT_KAPPA = 400.0, 0.5, 20.0, 1.0 / 300.0
+
+
 def make_steward(track: Track, vehicles: VehicleParams, num_cars: int, penalties: str = "time",
                  penalty_seconds: float = 5.0, severity_speed: float = 0.0, disqualify_after: int = 3,
-                 rules: Sequence[str] = DEFAULT_RULES, drive_through: float = 400.0, incident_gap_steps: int = 10,
-                 across_speed: float = 0.5, brake_decel: float = 4.0, brake_ratio: float = 0.8,
-                 defend_gap: float = 20.0, straight_kappa: float = 1.0 / 300.0) -> Steward:
+                 rules: Sequence[str] = DEFAULT_RULES, drive_through: float | None = None, incident_gap_steps: int = 10,
+                 across_speed: float | None = None, brake_decel: float = 4.0, brake_ratio: float = 0.8,
+                 defend_gap: float | None = None, straight_kappa: float | None = None) -> Steward:
     """The :class:`Steward` of a race of ``num_cars`` cars ``vehicles`` (stacked or one for
-    all) on ``track``, with the penalty mode ``penalties`` (:data:`PENALTY_MODES`)."""
+    all) on ``track``, with the penalty mode ``penalties`` (:data:`PENALTY_MODES`).
+
+    ``drive_through``, ``across_speed``, ``defend_gap`` and ``straight_kappa`` left out are
+    the full-size figures (:data:`DRIVE_THROUGH`, ...) for a track at ``track.scale`` k: the
+    distances k times, the lateral speed ``sqrt(k)`` times (a model's speeds at the same
+    accelerations) and the curvature over k, so that a 1:10 model's race is judged as the
+    full-size race it models. The deceleration ``brake_decel`` is the same at any scale."""
     check_stewarding(penalties, penalty_seconds, disqualify_after, rules)
+    k = float(track.scale)
+    drive_through = DRIVE_THROUGH * k if drive_through is None else drive_through
+    across_speed = ACROSS_SPEED * np.sqrt(k) if across_speed is None else across_speed
+    defend_gap = DEFEND_GAP * k if defend_gap is None else defend_gap
+    straight_kappa = STRAIGHT_KAPPA / k if straight_kappa is None else straight_kappa
     cars = [car.key() for car in vehicles.cars(num_cars)]
     return Steward(
         rules_on=np.asarray([rule in rules for rule in RULES]),
