@@ -291,7 +291,8 @@ def _car_option(default: str | None = "paper") -> argparse.ArgumentParser:
 
     parent = argparse.ArgumentParser(add_help=False)
     parent.add_argument("--car", default=default, choices=car_names(), metavar="NAME",
-                        help=f"every car's class, one of {', '.join(car_names())} (racing cars lists them; default: "
+                        help=f"every car's class, one of {', '.join(car_names())}, but an agent's whose spec says "
+                        "car=NAME (racing cars lists them; default: "
                         + ("the sweep file's, else paper)" if default is None else f"{default}, the paper's car)"))
     return parent
 
@@ -380,8 +381,8 @@ def build_parser() -> argparse.ArgumentParser:
         "ilqgame-fb:max_iterations=100,replan_every=2. Planners also take their own cost weights (c_collision=1: "
         "private to the agent's plans; the other cars plan with the race's weights for it), weights by race "
         "position (leading.c_collision=10,trailing.c_collision=1) and beliefs about the other cars' weights "
-        "(belief.c_collision=100). This command lists every option with its type and default. Guide: "
-        "docs/agents.md.",
+        "(belief.c_collision=100). Any spec takes car=NAME, the class of its car in a lineup (rl:car=NAME:PATH). "
+        "This command lists every option with its type and default. Guide: docs/agents.md.",
     )
     agents.add_argument("name", nargs="?", help="one agent (default: all)")
     agents.set_defaults(func=_cmd_agents)
