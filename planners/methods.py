@@ -76,9 +76,9 @@ RL = "rl"
 AGENT_METHODS = (ILQR, OPEN_LOOP_GAME, FEEDBACK_GAME, STACKELBERG_LEADER, STACKELBERG_FOLLOWER, RACELINE, LANE_KEEPING, CONSTANT_SPEED, RANDOM)
 """The agent names of the registry, in the order help text lists them (``rl:`` specs apart)."""
 
-GAME_MODES = {FEEDBACK_GAME: FEEDBACK, OPEN_LOOP_GAME: OPEN_LOOP, STACKELBERG_LEADER: STACKELBERG,
-              STACKELBERG_FOLLOWER: STACKELBERG}
-"""The solver mode each game method runs, as an agent and (the Nash games) as a prediction."""
+GAME_MODES = {FEEDBACK_GAME: FEEDBACK, OPEN_LOOP_GAME: OPEN_LOOP}
+"""The solver mode each Nash game method runs, as an agent and as a prediction (the
+leader-follower agents, :data:`STACKELBERG_GAMES`, run :data:`STACKELBERG`)."""
 
 # Predictions of the opponents (the ``prediction`` option of an iLQR agent).
 CONSTANT_VELOCITY = "constant-velocity"

@@ -46,6 +46,7 @@ from planners.methods import (
     ILQR,
     LANE_KEEPING,
     OPEN_LOOP_GAME,
+    STACKELBERG,
     STACKELBERG_FOLLOWER,
     STACKELBERG_LEADER,
 )
@@ -692,7 +693,7 @@ class StackelbergGameAgent(_GameAgent):
     Each adopted re-plan's diagnostics carry ``leader``: the car index of its leader.
     """
 
-    mode = GAME_MODES[STACKELBERG_LEADER]
+    mode = STACKELBERG
     feedback = True
     realtime_player_steps = True
     default_role = leader_follower.LEADER
