@@ -244,7 +244,8 @@ class RecedingHorizonAgent(BaseAgent):
 
     @staticmethod
     def _solver_option_types() -> dict[str, type]:
-        # leader: the Stackelberg mode's, which no agent plans in yet
+        # leader: the Stackelberg mode's; the leader-follower agents choose it by ordering
+        # their game's players (planners.leader_follower), never as an option
         return {f.name: type(f.default) for f in dataclasses.fields(ilq.SolverOptions)
                 if f.name not in ("mode", "max_iterations", "leader")}
 
