@@ -13,7 +13,7 @@ import pytest
 import racing_env
 from planners import ilq, make_agent, make_batched_opponent
 from planners.agents import BatchedPlanner, FollowerGameAgent, LeaderGameAgent
-from planners.leader_follower import ego_leads, ego_rows, pair_game, pair_orders
+from planners.leader_follower import ego_leads, ego_rows, pair_game, pair_orders, to_field_batch
 from racing_env.observation import cars_racing
 
 CAR = 1  # the leader-follower planner's car; car 0 is a feedback Nash planner
@@ -92,6 +92,22 @@ def test_in_a_field_the_pair_game_is_the_ego_and_its_nearest_rival_the_others_pr
     assert list(pair_game(env.game, x, 2, "leader", obstacles=1).order) == [2, 1, 3, 0]
 
 
+def test_the_egos_gains_come_from_its_own_row_of_the_pair_game():
+    """Two cars, car 1 the ego: leading (order [1, 0], its row 0) and following (order [0, 1],
+    its row 1). Its field gains are that row, the columns of each car's states moved from the
+    car's place in the pair game to its place in the field."""
+    rng = np.random.default_rng(0)
+    T = 3
+    orders, egos = np.array([[1, 0], [0, 1]]), np.array([1, 1])
+    K = rng.normal(size=(2, T, 2, 2, 12))
+    xs, us = rng.normal(size=(2, T + 1, 12)), rng.normal(size=(2, T, 2, 2))
+    _, _, field_K = to_field_batch(orders, egos, xs, us, K, np.zeros((2, T, 2, 2)), np.zeros((2, T + 1, 0, 6)))
+    for race, row in enumerate((0, 1)):
+        ego_K = K[race, :, row].reshape(T, 2, 2, 6)  # (T, inputs, player, state)
+        for place, car in enumerate(orders[race]):
+            np.testing.assert_array_equal(field_K[race, :, :, 6 * car:6 * car + 6], ego_K[:, :, place])
+
+
 # --------------------------------------------------------------------------------------
 # Races.
 # --------------------------------------------------------------------------------------
@@ -108,12 +124,13 @@ def _action(agent, observation, x) -> np.ndarray:
     return action
 
 
-def _race(spec: str, seed: int, steps: int) -> dict:
-    """A race of ``RIVAL`` (car 0) against ``spec`` (car :data:`CAR`) on the trefoil: every
-    step's joint state, racing flags, observation, action and diagnostics of car 1."""
-    env = racing_env.parallel_env(track="trefoil", num_agents=2)
+def _race(spec: str, seed: int, steps: int, rivals: tuple[str, ...] = (RIVAL,)) -> dict:
+    """A race of ``rivals`` (car 0, then cars 2, ...) against ``spec`` (car :data:`CAR`) on the
+    trefoil: every step's joint state, racing flags, observation, action and diagnostics of
+    car 1."""
+    env = racing_env.parallel_env(track="trefoil", num_agents=len(rivals) + 1)
     observations, _ = env.reset(seed=seed)
-    agents = [make_agent(RIVAL), make_agent(spec)]
+    agents = [make_agent(rivals[0]), make_agent(spec), *(make_agent(rival) for rival in rivals[1:])]
     for index, agent in enumerate(agents):
         agent.reset(seed, index, env)
     out = {key: [] for key in ("x", "racing", "observation", "action", "record")}
@@ -122,11 +139,12 @@ def _race(spec: str, seed: int, steps: int) -> dict:
         observation = observations[f"car_{CAR}"]
         action = _action(agents[CAR], observation, x)
         out["x"].append(x)
-        out["racing"].append(cars_racing(observation, CAR, 2))
+        out["racing"].append(cars_racing(observation, CAR, len(agents)))
         out["observation"].append(observation)
         out["action"].append(action)
         out["record"].append(agents[CAR].diagnostics())
-        observations, *_ = env.step({"car_0": agents[0](observations["car_0"], x), f"car_{CAR}": np.float32(action)})
+        actions = {f"car_{i}": agent(observations[f"car_{i}"], x) for i, agent in enumerate(agents) if i != CAR}
+        observations, *_ = env.step({**actions, f"car_{CAR}": np.float32(action)})
     return {key: np.stack(value) if key != "record" else value for key, value in out.items()}
 
 
@@ -160,33 +178,53 @@ def test_a_leader_races_the_feedback_nash_planner_without_a_fallback():
     assert race["x"][-1, CAR, 0] > race["x"][0, CAR, 0] + 10.0  # [m] in 0.5 s from 15 m/s or more
 
 
-def test_the_batched_planner_takes_the_single_agents_actions(recorded):
-    """The recorded states replayed to one batched opponent of the spec: in both races, one
-    led by car 0 and one by car 1 in the same batched solve, its actions are the single
-    agent's."""
-    game = racing_env.parallel_env(track="trefoil", num_agents=2).game
-    races = len(SEEDS)
+def _replay_batched(recorded: dict, seeds) -> None:
+    """The recorded states replayed to one batched opponent of :data:`SPEC`: its actions are
+    the single agent's."""
+    races, num_cars = recorded["x"].shape[0], recorded["x"].shape[2]
+    game = racing_env.parallel_env(track="trefoil", num_agents=num_cars).game
     opponent = make_batched_opponent(SPEC, game, CAR, races)
     assert isinstance(opponent, BatchedPlanner) and opponent.role == "auto"
-    opponent.reset(np.ones(races, dtype=bool), np.asarray(SEEDS, dtype=np.int64))
-    for step in range(STEPS):
+    opponent.reset(np.ones(races, dtype=bool), np.asarray(seeds, dtype=np.int64))
+    for step in range(recorded["x"].shape[1]):
         actions, diagnostics = opponent.act(recorded["observation"][:, step], recorded["x"][:, step],
                                             recorded["racing"][:, step])
         np.testing.assert_allclose(actions, recorded["action"][:, step], rtol=0.0, atol=TOLERANCE)
         assert not diagnostics["fallback"].any()
 
 
-def test_the_compiled_planner_takes_the_single_agents_actions(recorded):
-    """The compiled step (vmapped over the races, the leader a traced choice) on the recorded
-    states: the single agent's actions."""
-    game = racing_env.parallel_env(track="trefoil", num_agents=2).game
-    races = len(SEEDS)
+def _replay_compiled(recorded: dict) -> None:
+    """The compiled step of :data:`SPEC` (vmapped over the races, the leader a traced choice)
+    on the recorded states: the single agent's actions."""
+    races, num_cars = recorded["x"].shape[0], recorded["x"].shape[2]
+    game = racing_env.parallel_env(track="trefoil", num_agents=num_cars).game
     planner = make_batched_opponent(SPEC, game, CAR, races).jax_planner
     step = jax.jit(jax.vmap(planner.act))
     plans = jax.tree_util.tree_map(lambda a: jnp.stack([a] * races), planner.initial())
-    for k in range(STEPS):
+    for k in range(recorded["x"].shape[1]):
         actions, plans = step(plans, jnp.asarray(recorded["x"][:, k]), jnp.asarray(recorded["racing"][:, k]))
         np.testing.assert_allclose(np.asarray(actions), recorded["action"][:, k], rtol=0.0, atol=TOLERANCE)
+
+
+def test_the_batched_planner_takes_the_single_agents_actions(recorded):
+    """Both races, one led by car 0 and one by car 1, in the same batched solves."""
+    _replay_batched(recorded, SEEDS)
+
+
+def test_the_compiled_planner_takes_the_single_agents_actions(recorded):
+    _replay_compiled(recorded)
+
+
+@pytest.mark.slow
+def test_in_a_field_the_batched_and_compiled_planners_take_the_single_agents_actions():
+    """Three cars (two lane keepers): the pair game with the third car predicted as an obstacle,
+    batched and compiled, against the single agent."""
+    seeds = (4, 5)
+    races = [_race(SPEC, seed, 4, rivals=("lane-keeping", "lane-keeping")) for seed in seeds]
+    recorded = {key: np.stack([race[key] for race in races]) for key in ("x", "racing", "observation", "action")}
+    assert all(record["leader"] in (0, 1, 2) and not record["fallback"] for race in races for record in race["record"])
+    _replay_batched(recorded, seeds)
+    _replay_compiled(recorded)
 
 
 @pytest.mark.slow
