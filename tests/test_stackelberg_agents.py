@@ -247,3 +247,14 @@ def test_the_pair_game_of_a_two_car_race_is_the_races_stackelberg_game():
         np.testing.assert_allclose(xs, np.asarray(ref.xs), rtol=0, atol=1e-9)
         np.testing.assert_allclose(us, np.asarray(ref.us), rtol=0, atol=1e-9)
         np.testing.assert_allclose(K, np.asarray(ref.K)[:, CAR], rtol=0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_certified_re_plans_are_local_stackelberg_solutions():
+    """``certify=true``: every adopted re-plan carries the Stackelberg certificate's verdict;
+    converged re-plans of the trefoil's start are local Stackelberg solutions."""
+    race = _race("ilqgame-leader:role=auto,certify=true", 0, 3)
+    records = race["record"]
+    assert all(record["verdict"] is not None and record["certify_time"] > 0 for record in records)
+    converged = [record for record in records if record["converged"]]
+    assert converged and all(record["certified"] for record in converged)

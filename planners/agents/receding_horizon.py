@@ -1,7 +1,9 @@
 """Receding-horizon planners: a game (or iLQR) solution re-planned from the current joint state.
 
-:class:`FeedbackGameAgent`, :class:`OpenLoopGameAgent` and :class:`ILQRAgent` re-solve the
-env's :class:`racing_env.RaceGame` from the current joint state every ``replan_every`` steps,
+:class:`FeedbackGameAgent`, :class:`OpenLoopGameAgent`, the leader-follower
+:class:`LeaderGameAgent` and :class:`FollowerGameAgent` (:class:`StackelbergGameAgent`) and
+:class:`ILQRAgent` re-solve the env's :class:`racing_env.RaceGame` from the current joint
+state every ``replan_every`` steps,
 warm-started from the previous solution shifted by the steps elapsed (the last input
 repeated, or zeros). Between re-plans the feedback agent applies
 ``u = u_hat_t - K_t (x - x_hat_t)``, the others the planned ``u_hat_t``. A solve that raises
