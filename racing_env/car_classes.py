@@ -222,7 +222,7 @@ CAR_CLASSES: dict[str, CarClass] = {
         CarClass("paper", "the paper's car (M. Rowold, arXiv:2310.00766): 25 m/s, gg radius 12 m/s^2 plus downforce",
                  "M. Rowold, arXiv:2310.00766 (the formula's figures); turning radius and mass: this project",
                  VehicleParams),
-        CarClass("tum", "TUM's research car (TUMFTM global_racetrajectory_optimization): 70 m/s, 12 m/s^2",
+        CarClass("tum", "TUM's research car (TUMFTM global_racetrajectory_optimization): 62.8 m/s with drag, 12 m/s^2",
                  _TUM_SOURCE, _tum, TUM_GGV_SPEEDS, TUM_MACHINE_AX, TUM_GGV_RHO),
         CarClass("av21", "Dallara AV-21 of the Indy Autonomous Challenge: open-wheel, 88 m/s, downforce",
                  _AV21_SOURCE, _av21, AV21_SPEEDS, tuple(_av21_ax.tolist()), tuple(_av21_rho.tolist())),
