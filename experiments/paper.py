@@ -5,7 +5,9 @@ ego car_0 (v_max 20 m/s) ahead at 20 m/s on the centre line, opponent car_1 (v_m
 approaching at 23 m/s, 2 m to the left, on a straight; horizon 50 steps of 0.1 s; inputs
 initialised at zero. Methods: iLQR (opponent predicted at constant speed and offset),
 open-loop and feedback iLQGame, all with the same cost weights, and the two game modes once
-more with the paper's algorithm as printed (exact Hessians, a fixed step of 0.1). Every game
+more with the paper's algorithm as printed (exact Hessians, a fixed step of 0.1); beyond the
+paper, the scene as a leader-follower game both ways (feedback Stackelberg iLQGame, each car
+leading in turn, certified by :func:`planners.stackelberg.certify_stackelberg`). Every game
 solution is certified (:mod:`planners.certificates`: local Nash equilibrium, saddle or not
 stationary), and the scene's landscape (:mod:`planners.landscape`: 64 starts per mode and
 solver, clustered and certified) says which equilibria the scene has. Orchestration only:
@@ -15,6 +17,7 @@ docs/experiments/paper.md.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -26,6 +29,7 @@ from experiments.timing import time_jax_call
 from planners import ilq, ilqr
 from planners.certificates import LOCAL_NASH, SADDLE, certify
 from planners.nash import nash_residual
+from planners.stackelberg import certify_stackelberg
 from racing_env.dynamics import N_LAT, S
 from racing_env.game import RaceGame
 from racing_env.scenarios import PAPER_WEIGHTS, paper_game  # noqa: F401  (the scene; re-exported here)
@@ -35,6 +39,10 @@ LANDSCAPE_STARTS = 64
 
 #: Opponent collision weights c_c^2 of Figure 2, as multiples of the ego's c_c^1.
 FIG2_RATIOS = (1.0, 2.0, 5.0)
+
+#: The leader-follower solutions of the scene: record key -> (leading car, label).
+STACKELBERG_LEADERS = {"stackelberg_ego_leads": (0, "feedback Stackelberg iLQGame, the ego (car_0) leading"),
+                       "stackelberg_opponent_leads": (1, "feedback Stackelberg iLQGame, the opponent (car_1) leading")}
 
 
 def left_guess(horizon: int = 50, amplitude: float = 2.0) -> np.ndarray:
@@ -118,6 +126,47 @@ def solve_methods(game: RaceGame, x0: np.ndarray) -> dict[str, dict[str, Any]]:
             game, x0, f"{label} iLQGame, the paper's algorithm as printed (exact Hessians, fixed step 0.1)",
             res, first, run, mode)
     return out
+
+
+def solve_stackelberg(game: RaceGame, x0: np.ndarray) -> dict[str, dict[str, Any]]:
+    """The scene as a leader-follower game, each car leading in turn (:data:`STACKELBERG_LEADERS`):
+    ``ilq.solve(mode="stackelberg")`` from zero inputs with the solver's defaults, each
+    solution certified with :func:`planners.stackelberg.certify_stackelberg` (full checks:
+    the follower's best response too). A record as :func:`_record`'s, its ``certificate``
+    the Stackelberg certificate's fields and ``leader`` the leading car."""
+    out = {}
+    for key, (leader, label) in STACKELBERG_LEADERS.items():
+        options = ilq.SolverOptions(mode="stackelberg", leader=leader)
+        res, first, run = time_jax_call(lambda: ilq.solve(game, x0, options=options))
+        iterations = int(res.iterations)
+        certificate = certify_stackelberg(game, x0, res, options=options)
+        out[key] = {
+            "method": label,
+            "leader": leader,
+            "converged": bool(res.converged),
+            "iterations": iterations,
+            "solve_time_s": run,
+            "compile_and_first_solve_s": first,
+            **trajectory_metrics(game, np.asarray(res.xs)),
+            "costs": np.asarray(res.costs).tolist(),
+            "certificate": {k: (v.tolist() if isinstance(v, np.ndarray) else list(v) if isinstance(v, tuple) else v)
+                            for k, v in dataclasses.asdict(certificate).items()},
+            "convergence": np.asarray(res.history)[:iterations].tolist(),
+            "step_sizes": np.asarray(res.step_history)[:iterations].tolist(),
+            "xs": np.asarray(res.xs),
+        }
+    return out
+
+
+def plot_stackelberg(game: RaceGame, methods: dict[str, dict[str, Any]], stackelberg: dict[str, dict[str, Any]],
+                     path: Path) -> None:
+    """Figure 6: the feedback Nash solution beside the two leader-follower solutions
+    (:func:`solve_stackelberg`), one s-n panel each, each titled with its certificate's verdict."""
+    panels = [(f"a) {methods['feedback']['method']} ({methods['feedback']['certificate']['verdict']})",
+               methods["feedback"]["xs"])]
+    for letter, record in zip("bc", stackelberg.values()):
+        panels.append((f"{letter}) {record['method']} ({record['certificate']['verdict']})", record["xs"]))
+    plot_methods(game, panels, path, "Figure 6: leader and follower, feedback Stackelberg iLQGame")
 
 
 def findings(methods: dict[str, dict], fig2: list[dict], landscapes: dict[str, dict[str, dict]] | None = None
@@ -276,8 +325,7 @@ def plot_convergence(records: list[dict[str, Any]], tolerance: float, path: Path
 
 
 def run_paper(out: Path) -> dict[str, Any]:
-    """Solve everything, write ``fig1_methods.png``, ``fig2_collision_weight.png``,
-    ``fig3_convergence.png`` and ``paper.json``."""
+    """Solve everything, write ``fig1_methods.png`` to ``fig6_stackelberg.png`` and ``paper.json``."""
     from rich.console import Console
     from rich.table import Table
 
@@ -306,6 +354,9 @@ def run_paper(out: Path) -> dict[str, Any]:
     plot_convergence([methods[k] for k in ("ilqr", "feedback", "open_loop", "open_loop_from_feedback",
                                            "open_loop_from_left_guess", "feedback_from_left_guess")],
                      ilq.SolverOptions().tolerance, out / "fig3_convergence.png")
+    console.print("solving the scene as a leader-follower game, each car leading ...")
+    stackelberg = solve_stackelberg(game, x0)
+    plot_stackelberg(game, methods, stackelberg, out / "fig6_stackelberg.png")
     console.print(f"exploring the scene's landscape: {LANDSCAPE_STARTS} starts per mode and solver ...")
     landscapes = {solver: explore(game, x0, ("open_loop", "feedback"), solver, LANDSCAPE_STARTS, 0, 0.05)
                   for solver in ("default", "paper")}
@@ -320,6 +371,7 @@ def run_paper(out: Path) -> dict[str, Any]:
                      "weights": {k: np.asarray(v).tolist() for k, v in vars(game.weights).items()}},
         "methods": {k: strip(v) for k, v in methods.items()},
         "figure2": [strip(r) for r in fig2],
+        "stackelberg": {k: strip(v) for k, v in stackelberg.items()},
         "findings": checks,
         "landscapes": {solver: {mode: {k: v for k, v in record.items() if k != "labels"}
                                 for mode, record in by_mode.items()} for solver, by_mode in landscapes.items()},
@@ -338,9 +390,14 @@ def run_paper(out: Path) -> dict[str, Any]:
                       f"{r['final_gap_s']:.2f}", f"{r['min_distance']:.2f}", res,
                       "-" if r["certificate"] is None else r["certificate"]["verdict"])
     console.print(table)
+    for r in stackelberg.values():
+        console.print(f"{r['method']}: converged={r['converged']} in {r['iterations']} iterations, ego n "
+                      f"{r['ego_n_min']:.2f}/{r['ego_n_max']:.2f} m, opponent n {r['opponent_n_min']:.2f}/"
+                      f"{r['opponent_n_max']:.2f} m, final gap {r['final_gap_s']:.2f} m: {r['certificate']['verdict']}")
     for row in checks:
         console.print(f"{'[green]yes[/]' if row['reproduced'] else '[red]no[/]'}  {row['claim']}: {row['evidence']}")
     figures = ", ".join(str(out / name) for name in ("fig1_methods.png", "fig2_collision_weight.png", "fig3_convergence.png",
-                                                     "fig4_landscape_default.png", "fig5_landscape_printed.png"))
+                                                     "fig4_landscape_default.png", "fig5_landscape_printed.png",
+                                                     "fig6_stackelberg.png"))
     console.print(f"wrote {figures}, {out / 'paper.json'}")
     return report

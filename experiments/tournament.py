@@ -40,6 +40,7 @@ from experiments.race_spec import RaceSpec
 from experiments.runner import JobLog
 # wilson_interval and won_race live in experiments.standings; imported from here they still work
 from experiments.standings import standings, wilson_interval, won_race  # noqa: F401
+from racing_env.blocking import count_blocks
 from racing_env.config import MAX_CARS, RETIRING_MODES, RaceConfig
 from racing_env.env import RacingParallelEnv
 from racing_env.render import RACING
@@ -332,7 +333,9 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
     (``start_place``, 1 = in front), place, finish time (the crossing plus the steward's time
     penalties; ``crossing_time`` and ``penalty`` apart), incidents it answered for
     (``faults``), distance, mean speed, contact
-    steps, time off track and its steps (``off_track_steps``), its passes made and suffered (``overtakes``, ``overtaken``), whether an incident rule ``retired`` it, action times, solver
+    steps, time off track and its steps (``off_track_steps``), its passes made and suffered (``overtakes``, ``overtaken``),
+    its defending moves, blocks and the blocks made against it (``defending_moves``, ``blocks``,
+    ``blocked``: :mod:`racing_env.blocking`), whether an incident rule ``retired`` it, action times, solver
     failures, its re-plans' iterations (mean, median, 95th percentile), the shares of its re-plans that converged and (a game agent with ``certify``
     on; else None) that were certified local Nash equilibria (``certified_share``), its
     actions slower than ``step_budget_s`` (``over_budget_steps``; None without a budget),
@@ -389,6 +392,9 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
         gap = {"metres": float(final_s[winner] - final_s[second])}
     racing = np.asarray(result.status) == RACING  # (T+1, N): who was still in the race at each step
     made, lost = overtakes_by_car(xs[:, :, 0], racing)
+    steward = env.params.steward
+    defence = count_blocks(xs, racing, dt=race.dt, defend_gap=float(steward.defend_gap),
+                           across_speed=float(steward.across_speed))
     classes, cars = cars, []
     for i, (spec, car) in enumerate(zip(lineup, result.summary)):
         agent = agents[i]
@@ -408,6 +414,8 @@ def race_lineup(race: RaceConfig, lineup: list[str], seed: int, step_budget_s: f
             "distance": car["distance"], "mean_speed": car["mean_speed"],
             "collision_steps": car["collision_steps"], "time_off_track": car["time_off_track"],
             "off_track_steps": car["off_track_steps"], "overtakes": int(made[i]), "overtaken": int(lost[i]),
+            "defending_moves": int(defence.defending_moves[i]), "blocks": int(defence.blocks[i]),
+            "blocked": int(defence.blocked[i]),
             "retired": car["retired"],
             "act_time_mean_s": float(np.mean(times)) if times else float("nan"),
             "act_time_max_s": float(np.max(times)) if times else float("nan"),

@@ -22,6 +22,8 @@ name                   class                           what it does
 =====================  ==============================  ==========================================
 ``ilqgame-fb``         :class:`FeedbackGameAgent`      feedback Nash iLQGame, re-planned every step
 ``ilqgame-ol``         :class:`OpenLoopGameAgent`      open-loop Nash iLQGame, re-planned every step
+``ilqgame-leader``     :class:`LeaderGameAgent`        feedback Stackelberg iLQGame with the nearest rival, leading
+``ilqgame-follower``   :class:`FollowerGameAgent`      the same, following (``role=auto``: the car ahead leads)
 ``ilqr``               :class:`ILQRAgent`              iLQR against predictions of the opponents
 ``raceline``           :class:`RacelineAgent`          scripted: the racing line at the lap-time limit
 ``lane-keeping``       :class:`LaneKeepingAgent`       scripted: an offset at a cruise speed
@@ -81,9 +83,11 @@ from planners.agents import (
     BatchedOpponent,
     ConstantSpeedAgent,
     FeedbackGameAgent,
+    FollowerGameAgent,
     ILQRAgent,
     JaxPolicyAgent,
     LaneKeepingAgent,
+    LeaderGameAgent,
     OpenLoopGameAgent,
     RacelineAgent,
     RandomAgent,
@@ -110,10 +114,12 @@ __all__ = [
     "Certificate",
     "ConstantSpeedAgent",
     "FeedbackGameAgent",
+    "FollowerGameAgent",
     "GameProblem",
     "ILQRAgent",
     "JaxPolicyAgent",
     "LaneKeepingAgent",
+    "LeaderGameAgent",
     "OpenLoopGameAgent",
     "RacelineAgent",
     "RandomAgent",

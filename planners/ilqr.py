@@ -5,7 +5,8 @@ The ego car (player ``ego`` of a :class:`racing_env.RaceGame`) predicts every op
 
     s_j(t) = s_j0 + V_j0 * t * dt,   V_j = V_j0,   n_j = n_j0,   chi_j = ax_j = ay_j = 0,
 
-and then solves the single-player problem whose stage cost is the game's stage cost of the
+and then solves the single-player problem (for a car with drag, its dynamics take the
+slipstream of the predicted cars at each stage) whose stage cost is the game's stage cost of the
 ego evaluated at the joint state ``[ego state; predicted opponents at stage t]`` (collision,
 track, acceleration limits, jerk) and whose terminal cost is the ego's terminal cost (the
 opponents' progress enters as a constant). That prediction is the paper's; others can be
@@ -89,8 +90,13 @@ class _EgoParams(NamedTuple):
 
 
 def _ego_dynamics(params: _EgoParams, t, x, u):
-    del t
-    return rk4_step(x, u[0], params.game.dt, params.game.track.kappa_at)
+    if not params.game.drag:
+        return rk4_step(x, u[0], params.game.dt, params.game.track.kappa_at)
+    # With drag the ego's speed depends on the wakes of the cars ahead: the joint step of the
+    # ego and the predicted cars (at zero jerk from their stage-t prediction), the ego's row.
+    joint = _ego_joint(params, t, x)
+    inputs = jnp.zeros((joint.shape[0], u.shape[-1]), u.dtype).at[params.ego].set(u[0])
+    return params.game.step(joint, inputs)[params.ego]
 
 
 def _ego_joint(params: _EgoParams, t, x):

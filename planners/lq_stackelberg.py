@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from planners.batching import one_at_a_time
-from planners.lq_game import closed_loop_values, validate_lq_game
+from planners.lq_game import _contract, _sandwich, pivoted_solve, validate_lq_game
 
 Array = jax.Array
 
@@ -115,10 +115,12 @@ def validate_stackelberg_game(A, B, Q, q, R, r, leader: int = 0) -> None:
 
 def _feedback_stackelberg_recursion(A, B, Q, q, R, r, leader):
     """The backward recursion for one game: ``K, k``, the reaction gains ``G`` and the
-    stage Hessians."""
+    stage Hessians. Its small products are fused element-wise code
+    (:func:`planners.lq_game._contract`), as in the feedback Nash recursion."""
     n = A.shape[-1]
     l, f = leader, 1 - leader
     Q, R = _sym(Q), _sym(R)
+    c = _contract
 
     def step(carry, stage):
         P, p = carry  # (2, n, n), (2, n): the players' values at t+1
@@ -126,36 +128,44 @@ def _feedback_stackelberg_recursion(A, B, Q, q, R, r, leader):
         B_l, B_f = B_t[l], B_t[f]
         # Follower's reaction u_f = -(K_x x + G u_l + g) to any leader input u_l:
         # (R^ff + B_f' P^f B_f) u_f + B_f' P^f (A x + B_l u_l) + B_f' p^f + r^ff = 0.
-        BfP = B_f.T @ P[f]
-        H_f = R_t[f, f] + BfP @ B_f
-        rhs_f = jnp.concatenate([BfP @ A_t, BfP @ B_l, (B_f.T @ p[f] + r_t[f, f])[:, None]], axis=1)
-        sol_f = jnp.linalg.solve(H_f, rhs_f)
+        BfP = c("am,ab->mb", B_f, P[f])
+        H_f = R_t[f, f] + c("mb,bl->ml", BfP, B_f)
+        rhs_f = jnp.concatenate([c("mb,bc->mc", BfP, A_t), c("mb,bl->ml", BfP, B_l),
+                                 (c("am,a->m", B_f, p[f]) + r_t[f, f])[:, None]], axis=1)
+        sol_f = pivoted_solve(H_f, rhs_f)
         K_x, G, g = sol_f[:, :n], sol_f[:, n:-1], sol_f[:, -1]
         # The leader's stage problem along the reaction: x_{t+1} = A_r x + B_r u_l + c_r.
-        A_r = A_t - B_f @ K_x
-        B_r = B_l - B_f @ G
-        c_r = -B_f @ g
+        A_r = A_t - c("am,mb->ab", B_f, K_x)
+        B_r = B_l - c("am,ml->al", B_f, G)
+        c_r = -c("am,m->a", B_f, g)
         R_lf, r_lf = R_t[l, f], r_t[l, f]
-        BrP = B_r.T @ P[l]
-        H_l = R_t[l, l] + G.T @ R_lf @ G + BrP @ B_r
-        rhs_K = G.T @ R_lf @ K_x + BrP @ A_r
-        rhs_k = r_t[l, l] - G.T @ r_lf + G.T @ R_lf @ g + BrP @ c_r + B_r.T @ p[l]
-        sol_l = jnp.linalg.solve(H_l, jnp.concatenate([rhs_K, rhs_k[:, None]], axis=1))
+        BrP = c("am,ab->mb", B_r, P[l])
+        GR = c("am,ab->mb", G, R_lf)  # G' R^{lf}
+        H_l = R_t[l, l] + c("mb,bl->ml", GR, G) + c("mb,bl->ml", BrP, B_r)
+        rhs_K = c("mb,bc->mc", GR, K_x) + c("mb,bc->mc", BrP, A_r)
+        rhs_k = (r_t[l, l] - c("am,a->m", G, r_lf) + c("mb,b->m", GR, g) + c("mb,b->m", BrP, c_r)
+                 + c("am,a->m", B_r, p[l]))
+        sol_l = pivoted_solve(H_l, jnp.concatenate([rhs_K, rhs_k[:, None]], axis=1))
         K_l, k_l = sol_l[:, :n], sol_l[:, n]
-        K_f, k_f = K_x - G @ K_l, g - G @ k_l
+        K_f, k_f = K_x - c("ml,lb->mb", G, K_l), g - c("ml,l->m", G, k_l)
         K = jnp.stack([K_l, K_f] if l == 0 else [K_f, K_l])  # (2, m, n), players' order
         k = jnp.stack([k_l, k_f] if l == 0 else [k_f, k_l])
         # both values carried back along the closed loop (what the strategies cost)
-        values = closed_loop_values(A_t, B_t, Q_t, q_t, R_t, r_t, P, p, K, k)
-        return values, (K, k, G, _sym(H_f), _sym(H_l))
+        F = A_t - c("jam,jmb->ab", B_t, K)
+        beta = -c("jam,jm->a", B_t, k)
+        P_new = Q_t + _sandwich(F, P, F) + c("jma,ijmb->iab", K, c("ijml,jlb->ijmb", R_t, K))
+        p_new = (q_t + c("ba,ib->ia", F, p + c("iab,b->ia", P, beta))
+                 + c("jma,ijm->ia", K, c("ijml,jl->ijm", R_t, k) - r_t))
+        return (_sym(P_new), p_new), (K, k, G, _sym(H_f), _sym(H_l))
 
     stages = (A, B, Q[:-1], q[:-1], R, r)
     _, (K, k, G, H_f, H_l) = jax.lax.scan(step, (Q[-1], q[-1]), stages, reverse=True)
     return K, k, G, H_f, H_l
 
 
-# One game at a time under vmap (its LAPACK solves stay single calls), one wrapper per
-# leader: the leader is structure, not data.
+# The stage systems are m x m: solved by unrolled elimination with pivoting
+# (lq_game.pivoted_solve), not LAPACK, so the scan compiles into one loop kernel. One game at
+# a time under vmap, one wrapper per leader: the leader is structure, not data.
 _feedback_stackelberg = {
     leader: one_at_a_time(functools.partial(_feedback_stackelberg_recursion, leader=leader))
     for leader in LEADERS

@@ -31,6 +31,9 @@ __all__ = [
     "RL",
     "SOLVER_MODES",
     "STACKELBERG",
+    "STACKELBERG_FOLLOWER",
+    "STACKELBERG_GAMES",
+    "STACKELBERG_LEADER",
 ]
 
 # Solver modes of the iterative LQ game solver (planners.ilq.SolverOptions.mode).
@@ -50,6 +53,14 @@ FEEDBACK_GAME = "ilqgame-fb"
 """Feedback iLQGame, re-planned every step (:class:`planners.FeedbackGameAgent`)."""
 OPEN_LOOP_GAME = "ilqgame-ol"
 """Open-loop iLQGame, re-planned every step (:class:`planners.OpenLoopGameAgent`)."""
+STACKELBERG_LEADER = "ilqgame-leader"
+"""Feedback Stackelberg iLQGame of the car and its nearest rival, the car leading by default
+(:class:`planners.LeaderGameAgent`)."""
+STACKELBERG_FOLLOWER = "ilqgame-follower"
+"""Feedback Stackelberg iLQGame of the car and its nearest rival, the car following by default
+(:class:`planners.FollowerGameAgent`)."""
+STACKELBERG_GAMES = (STACKELBERG_LEADER, STACKELBERG_FOLLOWER)
+"""The leader-follower game methods (agents only, not predictions)."""
 ILQR = "ilqr"
 """iLQR against predictions of the opponents (:class:`planners.ILQRAgent`)."""
 LANE_KEEPING = "lane-keeping"
@@ -62,11 +73,12 @@ RANDOM = "random"
 """The random driver (:class:`planners.RandomAgent`): uniform random actions, seeded by its reset."""
 RL = "rl"
 """A saved stable-baselines3 policy (:class:`planners.SB3Agent`): specs ``rl:PATH`` or ``rl:ALGO:PATH``."""
-AGENT_METHODS = (ILQR, OPEN_LOOP_GAME, FEEDBACK_GAME, RACELINE, LANE_KEEPING, CONSTANT_SPEED, RANDOM)
+AGENT_METHODS = (ILQR, OPEN_LOOP_GAME, FEEDBACK_GAME, STACKELBERG_LEADER, STACKELBERG_FOLLOWER, RACELINE, LANE_KEEPING, CONSTANT_SPEED, RANDOM)
 """The agent names of the registry, in the order help text lists them (``rl:`` specs apart)."""
 
 GAME_MODES = {FEEDBACK_GAME: FEEDBACK, OPEN_LOOP_GAME: OPEN_LOOP}
-"""The solver mode each game method runs, as an agent and as a prediction."""
+"""The solver mode each Nash game method runs, as an agent and as a prediction (the
+leader-follower agents, :data:`STACKELBERG_GAMES`, run :data:`STACKELBERG`)."""
 
 # Predictions of the opponents (the ``prediction`` option of an iLQR agent).
 CONSTANT_VELOCITY = "constant-velocity"

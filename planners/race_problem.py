@@ -10,8 +10,9 @@ fast and its local games convex:
   outer slopes and PSD curvature weights;
 * :func:`race_stage_curvature`: the curvature of each car's progress in its own heading,
   which the linearised dynamics drop;
-* :func:`race_dynamics_jacobians`: per-car Jacobians of the RK4 step (the cars do not
-  interact through the dynamics).
+* :func:`race_dynamics_jacobians`: per-car Jacobians of the RK4 step (cars without drag do
+  not interact through the dynamics); for a game with drag, the Jacobians of the joint step,
+  whose off-diagonal blocks carry the slipstream (a car's speed depends on the cars ahead).
 
 Importing this module registers :class:`racing_env.RaceGame` with the solvers
 (:func:`planners.game_problem.register_game_type`): :func:`planners.ilq.solve`,
@@ -125,11 +126,20 @@ def race_terminal_gauss_newton(game, i, x):
 
 
 def race_dynamics_jacobians(game, t, x, u):
-    """Per-car Jacobians of the RK4 step (the cars do not interact through the dynamics):
-    ``A`` is block diagonal, ``B^j`` is non-zero in car j's rows only."""
+    """Jacobians ``A (6 N, 6 N)`` and ``B (6 N, N, m)`` of the joint RK4 step at the flat joint
+    state ``x (6 N,)`` and inputs ``u (N, m)``.
+
+    Without drag the cars do not interact through the dynamics: per-car Jacobians, ``A`` block
+    diagonal, ``B^j`` non-zero in car j's rows only. With drag (``game.drag``) the slipstream
+    couples them: the Jacobians of the joint step, whose off-diagonal blocks are car i's
+    dependence on the cars whose wakes reach it (zero where none does).
+    """
     del t
 
     N, m = u.shape
+    if game.drag:
+        A, B = jax.jacfwd(lambda xx, uu: race_dynamics(game, None, xx, uu), argnums=(0, 1))(x, u)
+        return A, B
     X = x.reshape(N, -1)
     step = lambda xi, ui: rk4_step(xi, ui, game.dt, game.track.kappa_at)
     Ai, Bi = jax.vmap(jax.jacfwd(step, argnums=(0, 1)))(X, u)  # (N, 6, 6), (N, 6, m)

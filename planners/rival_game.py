@@ -11,10 +11,13 @@ enter every player's costs as moving obstacles: their collision terms with the p
 their progress in the players' terminal costs (a constant). The players' costs are the costs
 of the game of these ``k + 1 + m`` cars, evaluated at the joint state ``[players; predicted
 cars at stage t]``, so a local game differs from the whole game in that the predicted cars do
-not react, and, with ``obstacles``, in the collision terms of the cars further away, left
-out: a car's collision term falls as ``exp(-2 (ds / l)^2)`` with the gap ``ds`` over its
-length scale ``l`` (:mod:`racing_env.costs`), below 1e-300 beyond ~19 lengths, so a car
-that stays that far from every player over the horizon adds nothing a float64 sum keeps.
+not react (with drag, their wakes reach the players: the players' step is the joint step of
+the players and the predicted cars, which drive on at zero jerk within it; the wake of a car
+left out of the local game is not modelled), and, with ``obstacles``, in the collision terms of
+the cars further away, left out: a car's collision term falls as ``exp(-2 (ds / l)^2)`` with
+the gap ``ds`` over its length scale ``l`` (:mod:`racing_env.costs`), below 1e-300 beyond ~19
+lengths, so a car that stays that far from every player over the horizon adds nothing a
+float64 sum keeps.
 With ``obstacles`` a local game's size, and so its cost, does not grow with N.
 
 :func:`local_game` builds the problem (a :class:`planners.game_problem.GameProblem` whose
@@ -174,10 +177,20 @@ def _field_state(params: RivalParams, t, x):
 
 
 def _dynamics(params: RivalParams, t, x, u):
-    return race_problem.race_dynamics(params.game, t, x, u)  # the step is the same for every car
+    if not params.game.drag:
+        return race_problem.race_dynamics(params.game, t, x, u)  # the step is the same for every car
+    # With drag every car has its own, and the wakes of the predicted cars reach the players:
+    # the joint step of the players and the predicted cars (at zero jerk from their stage-t
+    # prediction), the players' rows.
+    players = _players(x)
+    field = _field_state(params, t, x).reshape(-1, STATE_DIM)
+    inputs = jnp.concatenate([u, jnp.zeros((field.shape[0] - players, u.shape[-1]), u.dtype)])
+    return ordered_game(params, players).step(field, inputs)[:players].reshape(-1)
 
 
 def _dynamics_jacobians(params: RivalParams, t, x, u):
+    if params.game.drag:
+        return jax.jacfwd(lambda xx, uu: _dynamics(params, t, xx, uu), argnums=(0, 1))(x, u)
     return race_problem.race_dynamics_jacobians(params.game, t, x, u)
 
 

@@ -96,6 +96,7 @@ class LaneKeeping:
         self.target_speed = float(vehicle.v_max if target_speed is None else target_speed)
         self.target_n = float(target_n)
         self._jerk_max = np.array([float(vehicle.jx_max), float(vehicle.jy_max)])
+        self._c_drag = float(vehicle.c_drag)
         self._kappa_s, self._kappa_values = _curvature_grid(track)
 
     def _kappa(self, s: np.ndarray) -> np.ndarray:
@@ -117,6 +118,7 @@ class LaneKeeping:
         v_curve = np.sqrt(GRIP_MARGIN * rho / max(kappa_max, 1e-6))
         v_target = min(self.target_speed, v_curve)
         ax_des = min(max(SPEED_GAIN * (v_target - v), -GRIP_MARGIN * rho), float(self.vehicle.ax_max(v_pos)))
+        ax_des += self._c_drag * v_pos * v_pos  # the drive that holds the speed against still-air drag
         n_rate = v * np.sin(chi)
         ay_des = kappa_ahead[0] * v**2 + LATERAL_STIFFNESS * (self.target_n - n) - LATERAL_DAMPING * n_rate
         jx, jy = ACCEL_GAIN * (ax_des - ax) / self._jerk_max[0], ACCEL_GAIN * (ay_des - ay) / self._jerk_max[1]
@@ -205,6 +207,7 @@ def jax_policy(controller: LaneKeeping) -> Callable[[jnp.ndarray], jnp.ndarray]:
         v_curve = jnp.sqrt(GRIP_MARGIN * rho / jnp.maximum(kappa_max, 1e-6))
         v_target = jnp.minimum(target_speed, v_curve)
         ax_des = jnp.minimum(jnp.maximum(SPEED_GAIN * (v_target - v), -GRIP_MARGIN * rho), vehicle.ax_max(v_pos))
+        ax_des = ax_des + vehicle.c_drag * v_pos * v_pos
         n_rate = v * jnp.sin(chi)
         ay_des = kappa_ahead[0] * v**2 + LATERAL_STIFFNESS * (target_n - n) - LATERAL_DAMPING * n_rate
         jx, jy = ACCEL_GAIN * (ax_des - ax) / jx_max, ACCEL_GAIN * (ay_des - ay) / jy_max
@@ -430,7 +433,8 @@ class RacelineDriver:
             # where the difference of squares leaves a rounding error (with or without a fused
             # multiply-add) whose square root is ~1e-7 m/s^2
             room = jnp.sqrt(jnp.maximum((rho - jnp.abs(ay_des)) * (rho + jnp.abs(ay_des)), 0.0))
-            ax_des = jnp.clip(ax_des, -room, jnp.minimum(room, vehicle.ax_max(v_pos)))
+            # the tyres' share: the net acceleration plus the still-air drag it overcomes
+            ax_des = jnp.clip(ax_des + vehicle.c_drag * v_pos * v_pos, -room, jnp.minimum(room, vehicle.drive_max(v_pos)))
             jx = RACELINE_ACCEL_GAIN * (ax_des - ax) / jx_max
             jy = RACELINE_ACCEL_GAIN * (ay_des - ay) / jy_max
             action = jnp.clip(jnp.stack([jx, jy]), -1.0, 1.0)

@@ -3,9 +3,13 @@
 Each class is built from published figures (listed with each class below and in
 docs/model.md, "Car classes"); what no source gives is said so. The limits of the table
 classes are :class:`racing_env.vehicle.LimitTable` s: the source's values at the source's
-speeds. The point mass has no drag (the sources' drag figures are listed but not used), so
-a table class's top speed is enforced as the paper's formula enforces it: the drive limit
-falls to zero at the top speed, here linearly in ``V**2`` from the last source speed below it.
+speeds. A class whose source gives its drag (``tum``, ``av21``) has it (``c_drag``, the drag
+per unit mass): its table's drive limit ``ax_max`` is then the net limit in still air, the
+source's drive less the drag (:func:`net_of_drag`), which falls to zero at the top speed where
+they are equal; a car in another's slipstream has less drag and more to spare
+(:mod:`racing_env.dynamics`). A class without drag (``f1tenth``, whose source has none) has
+its top speed enforced as the paper's formula enforces it: the drive limit falls to zero at
+the top speed, here linearly in ``V**2`` from the last source speed below it.
 
 * ``paper``: the paper's car (M. Rowold, arXiv:2310.00766), the default of every command.
 * ``tum``: TUM's research car of TUMFTM/global_racetrajectory_optimization.
@@ -73,6 +77,25 @@ def table_with_top_speed(speeds, ax_max, rho, top_speed: float) -> LimitTable:
     return LimitTable(np.append(speeds[keep], top_speed), np.append(ax_max[keep], 0.0), np.append(rho[keep], rho_top))
 
 
+def net_of_drag(speeds, drive, rho, c_drag: float, top_speed: float) -> LimitTable:
+    """The still-air :class:`LimitTable` of a car with drag: at the source's ``speeds (K,)``
+    [m/s] the net drive ``drive - c_drag V^2`` [m/s^2] (``drive (K,)`` the source's drive limit,
+    ``c_drag`` [1/m] the drag per unit mass) and the gg radius ``rho (K,)``, up to the top
+    speed: the speed where the net drive reaches zero between two source speeds (exactly
+    where the drive and the drag are equal on that segment: both are linear in ``V**2``
+    there), or else ``top_speed`` [m/s] (:func:`table_with_top_speed`)."""
+    speeds, drive, rho = (np.asarray(a, dtype=float) for a in (speeds, drive, rho))
+    net = drive - c_drag * speeds**2
+    spent = np.flatnonzero((net <= 0) & (speeds < top_speed))
+    if spent.size:
+        k = int(spent[0])
+        if k == 0:
+            raise ValueError("net_of_drag: the drive does not exceed the drag at standstill")
+        w0, w1 = speeds[k - 1] ** 2, speeds[k] ** 2
+        top_speed = math.sqrt(w0 + net[k - 1] * (w1 - w0) / (net[k - 1] - net[k]))
+    return table_with_top_speed(speeds, net, rho, top_speed)
+
+
 # --- tum: TUMFTM/global_racetrajectory_optimization -------------------------------------------------------
 #: inputs/veh_dyn_info/ggv.csv: v_mps, ax_max_mps2 = ay_max_mps2 (the tyres' limits), every row 12.
 TUM_GGV_SPEEDS = (0.0, 4.0, 8.0, 12.0, 16.0, 20.0, 24.0, 28.0, 32.0, 36.0, 40.0, 44.0, 48.0, 52.0, 56.0, 60.0,
@@ -80,14 +103,19 @@ TUM_GGV_SPEEDS = (0.0, 4.0, 8.0, 12.0, 16.0, 20.0, 24.0, 28.0, 32.0, 36.0, 40.0,
 TUM_GGV_RHO = (12.0,) * len(TUM_GGV_SPEEDS)
 #: inputs/veh_dyn_info/ax_max_machines.csv: v_mps, ax_max_machines_mps2 (the electric machines' limit).
 TUM_MACHINE_AX = (5.3, 5.3, 5.3, 5.3, 5.3, 5.3, 5.3, 5.3, 5.3, 5.3, 5.1, 5.0, 4.6, 4.1, 3.7, 2.7, 2.2, 1.5)
-#: params/racecar.ini, veh_params: v_max, length, width, mass, curvlim (dragcoeff 0.75 is not used).
+#: params/racecar.ini, veh_params: v_max, length, width, mass, curvlim, and dragcoeff
+#: ``0.5 rho_air c_w A`` [kg/m], which trajectory_planning_helpers' ``calc_vel_profile`` divides by
+#: the mass and subtracts from the machines' and tyres' limit (``ax_max_machines.csv`` is the
+#: machines' drive, drag not included).
 TUM_V_MAX, TUM_LENGTH, TUM_WIDTH, TUM_MASS, TUM_CURVLIM = 70.0, 4.7, 2.0, 1200.0, 0.12
+TUM_DRAG_COEFF = 0.75
 
 
 def _tum() -> VehicleParams:
-    table = table_with_top_speed(TUM_GGV_SPEEDS, TUM_MACHINE_AX, TUM_GGV_RHO, TUM_V_MAX)
+    c_drag = TUM_DRAG_COEFF / TUM_MASS
+    table = net_of_drag(TUM_GGV_SPEEDS, TUM_MACHINE_AX, TUM_GGV_RHO, c_drag, TUM_V_MAX)
     return VehicleParams.from_table(table, length=TUM_LENGTH, width=TUM_WIDTH, mass=TUM_MASS,
-                                    min_turn_radius=1.0 / TUM_CURVLIM)
+                                    min_turn_radius=1.0 / TUM_CURVLIM, c_drag=c_drag)
 
 
 # --- av21: the Dallara AV-21 -------------------------------------------------------------------------------
@@ -135,11 +163,13 @@ def av21_source_limits(speeds) -> tuple[np.ndarray, np.ndarray]:
 
 def _av21() -> VehicleParams:
     ax, rho = av21_source_limits(AV21_SPEEDS)
-    table = table_with_top_speed(AV21_SPEEDS, ax, rho, av21_figures()["top_speed"])
+    figures = av21_figures()
+    table = net_of_drag(AV21_SPEEDS, ax, rho, figures["drag"], figures["top_speed"])
     # the footprint: the paper's 4.7 m x 2.0 m (no public figure for the AV-21's was found)
     jerk = float(np.max(table.rho)) / JERK_RISE_TIME
     return VehicleParams.from_table(table, length=4.7, width=2.0, mass=AV21_MASS,
-                                    min_turn_radius=AV21_WHEELBASE / math.tan(AV21_STEER_MAX), jx_max=jerk, jy_max=jerk)
+                                    min_turn_radius=AV21_WHEELBASE / math.tan(AV21_STEER_MAX), jx_max=jerk, jy_max=jerk,
+                                    c_drag=figures["drag"])
 
 
 # --- f1tenth: f1tenth/f1tenth_gym ---------------------------------------------------------------------------
@@ -175,7 +205,7 @@ def _f1tenth() -> VehicleParams:
 _TUM_SOURCE = ("TUMFTM/global_racetrajectory_optimization: inputs/veh_dyn_info/ggv.csv (tyres: 12 m/s^2 "
                "longitudinal and lateral, 0-72 m/s), inputs/veh_dyn_info/ax_max_machines.csv (drive 5.3 m/s^2 "
                "falling to 1.5 m/s^2 at 72 m/s), params/racecar.ini (v_max 70 m/s, 4.7 m x 2.0 m, 1200 kg, "
-               "curvature limit 0.12 1/m)")
+               "curvature limit 0.12 1/m, drag coefficient 0.75 kg/m)")
 _AV21_SOURCE = ("AWSIM racing simulator, RacingSim/VehicleDynamics (autonomalabs.github.io/AWSIM): 815.11 kg, "
                 "wheelbase 2.9718 m, 473.25 hp, drag 0.8581 and lift 0.65 + 1.18 coefficients, steering 240 deg / 15; "
                 "J. Betz et al., arXiv:2205.15979 (2022): 28 m/s^2 at 270 km/h")
@@ -192,7 +222,7 @@ CAR_CLASSES: dict[str, CarClass] = {
         CarClass("paper", "the paper's car (M. Rowold, arXiv:2310.00766): 25 m/s, gg radius 12 m/s^2 plus downforce",
                  "M. Rowold, arXiv:2310.00766 (the formula's figures); turning radius and mass: this project",
                  VehicleParams),
-        CarClass("tum", "TUM's research car (TUMFTM global_racetrajectory_optimization): 70 m/s, 12 m/s^2",
+        CarClass("tum", "TUM's research car (TUMFTM global_racetrajectory_optimization): 62.8 m/s with drag, 12 m/s^2",
                  _TUM_SOURCE, _tum, TUM_GGV_SPEEDS, TUM_MACHINE_AX, TUM_GGV_RHO),
         CarClass("av21", "Dallara AV-21 of the Indy Autonomous Challenge: open-wheel, 88 m/s, downforce",
                  _AV21_SOURCE, _av21, AV21_SPEEDS, tuple(_av21_ax.tolist()), tuple(_av21_rho.tolist())),
@@ -219,7 +249,7 @@ def get_car(name: str) -> VehicleParams:
 
 
 #: The fields of a car that, with its limit curves, say which class it is (:func:`class_of`).
-_IDENTITY_FIELDS = ("length", "width", "v_max", "jx_max", "jy_max", "min_turn_radius", "mass")
+_IDENTITY_FIELDS = ("length", "width", "v_max", "jx_max", "jy_max", "min_turn_radius", "mass", "c_drag")
 
 
 def class_of(vehicle: VehicleParams) -> str | None:

@@ -148,6 +148,10 @@ class RaceConfig:
         observation_units: ``scaled`` (the default: every feature over a scale of the car
             and the track, of order one) or ``physical`` (m, m/s, rad, m/s^2, 1/m);
             :data:`racing_env.observation.OBSERVATION_UNITS`.
+        slipstream: whether a car with drag (a class with ``c_drag > 0``: ``tum``, ``av21``)
+            has less of it in another car's wake (:data:`racing_env.dynamics.SLIPSTREAM`), in
+            the env's physics and in the game the planners solve; True by default. Cars
+            without drag do not feel it either way.
     """
 
     track: Track | str = "trefoil"
@@ -178,6 +182,7 @@ class RaceConfig:
     severity_speed: float | None = None
     disqualify_after: int = 3
     rules: tuple[str, ...] = DEFAULT_RULES
+    slipstream: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.num_agents, (int, np.integer)) or not 1 <= self.num_agents <= MAX_CARS:
@@ -207,6 +212,8 @@ class RaceConfig:
             raise ValueError(f"observed_rivals must be None (every other car) or an integer in [1, {MAX_CARS - 1}] "
                              f"(the nearest rivals observed), got {self.observed_rivals!r}")
         check_observation_units(self.observation_units)
+        if not isinstance(self.slipstream, (bool, np.bool_)):
+            raise ValueError(f"slipstream must be True or False, got {self.slipstream!r}")
         if len(self.preview_distances) < 1 or not all(np.isfinite(d) and d >= 0 for d in self.preview_distances):
             raise ValueError(
                 f"preview_distances must be non-empty, finite and >= 0, got {self.preview_distances!r}"

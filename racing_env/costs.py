@@ -5,7 +5,7 @@ Stage cost of player i at joint state ``x (N, 6)`` with its own input ``u_i (2,)
     g^i = u_i' R^i u_i                                              (jerk regularisation)
         + sum_{j != i} c_c^i * exp(1 - (ds_ij / l_ij)^2 - (dn_ij / w_ij)^2)^2   (collision)
         + c_w^i * max(n_i - wl_i(s_i), 0)^2 + c_w^i * max(-n_i - wr_i(s_i), 0)^2  (track)
-        + c_ax^i * max(ax_i - ax_max^i(V_i), 0)^2                              (ax limit)
+        + c_ax^i * max(ax_i - drive_max^i(V_i), 0)^2                            (ax limit)
         + c_a^i * max(|(ax_i, ay_i)| - rho^i(V_i), 0)^2                        (gg limit)
         + c_a^i * max(|ay_i| - V_i^2 / R_min^i, 0)^2                           (turn limit)
         + c_r^i * max(-V_i, 0)^2                                                (reversing)
@@ -14,6 +14,8 @@ Stage cost of player i at joint state ``x (N, 6)`` with its own input ``u_i (2,)
 cars (``l_veh``/``w_veh`` of the paper when the cars are alike), and ``wl/wr`` the usable
 half-widths: the track width minus half the car's width, so the penalty starts when the
 car's footprint touches the boundary. ``max(z, 0)^2`` is the paper's ``1{z >= 0} z^2``.
+``drive_max(V)`` is the paper's ``ax_max(V)`` for a car without drag, and ``ax_max(V)`` plus the
+still-air drag for one with drag (:meth:`racing_env.vehicle.VehicleParams.drive_max`).
 The turn limit (steering lock, ``VehicleParams.min_turn_radius``) and the reversing term
 are not in the paper. Both are zero at racing speeds; they are what the environment
 enforces at low speed (no spinning on the spot, no reverse gear), so that a planner does not
@@ -64,7 +66,8 @@ class CostWeights:
         r_jx, r_jy: jerk regularisation, diagonal of R^i [s^6/m^2].
         c_collision: collision weight c_c (per step, dimensionless proximity term).
         c_track: track-boundary weight c_w [1/m^2].
-        c_ax: weight on exceeding ax_max(V), c_ax [s^4/m^2].
+        c_ax: weight on exceeding the drive limit (``ax_max(V)``, plus the still-air drag for a
+            car with drag: ``VehicleParams.drive_max``), c_ax [s^4/m^2].
         c_acc: weight on exceeding the gg radius rho(V) and the turn limit V^2 / R_min,
             c_a [s^4/m^2].
         c_gap: terminal weight c_g on the opponents' progress (> 0 rewards being ahead).
@@ -274,7 +277,7 @@ def stage_residuals(
         [
             n[i] - (track.width_left_at(s[i]) - half_width),
             -n[i] - (track.width_right_at(s[i]) - half_width),
-            ax_i - vehicles.ax_max(v)[i],
+            ax_i - vehicles.drive_max(v)[i],
             jnp.sqrt(ax_i**2 + ay_i**2 + _NORM_EPS) - vehicles.rho(v)[i],
             jnp.sqrt(ay_i**2 + _NORM_EPS) - vehicles.ay_turn_max(v)[i],
             -v[i],

@@ -29,7 +29,7 @@ from pettingzoo import ParallelEnv
 
 from racing_env import race
 from racing_env.config import RaceConfig
-from racing_env.dynamics import STATE_DIM, S
+from racing_env.dynamics import SLIPSTREAM, STATE_DIM, S
 from racing_env.game import RaceGame
 from racing_env.observation import observation_size
 from racing_env.packing import Layout, pack, unpack
@@ -144,7 +144,8 @@ class RacingParallelEnv(ParallelEnv):
         self.finish_s = finish_line(config, self.track)
         scenario = make_scenario(config.scenario, self.track, num, config.vehicles, seed=0, finish_s=self.finish_s)
         self.game = RaceGame.create(
-            self.track, scenario.vehicles, config.game_weights(), dt=config.dt, horizon=config.horizon
+            self.track, scenario.vehicles, config.game_weights(), dt=config.dt, horizon=config.horizon,
+            slipstream=SLIPSTREAM if config.slipstream else None,
         )
         check_starts_behind(self.finish_s, scenario.x0, config.scenario)
         #: the race's constants for the race core (racing_env.race)

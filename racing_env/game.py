@@ -11,9 +11,9 @@ import numpy as np
 
 from racing_env import costs as _costs
 from racing_env.costs import CostWeights, stack_weights
-from racing_env.dynamics import INPUT_DIM, STATE_DIM, joint_step
+from racing_env.dynamics import INPUT_DIM, SLIPSTREAM, STATE_DIM, Aero, Slipstream, joint_step
 from racing_env.track import Track
-from racing_env.vehicle import VehicleParams, stack_vehicles
+from racing_env.vehicle import VehicleParams, is_concrete, stack_vehicles
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -36,6 +36,14 @@ class RaceGame:
             j ``c_c^i * collision_scale[i, j]``; ``None`` (the default): 1, the paper's
             symmetric cost. Constants of the game, never functions of the planned states:
             :meth:`with_responsibility` sets them from the start of a plan.
+        slipstream: the wake model of the cars with drag (:class:`racing_env.dynamics.Slipstream`,
+            static), or None: their drag is never reduced. Default
+            :data:`racing_env.dynamics.SLIPSTREAM`. It acts on cars with drag only.
+        drag: whether some car has drag (``vehicles.c_drag > 0``), static: then the step is the
+            coupled joint step (:func:`racing_env.dynamics.joint_step` with an
+            :class:`racing_env.dynamics.Aero`), else the paper's per-car step. Set from the
+            cars whenever they are concrete numbers (a value passed in is then overridden);
+            a traced game keeps the flag of the game it was made from.
 
     Arrays: joint state ``x (N, 6)``, joint input ``u (N, 2)``, input sequences
     ``U (K, N, 2)``, state trajectories ``xs (K + 1, N, 6)``. All functions are pure JAX.
@@ -48,6 +56,15 @@ class RaceGame:
     horizon: int = 50
     racing: jax.Array | None = None
     collision_scale: jax.Array | None = None
+    slipstream: Slipstream | None = SLIPSTREAM
+    drag: bool = False
+
+    def __post_init__(self) -> None:
+        c_drag = getattr(self.vehicles, "c_drag", None)
+        if is_concrete(c_drag):
+            object.__setattr__(self, "drag", bool(np.any(np.asarray(c_drag) > 0)))
+        if self.slipstream is not None and not isinstance(self.slipstream, Slipstream):
+            raise ValueError(f"slipstream must be a racing_env.dynamics.Slipstream or None, got {self.slipstream!r}")
 
     @staticmethod
     def create(
@@ -56,11 +73,13 @@ class RaceGame:
         weights: CostWeights | Sequence[CostWeights] | None = None,
         dt: float = 0.1,
         horizon: int = 50,
+        slipstream: Slipstream | None = SLIPSTREAM,
     ) -> "RaceGame":
         """Build a game, broadcasting single parameter sets to all players.
 
         ``vehicles`` fixes N: a sequence of ``VehicleParams`` (one per car). ``weights`` is
         one ``CostWeights`` for everybody, a sequence of N, or ``None`` for the defaults.
+        ``slipstream``: the wake model of the cars with drag, or None (drag alone).
         """
         if isinstance(vehicles, VehicleParams):
             raise ValueError("RaceGame.create needs a sequence of VehicleParams, one per car")
@@ -83,6 +102,7 @@ class RaceGame:
             weights=stack_weights(weights),
             dt=float(dt),
             horizon=int(horizon),
+            slipstream=slipstream,
         )
 
     @property
@@ -130,9 +150,23 @@ class RaceGame:
         return self.replace(collision_scale=scale)
 
     # --- dynamics ---------------------------------------------------------------------
+    def aero(self, dtype=None) -> Aero | None:
+        """What the joint step of cars with drag needs (:class:`racing_env.dynamics.Aero`), in
+        ``dtype`` (default: float64 where enabled); None when no car has drag. A car out of the
+        race (``racing``) leaves no wake."""
+        if not self.drag:
+            return None
+        dtype = jnp.result_type(float) if dtype is None else dtype
+        n_cars = self.num_players
+        field = lambda value: jnp.broadcast_to(jnp.asarray(value, dtype), (n_cars,))
+        wake = jnp.ones(n_cars, dtype) if self.racing is None else jnp.asarray(self.racing).astype(dtype)
+        return Aero(field(self.vehicles.c_drag), field(self.vehicles.length), field(self.vehicles.width), wake,
+                    self.track.wrap_ds, self.slipstream)
+
     def step(self, x: jax.Array, u: jax.Array) -> jax.Array:
-        """Joint RK4 step: ``x (N, 6)``, ``u (N, 2)`` [m/s^3] -> ``(N, 6)``."""
-        return joint_step(x, u, self.dt, self.track.kappa_at)
+        """Joint RK4 step: ``x (N, 6)``, ``u (N, 2)`` [m/s^3] -> ``(N, 6)`` (coupled through
+        the slipstream when some car has drag)."""
+        return joint_step(x, u, self.dt, self.track.kappa_at, self.aero(jnp.result_type(x)))
 
     def rollout(self, x0: jax.Array, U: jax.Array) -> jax.Array:
         """Simulate ``U (K, N, 2)`` from ``x0 (N, 6)``: returns ``xs (K + 1, N, 6)``."""
@@ -180,5 +214,5 @@ class RaceGame:
 jax.tree_util.register_dataclass(
     RaceGame,
     data_fields=["track", "vehicles", "weights", "racing", "collision_scale"],
-    meta_fields=["dt", "horizon"],
+    meta_fields=["dt", "horizon", "slipstream", "drag"],
 )

@@ -18,9 +18,16 @@ the fastest the point mass can drive it within its limits (:class:`VehicleParams
 same ``ax_max(V)`` and ``rho(V)``, formula or table, as the environment and the planners):
 
 * lateral: ``|kappa_line| V^2 <= rho(V)`` and ``V <= v_max``;
-* drive: ``dV/dt <= min(ax_max(V), sqrt(rho(V)^2 - ay^2))`` (forward pass);
-* braking: ``-dV/dt <= sqrt(rho(V)^2 - ay^2)`` (backward pass; the environment brakes at
-  most at ``rho``).
+* drive: ``dV/dt <= min(ax_max(V), sqrt(rho(V)^2 - ay^2) - c_drag V^2)`` (forward pass);
+* braking: ``-dV/dt <= sqrt(rho(V)^2 - ay^2) + c_drag V^2`` (backward pass; the environment
+  brakes the tyres at most at ``rho``).
+
+A car with drag (``c_drag > 0``, :mod:`racing_env.dynamics`) accelerates at what its tyres
+deliver, at most ``drive_max(V) = ax_max(V) + c_drag V^2`` and within the gg room, less the
+drag, and the drag helps it brake (as in TUMFTM's ``calc_vel_profile``, where the machines'
+limit and the tyres' are reduced by the drag forwards and increased by it backwards). The
+profile is a lone car's, in still air: no slipstream. Without drag the terms are zero and the
+profile is the paper car's.
 
 The turn limit ``|ay| <= V^2 / min_turn_radius`` is not part of the profile: it binds below
 about 8 m/s only, and a line tighter than the turning radius (Shanghai's hairpin, whose centre
@@ -489,17 +496,19 @@ def speed_profile(line: RacingLine, vehicle: VehicleParams = VehicleParams(),
     seg = np.diff(line.sigma) if not closed else np.diff(np.append(line.sigma, line.length))
     ax_values, rho_values = curve.ax, curve.rho
 
+    c_drag = float(vehicle.c_drag)
+
     def drive(w: float, k: float) -> float:
         v2 = max(w, 0.0)
         rho = curve.at(rho_values, v2)
         room = rho * rho - (k * v2) ** 2
-        return 2.0 * min(curve.at(ax_values, v2), math.sqrt(room) if room > 0 else 0.0)
+        return 2.0 * min(curve.at(ax_values, v2), (math.sqrt(room) if room > 0 else 0.0) - c_drag * v2)
 
     def brake(w: float, k: float) -> float:
         v2 = max(w, 0.0)
         rho = curve.at(rho_values, v2)
         room = rho * rho - (k * v2) ** 2
-        return 2.0 * (math.sqrt(room) if room > 0 else 0.0)
+        return 2.0 * ((math.sqrt(room) if room > 0 else 0.0) + c_drag * v2)
 
     def rk4(f, w: float, k0: float, k1: float, h: float) -> float:
         km = 0.5 * (k0 + k1)

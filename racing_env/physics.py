@@ -1,6 +1,6 @@
 """What the environment enforces and detects beyond the smooth game model.
 
-The planners' game only *penalises* leaving the gg diagram, exceeding ax_max(V) or driving
+The planners' game only *penalises* leaving the gg diagram, exceeding the drive limit or driving
 backwards; the environment makes them impossible, and it detects footprint overlaps
 (collisions) and cars beyond the track boundary. All functions are pure JAX on the joint
 state ``x (N, 6)``.
@@ -20,7 +20,8 @@ def enforce_limits(x: jax.Array, vehicles: VehicleParams) -> jax.Array:
     """Project every car's accelerations onto its feasible set and keep ``V >= 0``.
 
     The acceleration vector is scaled radially onto the gg circle ``|a| <= rho(V)`` (the
-    paper's combined-acceleration limit), then ``ax`` is capped at ``ax_max(V)``, and
+    paper's combined-acceleration limit), then ``ax`` is capped at the drive limit
+    ``drive_max(V)`` (``ax_max(V)`` for a car without drag), and
     ``ay`` is clipped so the cap cannot push ``|a|`` past ``rho`` (only possible above v_max,
     where ``ax_max < 0``), and finally to the turn limit ``V**2 / min_turn_radius``. A car
     cannot reverse: ``V`` stops at zero, and a stopped car keeps no braking and (by the turn
@@ -32,7 +33,7 @@ def enforce_limits(x: jax.Array, vehicles: VehicleParams) -> jax.Array:
     norm = jnp.sqrt(ax**2 + ay**2)
     scale = jnp.where(norm > rho, rho / jnp.maximum(norm, 1e-12), 1.0)
     ax, ay = ax * scale, ay * scale
-    ax = jnp.clip(ax, -rho, vehicles.ax_max(v))
+    ax = jnp.clip(ax, -rho, vehicles.drive_max(v))
     ay_room = jnp.sqrt(jnp.maximum(rho**2 - ax**2, 0.0))
     ay_room = jnp.minimum(ay_room, vehicles.ay_turn_max(v))
     ay = jnp.clip(ay, -ay_room, ay_room)
@@ -46,8 +47,9 @@ def saturate_jerk(x: jax.Array, u: jax.Array, vehicles: VehicleParams, dt: float
 
     Projecting ``ax`` only at the end of a step would let it ramp past ``ax_max`` inside
     the step, and a car driven flat out would settle above its v_max. With the jerk capped
-    at ``(ax_max(V) - ax) / dt`` the speed approaches v_max from below (for
-    ``2 ax_max_0 dt < v_max``, true for any sensible car). Likewise the lateral jerk keeps
+    at ``(drive_max(V) - ax) / dt`` (``ax_max(V)`` without drag) the speed approaches v_max
+    from below (for ``2 ax_max_0 dt < v_max``, true for any sensible car; a car with drag in a
+    slipstream can exceed it). Likewise the lateral jerk keeps
     ``|ay|`` within the turn limit ``V**2 / min_turn_radius`` at the step's start speed, so
     a slow car cannot spin inside the step before ``enforce_limits`` clips ``ay``.
 
@@ -55,7 +57,7 @@ def saturate_jerk(x: jax.Array, u: jax.Array, vehicles: VehicleParams, dt: float
     make ``V < 0``: the car creeping backwards) and, by the turn limit, no lateral jerk.
     """
     v, ax, ay = x[:, V], x[:, AX], x[:, AY]
-    jx = jnp.minimum(u[:, 0], (vehicles.ax_max(v) - ax) / dt)
+    jx = jnp.minimum(u[:, 0], (vehicles.drive_max(v) - ax) / dt)
     jx = jnp.where(v <= 0.0, jnp.maximum(jx, 0.0), jx)
     ay_cap = vehicles.ay_turn_max(jnp.maximum(v, 0.0))
     jy = jnp.clip(u[:, 1], (-ay_cap - ay) / dt, (ay_cap - ay) / dt)

@@ -318,7 +318,9 @@ def step(
     dtype = jnp.result_type(x)
     steps = state.steps + 1
     active = status.active
-    x_next = jnp.where(active[:, None], serve_drive_throughs(x, drive(game, x, actions), status.serving, game), x)
+    # a car out of the race leaves no wake (only cars with drag feel one)
+    moving = game.replace(racing=active) if game.drag else game
+    x_next = jnp.where(active[:, None], serve_drive_throughs(x, drive(moving, x, actions), status.serving, game), x)
     hit = sweep(x, x_next, active, game.vehicles, game.track)
     if params.contact.physics:
         x_next = collide(x, x_next, hit, game.vehicles, params.contact, game.track, game.dt)

@@ -692,7 +692,8 @@ class GymnaxRace(_Environment):
         opponents: one :data:`JaxPolicy` per opponent car (or one for all); default coasting.
             A batched opponent made from a spec (``"lane-keeping"``) carries its JAX policy
             as ``jax_policy``. Planners (``"ilqgame-fb:iterations=2"``, ``ilqgame-ol``,
-            ``ilqr`` with the constant-velocity prediction) race with their compiled step
+            ``ilqgame-leader``, ``ilqgame-follower``, ``ilqr`` with the constant-velocity
+            prediction) race with their compiled step
             (:mod:`planners.agents.compiled_planner`): their plans are then part of the
             state (:class:`PlannedRace`), a race that restarts re-plans cold in its first
             step, and their actions are the host batched planner's to rounding. They need
@@ -724,8 +725,8 @@ class GymnaxRace(_Environment):
             policy = getattr(opponent, "jax_policy", opponent) if opponent is not None else coasting
             if not _is_jax_policy(policy, self.race.state_space.shape):
                 raise ValueError(f"opponent {opponent!r} of car {car} is neither a JAX policy x (N, 6) -> action (2,) "
-                                 "nor a planner with a compiled step (ilqgame-fb, ilqgame-ol, ilqr with the "
-                                 "constant-velocity prediction)")
+                                 "nor a planner with a compiled step (ilqgame-fb, ilqgame-ol, ilqgame-leader, "
+                                 "ilqgame-follower, ilqr with the constant-velocity prediction)")
             self._policies.append((car, policy))
         self.num_cars = num
         params = self.race.params

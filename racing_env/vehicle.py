@@ -160,7 +160,9 @@ jax.tree_util.register_dataclass(LimitTable, data_fields=["speeds", "ax_max", "r
 
 #: The fields of :class:`VehicleParams` that are numbers (one per car); ``table`` is not one.
 SCALAR_FIELDS = ("length", "width", "v_max", "ax_max_0", "rho_0", "rho_aero", "jx_max", "jy_max",
-                 "min_turn_radius", "mass")
+                 "min_turn_radius", "mass", "c_drag")
+#: The fields that may be zero (the others must be > 0).
+_NON_NEGATIVE_FIELDS = ("rho_aero", "c_drag")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,8 +172,9 @@ class VehicleParams:
     Attributes:
         length: footprint length l_veh [m].
         width: footprint width w_veh [m].
-        v_max: top speed [m/s]. Enforced through ``ax_max(V)``, which falls to zero at v_max
-            (and becomes negative above it, so a car faster than v_max decelerates).
+        v_max: top speed [m/s] in still air. Enforced through ``ax_max(V)``, which falls to
+            zero at v_max (and becomes negative above it, so a car faster than v_max
+            decelerates); a car with drag in another car's slipstream can exceed it.
         ax_max_0: largest positive longitudinal acceleration at standstill [m/s^2].
         rho_0: radius of the gg diagram (combined acceleration limit) at standstill [m/s^2].
         rho_aero: growth of the gg radius with speed squared (downforce) [1/m],
@@ -183,6 +186,12 @@ class VehicleParams:
             the paper: its point mass turns on the spot.
         mass: [kg] what the car weighs in a contact (:mod:`racing_env.contact`): only the
             ratio of two cars' masses matters. Not in the paper, whose cars never touch.
+        c_drag: aerodynamic drag per unit mass ``rho_air Cd A / (2 m)`` [1/m]: the drag
+            decelerates the car by ``c_drag V^2`` (:mod:`racing_env.dynamics`), less in another
+            car's slipstream. 0 (the default, the paper's car): no drag, and ``ax`` is the
+            car's acceleration. With drag, ``ax`` is the acceleration the tyres deliver and
+            ``ax_max(V)`` stays the net limit in still air, the drive minus the drag, so the
+            drive limit on ``ax`` is ``drive_max(V) = ax_max(V) + c_drag V^2`` (docs/model.md).
         table: ``None`` (the paper's formula for ``ax_max(V)`` and ``rho(V)``), or a
             :class:`LimitTable` that gives them instead. With a table, ``v_max`` is the
             table's top speed and ``ax_max_0``, ``rho_0`` and ``rho_aero`` describe the table
@@ -203,13 +212,14 @@ class VehicleParams:
     min_turn_radius: ArrayLike = 5.0
     mass: ArrayLike = 800.0
     table: LimitTable | None = None
+    c_drag: ArrayLike = 0.0
 
     def __post_init__(self) -> None:
         checked = concrete_fields(self, SCALAR_FIELDS)
         for name, (value, arr) in (checked or {}).items():
-            lower_ok = arr >= 0 if name == "rho_aero" else arr > 0
+            lower_ok = arr >= 0 if name in _NON_NEGATIVE_FIELDS else arr > 0
             if not np.all(lower_ok):
-                allowed = ">= 0" if name == "rho_aero" else "> 0"
+                allowed = ">= 0" if name in _NON_NEGATIVE_FIELDS else "> 0"
                 raise ValueError(f"VehicleParams.{name} must be {allowed}, got {value!r}")
         if self.table is None or checked is None or concrete_fields(self.table) is None:
             return
@@ -261,6 +271,17 @@ class VehicleParams:
         if self.table is not None:
             return _interp_in_square(v, self.table.speeds, self.table.ax_max)
         return self.ax_max_0 * (1.0 - (v / self.v_max) ** 2)
+
+    def drag(self, v: jax.Array) -> jax.Array:
+        """Deceleration by aerodynamic drag in still air at speed ``v`` [m/s^2]:
+        ``c_drag v |v|`` (against the motion; zero for a car without drag)."""
+        return self.c_drag * v * jnp.abs(v)
+
+    def drive_max(self, v: jax.Array) -> jax.Array:
+        """Largest positive value of the acceleration state ``ax`` at speed ``v`` [m/s^2]: the
+        net limit ``ax_max(v)`` plus the still-air drag ``c_drag v^2`` the drive overcomes
+        there. For a car without drag ``ax_max(v)`` itself (the same values)."""
+        return self.ax_max(v) + self.c_drag * v * v
 
     def rho(self, v: jax.Array) -> jax.Array:
         """Radius of the gg diagram at speed ``v`` [m/s^2] (formula or table)."""

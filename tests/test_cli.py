@@ -109,7 +109,7 @@ def test_paper_reproduction_writes_figures_and_json(tmp_path):
     assert main(["paper", "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "paper.json").read_text())
     for name in ("fig1_methods.png", "fig2_collision_weight.png", "fig3_convergence.png",
-                 "fig4_landscape_default.png", "fig5_landscape_printed.png"):
+                 "fig4_landscape_default.png", "fig5_landscape_printed.png", "fig6_stackelberg.png"):
         assert (tmp_path / name).stat().st_size > 0
     for key in ("ilqr", "feedback", "open_loop", "open_loop_from_feedback"):
         method = report["methods"][key]
@@ -124,6 +124,10 @@ def test_paper_reproduction_writes_figures_and_json(tmp_path):
     for key in ("feedback", "open_loop", "open_loop_printed", "feedback_printed"):
         assert report["methods"][key]["certificate"]["verdict"] in ("local Nash equilibrium", "saddle", "not stationary")
     assert report["methods"]["open_loop"]["certificate"]["verdict"] == "local Nash equilibrium"
+    # the leader-follower solutions, each car leading, certified (docs/experiments/paper.md)
+    assert {record["leader"] for record in report["stackelberg"].values()} == {0, 1}
+    for record in report["stackelberg"].values():
+        assert record["converged"] and record["certificate"]["verdict"] == "local Stackelberg solution"
     assert set(report["landscapes"]) == {"default", "paper"}
     for by_mode in report["landscapes"].values():
         for record in by_mode.values():

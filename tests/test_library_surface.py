@@ -18,7 +18,7 @@ from racing_env.scenarios import PAPER_WEIGHTS, paper_game
 
 DOCUMENTED = {
     # agents
-    "Agent", "BaseAgent", "FeedbackGameAgent", "OpenLoopGameAgent", "ILQRAgent", "LaneKeepingAgent", "RacelineAgent",
+    "Agent", "BaseAgent", "FeedbackGameAgent", "OpenLoopGameAgent", "LeaderGameAgent", "FollowerGameAgent", "ILQRAgent", "LaneKeepingAgent", "RacelineAgent",
     "ConstantSpeedAgent", "RandomAgent", "SB3Agent", "JaxPolicyAgent", "make_agent", "AGENTS", "agent_options", "reset_agents",
     # batched opponents (one object drives one car in B races)
     "BatchedOpponent", "make_batched_opponent",
@@ -32,6 +32,8 @@ DOCUMENTED = {
 SPEC_CLASSES = {
     "ilqgame-fb": "FeedbackGameAgent",
     "ilqgame-ol": "OpenLoopGameAgent",
+    "ilqgame-leader": "LeaderGameAgent",
+    "ilqgame-follower": "FollowerGameAgent",
     "ilqr": "ILQRAgent",
     "raceline": "RacelineAgent",
     "lane-keeping": "LaneKeepingAgent",
@@ -127,7 +129,7 @@ def test_game_agents_call_the_solver_in_their_mode(monkeypatch):
         ilq.SolverOptions(mode="ilqgame-fb")
     called = _stub_solver(monkeypatch)
     game, x0 = paper_game()
-    for name, mode in methods.GAME_MODES.items():
+    for name, mode in {**methods.GAME_MODES, **dict.fromkeys(methods.STACKELBERG_GAMES, methods.STACKELBERG)}.items():
         agent = planners.make_agent(name)
         assert agent.mode == type(agent).mode == mode
         agent.reset(0, 0, game)
@@ -135,6 +137,7 @@ def test_game_agents_call_the_solver_in_their_mode(monkeypatch):
         assert called[-1] == mode and np.all(np.isfinite(action))
         assert "not solved here" in agent.diagnostics()["error"]
     assert planners.FeedbackGameAgent.feedback and not planners.OpenLoopGameAgent.feedback
+    assert planners.LeaderGameAgent.feedback and planners.FollowerGameAgent.feedback
 
 
 def test_predictions_take_the_same_names(monkeypatch):

@@ -27,15 +27,18 @@ TABLE_STEP = 0.25
 
 def helper_lap_time(line: limits.RacingLine, car) -> float:
     """The flying lap [s] of ``calc_vel_profile`` on ``line``: the car's ``rho(V)`` as the
-    ggv's longitudinal and lateral limits with exponent 2 (the gg circle), its ``ax_max(V)``
-    as the machines' limit, no drag, its v_max; the lap time from the same segments."""
+    ggv's longitudinal and lateral limits with exponent 2 (the gg circle), its drive limit
+    ``drive_max(V)`` as the machines' limit, its drag ``c_drag`` times its mass as the
+    helper's ``drag_coeff`` with that mass (zero for a class without drag), its v_max; the lap
+    time from the same segments."""
     speeds = np.append(np.arange(0.0, float(car.v_max), TABLE_STEP), float(car.v_max))
     rho = np.asarray(car.rho(speeds))
     ggv = np.column_stack([speeds, rho, rho])
-    machines = np.column_stack([speeds, np.asarray(car.ax_max(speeds))])
+    machines = np.column_stack([speeds, np.asarray(car.drive_max(speeds))])
     seg = np.diff(np.append(line.sigma, line.length))
-    v = tph.calc_vel_profile.calc_vel_profile(machines, np.asarray(line.kappa), seg, True, 0.0, 1.0, ggv=ggv,
-                                             v_max=float(car.v_max), dyn_model_exp=2.0)
+    mass = float(car.mass)
+    v = tph.calc_vel_profile.calc_vel_profile(machines, np.asarray(line.kappa), seg, True, float(car.c_drag) * mass,
+                                             mass, ggv=ggv, v_max=float(car.v_max), dyn_model_exp=2.0)
     closed = np.append(v, v[0])
     return float(np.sum(2.0 * seg / (closed[:-1] + closed[1:])))
 

@@ -1,7 +1,8 @@
 """Receding-horizon planners for B races at once: one batched, warm-started solve per step.
 
 :class:`BatchedPlanner` is :meth:`planners.agents.RecedingHorizonAgent.act` for B races of
-one game (``ilqgame-fb``, ``ilqgame-ol``, ``ilqr`` with the constant-velocity prediction).
+one game (``ilqgame-fb``, ``ilqgame-ol``, ``ilqgame-leader``, ``ilqgame-follower``, ``ilqr``
+with the constant-velocity prediction).
 Each race keeps its own plan ``(us (T, N, 2), xs (T+1, N, 6), K (T, 2, 6N))`` and plan age,
 since races restart at different times. A step:
 
@@ -40,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from planners import ilq, ilqr, rival_game
+from planners import ilq, ilqr, leader_follower, rival_game
 from planners.agents.batched_protocol import BatchedOpponent, DIAGNOSTIC_FIELDS, empty_diagnostics, run_steps
 from planners.agents.protocol import BaseAgent
 from planners.agents.compiled_planner import CompiledPlanner
@@ -49,8 +50,11 @@ from planners.agents.receding_horizon import (
     RECOVERED_SPEED,
     STOPPED_SPEED,
     FeedbackGameAgent,
+    FollowerGameAgent,
     ILQRAgent,
+    LeaderGameAgent,
     OpenLoopGameAgent,
+    StackelbergGameAgent,
 )
 from planners.agents.weights import weight_names, with_player_weights
 from planners.ilq_batch import resolve_batching, solve_batch
@@ -61,7 +65,7 @@ from racing_env.dynamics import STATE_DIM, V
 __all__ = ["BATCHABLE_AGENTS", "BatchedPlanner", "default_solve_sizes", "predict_constant_velocity_batch",
            "unbatchable"]
 
-BATCHABLE_AGENTS = (FeedbackGameAgent, OpenLoopGameAgent, ILQRAgent)
+BATCHABLE_AGENTS = (FeedbackGameAgent, OpenLoopGameAgent, LeaderGameAgent, FollowerGameAgent, ILQRAgent)
 """The planner classes whose loop :class:`BatchedPlanner` batches (exactly these classes:
 a subclass may solve differently)."""
 
@@ -117,13 +121,21 @@ def _solve_local_games(planner: "BatchedPlanner", game, x0s: np.ndarray, egos: n
     batched solve with ``planner``'s solver: ``(us, xs, K or None, result)`` in the field's
     shapes (:func:`planners.rival_game.to_field_batch`)."""
     predicted = predict_constant_velocity_batch(x0s, planner.game.horizon, planner.game.dt)
-    problem, x0, local_init, orders, others = rival_game.local_games(game, x0s, egos, planner.rivals, init, predicted,
-                                                                     planner.obstacles)
+    if planner.role is not None:  # a leader-follower planner's pair games (planners.leader_follower)
+        problem, x0, local_init, orders, others = leader_follower.pair_games(game, x0s, egos, planner.role, init,
+                                                                             predicted, planner.obstacles)
+    else:
+        problem, x0, local_init, orders, others = rival_game.local_games(game, x0s, egos, planner.rivals, init,
+                                                                         predicted, planner.obstacles)
     axes = rival_game.RivalParams(game=planner._game_axes, order=0, predicted=0)
     res = solve_batch(problem, x0, local_init, params_axes=axes, devices=planner.devices, batching=planner.batching,
                       options=planner.options, validate=False)
     res = jax.device_get(res)
-    xs, us, K = rival_game.to_field_batch(orders, res.xs, res.us, res.K if planner.feedback else None, init, others)
+    K = res.K if planner.feedback else None
+    if planner.role is not None:
+        xs, us, K = leader_follower.to_field_batch(orders, egos, res.xs, res.us, K, init, others)
+    else:
+        xs, us, K = rival_game.to_field_batch(orders, res.xs, res.us, K, init, others)
     return us, xs, K, res
 
 
@@ -169,8 +181,9 @@ def _all_finite(a: np.ndarray) -> np.ndarray:
 
 
 class BatchedPlanner(BatchedOpponent):
-    """A receding-horizon planner (:class:`FeedbackGameAgent`, :class:`OpenLoopGameAgent`,
-    :class:`ILQRAgent` with the constant-velocity prediction) driving one car in B races.
+    """A receding-horizon planner (:class:`FeedbackGameAgent`, :class:`OpenLoopGameAgent`, the
+    leader-follower :class:`LeaderGameAgent` and :class:`FollowerGameAgent`, :class:`ILQRAgent`
+    with the constant-velocity prediction) driving one car in B races.
 
     Args:
         agent: the single agent whose options it takes (from :func:`planners.agents.make_agent`);
@@ -224,8 +237,11 @@ class BatchedPlanner(BatchedOpponent):
         if agent.responsibility != 1.0:  # every solve's game has its collision scales
             self._solve_game = self._solve_game.replace(collision_scale=np.ones((self.game.num_players,) * 2))
         self._game_axes = rival_game.game_axes(self._solve_game)
+        # a leader-follower planner: its pair games, in a race of two too (planners.leader_follower)
+        self.role = agent.role if isinstance(agent, StackelbergGameAgent) else None
         # a game agent in a field larger than its game: local games (planners.rival_game)
-        self.rivals = None if self.is_ilqr or agent.rivals >= self.game.num_players - 1 else agent.rivals
+        self.rivals = None if self.is_ilqr or (self.role is None and agent.rivals >= self.game.num_players - 1) \
+            else agent.rivals
         self.obstacles = None if self.rivals is None else agent.obstacles
         if self.is_ilqr:
             self._ego_template = ilqr.ego_problem(self._solve_game, np.zeros((self.game.num_players, STATE_DIM)),
@@ -364,7 +380,8 @@ class BatchedPlanner(BatchedOpponent):
         if self.rivals is None:
             return None
         game = self.game
-        return (type(self), self.options, self.rivals, self.obstacles, self.feedback, self.num_races, game.num_players,
+        return (type(self), self.options, self.rivals, self.obstacles, self.role, self.feedback, self.num_races,
+                game.num_players,
                 game.horizon,
                 id(game.track), id(game.vehicles), self.devices, self.batching, self.agent.responsibility == 1.0)
 

@@ -5,7 +5,7 @@ for one race written as pure functions of ``(plan state, joint state)``, so that
 that is itself compiled (:class:`racing_env.vector.GymnaxRace`, the JAX learner's update)
 can step planner opponents inside its program, and vmap them over races::
 
-    planner = make_batched_opponent("ilqgame-fb:iterations=2", game, 1, 1).jax_planner
+    planner = make_batched_opponent("ilqgame-fb:iterations=2", game, 1, 1).jax_planner   # or ilqgame-leader, ...
     plan = planner.initial()                                  # a race start: no plan yet
     action, plan = planner.act(plan, x, racing)               # x (N, 6), racing (N,) bool
 
@@ -36,7 +36,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from planners import ilq, ilqr, rival_game
+from planners import ilq, ilqr, leader_follower, rival_game
 from planners.agents.receding_horizon import RECOVERED_SPEED, STOPPED_SPEED
 from planners.agents.warm_start import restore_accelerations
 from planners.game_problem import as_problem
@@ -98,6 +98,7 @@ class CompiledPlanner:
         self.responsibility = agent.responsibility
         self.ego_template = planner._ego_template if self.is_ilqr else None
         self.rivals = planner.rivals  # local games (planners.rival_game), or None: the whole game
+        self.role = planner.role  # a leader-follower planner's role in its pair games, or None
         self.obstacles = planner.obstacles  # the predicted cars of a local game (None: all)
         self.vehicle = planner._brake_law.vehicle
 
@@ -190,6 +191,8 @@ class CompiledPlanner:
     def _solve_local(self, game, x: jax.Array, init: jax.Array):
         """:meth:`_solve` of a local game: this car and its ``rivals`` nearest, the others
         predicted at constant velocity (:mod:`planners.rival_game`, traced)."""
+        if self.role is not None:
+            return self._solve_pair(game, x, init)
         k, P = self.rivals, self.rivals + 1
         order = rival_game.field_orders(game.track, x[None], jnp.asarray([self.index]), k, game.racing[None])[0]
         others = ilqr.predict_constant_velocity(game, x)[:, order[P:]]
@@ -200,6 +203,21 @@ class CompiledPlanner:
                                               res.K[None] if self.feedback else None, init[None], others[None])
         K = K[0] if self.feedback else jnp.zeros((self.horizon, 2, x.size), x.dtype)
         return us[0], xs[0], K, res.converged
+
+    def _solve_pair(self, game, x: jax.Array, init: jax.Array):
+        """:meth:`_solve` of a leader-follower planner: its pair game
+        (:func:`planners.leader_follower.pair_games`, traced: with ``role="auto"`` the leader
+        is chosen by a ``where`` on the race's state), the ego's gains from its own row."""
+        ego = jnp.asarray([self.index])
+        predicted = ilqr.predict_constant_velocity(game, x)[None]
+        problem, x0, local_init, order, others = leader_follower.pair_games(
+            game, x[None], ego, self.role, init[None], predicted, self.obstacles, game.racing[None])
+        params = problem.params
+        problem = problem.replace(params=params._replace(order=params.order[0], predicted=params.predicted[0]))
+        res = self._solve_arrays(problem, x0[0], local_init[0], x.dtype)
+        xs, us, K = leader_follower.to_field_batch(order, ego, res.xs[None], res.us[None], res.K[None], init[None],
+                                                   others)
+        return us[0], xs[0], K[0], res.converged
 
     def _replan(self, plan: PlanState, x: jax.Array, racing: jax.Array, due: jax.Array
                 ) -> tuple[jax.Array, PlanState]:

@@ -1,8 +1,10 @@
 """A field's re-plans as one batched solve per step.
 
 In a race of N game planners (:class:`planners.agents.receding_horizon.FeedbackGameAgent`
-and :class:`~planners.agents.receding_horizon.OpenLoopGameAgent` with ``rivals < N - 1``)
-every car solves its local game (:mod:`planners.rival_game`) at every re-plan. Those games
+and :class:`~planners.agents.receding_horizon.OpenLoopGameAgent` with ``rivals < N - 1``, and
+the leader-follower :class:`~planners.agents.receding_horizon.StackelbergGameAgent` with
+``N > 2``: its pair game, :mod:`planners.leader_follower`) every car solves its local game
+(:mod:`planners.rival_game`) at every re-plan. Those games
 have the same shapes, and the cars with the same solver options the same compiled solver:
 :func:`solve_field` solves them as one :func:`planners.ilq_batch.solve_batch` per group of
 such cars (in lock step for real-time re-plans and on accelerators, else one member after

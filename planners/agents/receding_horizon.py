@@ -1,7 +1,9 @@
 """Receding-horizon planners: a game (or iLQR) solution re-planned from the current joint state.
 
-:class:`FeedbackGameAgent`, :class:`OpenLoopGameAgent` and :class:`ILQRAgent` re-solve the
-env's :class:`racing_env.RaceGame` from the current joint state every ``replan_every`` steps,
+:class:`FeedbackGameAgent`, :class:`OpenLoopGameAgent`, the leader-follower
+:class:`LeaderGameAgent` and :class:`FollowerGameAgent` (:class:`StackelbergGameAgent`) and
+:class:`ILQRAgent` re-solve the env's :class:`racing_env.RaceGame` from the current joint
+state every ``replan_every`` steps,
 warm-started from the previous solution shifted by the steps elapsed (the last input
 repeated, or zeros). Between re-plans the feedback agent applies
 ``u = u_hat_t - K_t (x - x_hat_t)``, the others the planned ``u_hat_t``. A solve that raises
@@ -26,7 +28,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from planners import ilq, ilqr, prediction as prediction_models, rival_game
+from planners import ilq, ilqr, leader_follower, prediction as prediction_models, rival_game
 from planners.certificates import LOCAL_NASH, certify as certify_solution
 from planners.agents.protocol import BaseAgent, empty_record
 from planners.agents.warm_start import restore_accelerations
@@ -38,7 +40,18 @@ from planners.agents.weights import (
     weights_for,
     with_player_weights,
 )
-from planners.methods import CONSTANT_VELOCITY, FEEDBACK, FEEDBACK_GAME, GAME_MODES, ILQR, LANE_KEEPING, OPEN_LOOP_GAME
+from planners.methods import (
+    CONSTANT_VELOCITY,
+    FEEDBACK,
+    FEEDBACK_GAME,
+    GAME_MODES,
+    ILQR,
+    LANE_KEEPING,
+    OPEN_LOOP_GAME,
+    STACKELBERG,
+    STACKELBERG_FOLLOWER,
+    STACKELBERG_LEADER,
+)
 from planners.precision import require_precision
 from racing_env.costs import check_responsibility
 from racing_env.dynamics import V
@@ -46,7 +59,9 @@ from racing_env.observation import cars_racing
 
 __all__ = [
     "FeedbackGameAgent",
+    "FollowerGameAgent",
     "ILQRAgent",
+    "LeaderGameAgent",
     "OpenLoopGameAgent",
     "DEFAULT_RESPONSIBILITY",
     "DEFAULT_OBSTACLES",
@@ -55,7 +70,9 @@ __all__ = [
     "REPLAN_TOLERANCE",
     "RecedingHorizonAgent",
     "STOPPED_SPEED",
+    "StackelbergGameAgent",
     "certificate_record",
+    "stackelberg_certificate_record",
 ]
 
 
@@ -229,7 +246,8 @@ class RecedingHorizonAgent(BaseAgent):
 
     @staticmethod
     def _solver_option_types() -> dict[str, type]:
-        # leader: the Stackelberg mode's, which no agent plans in yet
+        # leader: the Stackelberg mode's; the leader-follower agents choose it by ordering
+        # their game's players (planners.leader_follower), never as an option
         return {f.name: type(f.default) for f in dataclasses.fields(ilq.SolverOptions)
                 if f.name not in ("mode", "max_iterations", "leader")}
 
@@ -515,6 +533,30 @@ def certificate_record(game: Any, x0: np.ndarray, result: Any, mode: str) -> dic
     return {"certified": verdict == LOCAL_NASH, "verdict": verdict, "certify_time": time.perf_counter() - t0}
 
 
+def stackelberg_certificate_record(problem: Any, x0: np.ndarray, result: Any,
+                                   options: ilq.SolverOptions) -> dict[str, Any]:
+    """The cheap Stackelberg certificate of a re-plan
+    (:func:`planners.stackelberg.certify_stackelberg` with ``checks="cheap"``) as diagnostics,
+    as :func:`certificate_record`: ``certified`` (the verdict is a local Stackelberg
+    solution), ``verdict`` and ``certify_time`` [s], or ``certify_error``.
+
+    Args:
+        problem: the pair game solved (:func:`planners.leader_follower.pair_game`'s problem).
+        x0: its start ``(12,)``; result: its :class:`planners.ilq.SolverResult`.
+        options: the solve's options (``mode="stackelberg"``).
+    """
+    from planners.stackelberg import STACKELBERG_SOLUTION, certify_stackelberg  # the certificate's module, only when certifying
+
+    t0 = time.perf_counter()
+    try:
+        verdict = certify_stackelberg(problem, x0, result, options=options, checks="cheap").verdict
+    except Exception as exc:  # noqa: BLE001 - a diagnostic must not stop the race
+        return {"certified": False, "verdict": None, "certify_error": f"{type(exc).__name__}: {exc}",
+                "certify_time": time.perf_counter() - t0}
+    return {"certified": verdict == STACKELBERG_SOLUTION, "verdict": verdict,
+            "certify_time": time.perf_counter() - t0}
+
+
 def _checked_obstacles(obstacles) -> int:
     """An agent's ``obstacles``: an integer >= 1 (an agent always has a number of them)."""
     if obstacles is None:
@@ -625,6 +667,108 @@ class OpenLoopGameAgent(_GameAgent):
     spec = name = OPEN_LOOP_GAME
     mode = GAME_MODES[OPEN_LOOP_GAME]
     feedback = False
+
+
+class StackelbergGameAgent(_GameAgent):
+    """Feedback Stackelberg iLQGame of the car and its nearest rival: a leader announces its
+    feedback strategy stage by stage and the follower answers it (``mode="stackelberg"``,
+    docs/solvers.md); between re-plans ``u = u_hat_t - K_t (x - x_hat_t)`` with the car's own
+    gains, as the feedback Nash agent.
+
+    The game is the *pair game* of :mod:`planners.leader_follower`: the car and the nearest
+    car still racing, the next ``obstacles`` cars predicted at constant speed and lateral
+    offset as moving obstacles (in a race of two cars: the race's game). Registered twice,
+    with the car's default role in the name: ``ilqgame-leader`` (:class:`LeaderGameAgent`)
+    and ``ilqgame-follower`` (:class:`FollowerGameAgent`); with ``role="auto"`` the two are
+    the same planner.
+
+    Args:
+        role: ``"leader"`` (the car leads), ``"follower"`` (its rival leads) or ``"auto"``
+            (the car ahead in race distance leads, judged at every re-plan: the
+            position-dependent responsibility of Cinar and Laine, arXiv:2402.09548; equal
+            distances to the lower car index). None: the class's :attr:`default_role`.
+        obstacles: the cars after the rival predicted as moving obstacles (integer >= 1).
+        certify: certify every adopted re-plan with
+            :func:`planners.stackelberg.certify_stackelberg` (cheap form): diagnostics'
+            ``certified`` (a local Stackelberg solution), ``verdict``, ``certify_time``.
+        kwargs: as :class:`RecedingHorizonAgent` (no ``rivals``: the game has two players).
+
+    Each adopted re-plan's diagnostics carry ``leader``: the car index of its leader.
+    """
+
+    mode = STACKELBERG
+    feedback = True
+    realtime_player_steps = True
+    default_role = leader_follower.LEADER
+
+    def __init__(self, role: str | None = None, obstacles: int = DEFAULT_OBSTACLES, certify: bool = False,
+                 **kwargs: Any) -> None:
+        if "rivals" in kwargs:
+            raise ValueError(f"{self.spec} plays a game of exactly {leader_follower.PLAYERS} players (a leader and a "
+                             f"follower): the car and its nearest rival; it takes no rivals option")
+        self.role = leader_follower.check_role(self.default_role if role is None else role)
+        super().__init__(rivals=1, obstacles=obstacles, certify=certify, **kwargs)
+
+    @classmethod
+    def spec_options(cls) -> dict[str, type]:
+        options = {**super().spec_options(), "role": str}
+        del options["rivals"]
+        return options
+
+    @classmethod
+    def spec_defaults(cls) -> dict[str, Any]:
+        defaults = {**super().spec_defaults(), "role": cls.default_role}
+        del defaults["rivals"]
+        return defaults
+
+    def _plays_local_game(self, game) -> bool:
+        return True  # the pair game, also in a race of two
+
+    def _pair_game(self, game, x0, init, predicted=None) -> rival_game.LocalGame:
+        self._validate(game)
+        return leader_follower.pair_game(game, x0, self.index, self.role, init, predicted, self.obstacles)
+
+    def _batchable(self, game, x0, init, predicted):
+        if self.budget_ms is not None or game.num_players <= leader_follower.PLAYERS:
+            return None  # a wall-clock budget, or the race's own game: solved by act()
+        return self._pair_game(game, x0, init, predicted)
+
+    def _from_result(self, local, result, init):
+        self._solved = (local.problem, local.x0)
+        self._leader = int(local.order[0])
+        T, N = result.us.shape[0], local.order.shape[0]
+        init = np.zeros((T, N, result.us.shape[-1])) if init is None else np.asarray(init, dtype=np.float64)
+        xs, us, K = leader_follower.to_field_batch(
+            np.asarray(local.order)[None], np.array([self.index]), np.asarray(result.xs)[None],
+            np.asarray(result.us)[None], np.asarray(result.K)[None], init[None], np.asarray(local.others)[None])
+        return us[0], xs[0], K[0], result
+
+    def _adopted(self, game, x0, result, record):
+        record["leader"] = self._leader
+        if self.certify:
+            problem, start = self._solved
+            record.update(stackelberg_certificate_record(problem, start, result, self.batch_options()))
+
+    def _solve(self, game, x0, init):
+        self._solved = None
+        local = self._pair_game(game, x0, init)
+        res = ilq.solve(local.problem, local.x0, init=local.init, validate=False, mode=self.mode,
+                        max_iterations=self.max_iterations, budget_ms=self.budget_ms, **self.solver_options)
+        return self._from_result(local, jax.device_get(res), init)
+
+
+class LeaderGameAgent(StackelbergGameAgent):
+    """:class:`StackelbergGameAgent`, the car leading by default (``role="leader"``)."""
+
+    spec = name = STACKELBERG_LEADER
+    default_role = leader_follower.LEADER
+
+
+class FollowerGameAgent(StackelbergGameAgent):
+    """:class:`StackelbergGameAgent`, the car following by default (``role="follower"``)."""
+
+    spec = name = STACKELBERG_FOLLOWER
+    default_role = leader_follower.FOLLOWER
 
 
 _ONE_SOLVE_PREDICTIONS = frozenset({CONSTANT_VELOCITY, LANE_KEEPING})

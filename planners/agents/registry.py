@@ -36,7 +36,9 @@ from planners.agents.receding_horizon import (
     RECOVERED_SPEED,
     STOPPED_SPEED,
     FeedbackGameAgent,
+    FollowerGameAgent,
     ILQRAgent,
+    LeaderGameAgent,
     OpenLoopGameAgent,
 )
 from planners.agents.scripted import ConstantSpeedAgent, LaneKeepingAgent, RacelineAgent, RandomAgent
@@ -52,6 +54,8 @@ from planners.methods import (
     RACELINE,
     RANDOM,
     RL,
+    STACKELBERG_FOLLOWER,
+    STACKELBERG_LEADER,
 )
 
 __all__ = [
@@ -76,8 +80,9 @@ __all__ = [
 # The registry.
 # --------------------------------------------------------------------------------------
 
-_CLASSES = {cls.spec: cls for cls in (ILQRAgent, OpenLoopGameAgent, FeedbackGameAgent, RacelineAgent, LaneKeepingAgent,
-                                      ConstantSpeedAgent, RandomAgent)}
+_CLASSES = {cls.spec: cls for cls in (ILQRAgent, OpenLoopGameAgent, FeedbackGameAgent, LeaderGameAgent,
+                                      FollowerGameAgent, RacelineAgent, LaneKeepingAgent, ConstantSpeedAgent,
+                                      RandomAgent)}
 AGENTS: dict[str, type[BaseAgent]] = {name: _CLASSES[name] for name in AGENT_METHODS}
 """Agent name -> class (each class's ``spec`` is its name). ``rl:`` specs are not in it: they
 name a saved model (:class:`planners.agents.sb3.SB3Agent`, loaded with stable-baselines3)."""
@@ -90,6 +95,11 @@ AGENT_SUMMARIES = {
     ILQR: "iLQR against predictions of the opponents (the paper's: constant velocity and offset)",
     OPEN_LOOP_GAME: "open-loop Nash iLQGame, re-planned every step",
     FEEDBACK_GAME: "feedback Nash iLQGame, re-planned every step, its feedback law applied in between",
+    STACKELBERG_LEADER: ("feedback Stackelberg iLQGame with the nearest rival (the others predicted), this car "
+                         "leading (role=follower: following; role=auto: the car ahead leads), its feedback law "
+                         "applied in between"),
+    STACKELBERG_FOLLOWER: (f"{STACKELBERG_LEADER} with this car following by default (role=leader, role=auto as "
+                           f"there)"),
     RACELINE: ("scripted: the circuit's racing line at its lap-time limit's speeds (pace=0.95: slower), keeping a "
                "gap to a car ahead and passing where clear (yield=false: no avoidance)"),
     LANE_KEEPING: "scripted: holds a lateral offset at a cruise speed, slowing for curves within grip",
@@ -100,7 +110,8 @@ AGENT_SUMMARIES = {
 
 
 def make_agent(spec: str, **kwargs: Any) -> Agent:
-    """An agent from a spec: ``ilqr``, ``ilqgame-ol``, ``ilqgame-fb``, ``raceline``, ``lane-keeping``,
+    """An agent from a spec: ``ilqr``, ``ilqgame-ol``, ``ilqgame-fb``, ``ilqgame-leader``,
+    ``ilqgame-follower``, ``raceline``, ``lane-keeping``,
     ``constant-speed``, ``random`` or ``rl:path/to/model.zip`` (``rl:sac:path`` names the algorithm).
 
     A non-RL spec may carry options, ``name:option=value,...`` (see :func:`split_spec` and
@@ -240,7 +251,11 @@ _GAME_HELP = {
     "obstacles": ("in a local game, the nearest other cars after the rivals predicted as moving obstacles; the cars "
                   "further away are left out of its costs, so it costs the same in any field"),
     "certify": ("certify every adopted re-plan as a local Nash equilibrium or not (cheap form, ~17 ms for "
-                "2 cars at T=50): diagnostics' certified and verdict, the race record's certified_share"),
+                "2 cars at T=50; the leader-follower games: a local Stackelberg solution or not): diagnostics' "
+                "certified and verdict, the race record's certified_share"),
+    "role": (f"{STACKELBERG_LEADER}, {STACKELBERG_FOLLOWER}: this car's part in its game with the nearest rival: "
+             "leader, follower, or auto (the car ahead in race distance leads, judged at every re-plan; "
+             "equal distances: the lower car index)"),
 }
 
 _SOLVER_HELP = {
