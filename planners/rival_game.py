@@ -145,10 +145,15 @@ def ordered_game(params: RivalParams, players: int):
     collision scale, where the game has one, in that order along both axes."""
     game, field = params.game, params.order.shape
     order = params.order[: players + params.predicted.shape[-2]]
-    take = lambda fields: jax.tree_util.tree_map(lambda leaf: jnp.broadcast_to(leaf, field)[order], fields)
+    # a leaf is one value for every car (a scalar) or one per car along its first axis ((N,),
+    # or (N, K) for the knots of stacked limit tables)
+    take = lambda fields: jax.tree_util.tree_map(
+        lambda leaf: jnp.broadcast_to(leaf, field)[order] if jnp.ndim(leaf) == 0 else jnp.asarray(leaf)[order], fields)
+    # cars of one class share one VehicleParams (scalar fields; a table's knots (K,) are not per car)
+    vehicles = game.vehicles if jnp.ndim(game.vehicles.v_max) == 0 else take(game.vehicles)
     scale = game.collision_scale
     scale = None if scale is None else jnp.asarray(scale)[order][:, order]
-    return game.replace(vehicles=take(game.vehicles), weights=take(game.weights), racing=game.racing[order],
+    return game.replace(vehicles=vehicles, weights=take(game.weights), racing=game.racing[order],
                         collision_scale=scale)
 
 

@@ -300,3 +300,21 @@ def test_obstacles_below_one_or_not_an_integer_is_refused(bad):
     if bad is not None:
         with pytest.raises(ValueError, match="obstacles must be None"):
             rival_game.check_obstacles(bad)
+
+
+def test_a_local_game_of_cars_with_limit_tables_takes_each_players_own_car():
+    """Stacked limit tables (N, K) are gathered per car, not broadcast: the local game's cars
+    are the field's cars in the local game's order, knots and all."""
+    import jax
+
+    from racing_env.car_classes import get_car
+
+    cars = [get_car("av21"), get_car("paper"), get_car("tum"), get_car("av21")]
+    game = RaceGame.create(get_track("straight"), cars, racing_weights(), horizon=5)
+    local = rival_game.local_game(game, _field([30.0, 50.0, 10.0, 120.0]), 2, 1, obstacles=1)
+    ordered = rival_game.ordered_game(local.problem.params, 2)
+    order = np.asarray(local.order)[:3]
+    for mine, field in zip(jax.tree_util.tree_leaves(ordered.vehicles), jax.tree_util.tree_leaves(game.vehicles)):
+        np.testing.assert_array_equal(np.asarray(mine), np.asarray(field)[order])
+    step = local.problem.dynamics(local.problem.params, 0, local.x0, np.zeros((2, 2)))
+    assert np.all(np.isfinite(np.asarray(step)))
