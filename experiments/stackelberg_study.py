@@ -2,11 +2,13 @@
 
 The study: a round robin of duels between the strategies of their pairings, mapped onto the
 arena's agents (constant-velocity prediction = ``ilqr``, Nash = ``ilqgame-fb`` and
-``ilqgame-ol``, ``ilqgame-leader``, ``ilqgame-follower``), on four circuits, from both grid
-slots, under the contact rules (docs/rules.md). Each circuit is one ``racing tournament``
-folder, so the study resumes where it stopped and grows with ``--grids``.
+``ilqgame-ol``, ``ilqgame-leader``, ``ilqgame-follower``), on four circuits, from seeded
+close-quarters starts anywhere before the finish (the ``anywhere`` scenario: the two cars
+within 15 m of each other at 5-19 m/s each, as their random starts), each start raced with
+the two agents in both slots, under the contact rules (docs/rules.md). Each circuit is one
+``racing tournament`` folder, so the study resumes where it stopped and grows with ``--grids``.
 
-    python -m experiments.stackelberg_study run --out runs/stackelberg --grids 6
+    python -m experiments.stackelberg_study run --out runs/stackelberg --grids 8 --workers 2
     python -m experiments.stackelberg_study report --out runs/stackelberg
 
 ``report`` prints the tables of docs/experiments/stackelberg.md: each agent's means with 95%
@@ -31,6 +33,9 @@ AGENTS = ("ilqr", "ilqgame-ol", "ilqgame-fb", "ilqgame-leader", "ilqgame-followe
 CIRCUITS = (("trefoil", "trefoil", None), ("Monza", "Monza", 1300.0), ("Spa", "Spa", 1300.0),
             ("Norisring", "Norisring", 1300.0))
 """(folder, track, race distance [m]; None: one lap) of each circuit raced."""
+SCENARIO = "anywhere"
+"""The starts (:data:`racing_env.scenarios.SCENARIOS`): from a rolling grid two equal cars
+hardly ever pass, so the race is decided by the slot; close-quarters scenes are contested."""
 LEADER, FOLLOWER, NASH = "ilqgame-leader", "ilqgame-follower", "ilqgame-fb"
 
 
@@ -60,12 +65,12 @@ CLAIMS = (
 
 
 def run(out: Path, grids: int, workers: int = 1, circuits: Sequence[tuple] = CIRCUITS,
-        agents: Sequence[str] = AGENTS) -> None:
+        agents: Sequence[str] = AGENTS, scenario: str = SCENARIO) -> None:
     """Race (or resume) the round robin on every circuit into ``out/<folder>``."""
     from experiments.tournament import TournamentConfig, run_tournament
 
     for folder, track, distance in circuits:
-        config = TournamentConfig(agents=tuple(agents), grids=grids, track=track,
+        config = TournamentConfig(agents=tuple(agents), grids=grids, track=track, scenario=scenario,
                                   **({} if distance is None else {"race_distance": distance}))
         run_tournament(config, out / folder, gif=False, workers=workers, report=False)
 
@@ -112,7 +117,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m experiments.stackelberg_study", description=__doc__.split("\n")[0])
     parser.add_argument("what", choices=("run", "report"))
     parser.add_argument("--out", type=Path, default=Path("runs/stackelberg"))
-    parser.add_argument("--grids", type=int, default=6, help="seeded start grids per pairing and circuit (default 6)")
+    parser.add_argument("--grids", type=int, default=8, help="seeded starts per pairing and circuit (default 8)")
     parser.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     args = parser.parse_args(argv)
     if args.grids < 1 or args.workers < 1:
