@@ -281,27 +281,34 @@ def count_overtakes(s: np.ndarray, racing: np.ndarray | None = None) -> int:
     return int(overtakes_by_car(s, racing)[0].sum())
 
 
-def overtakes_by_car(s: np.ndarray, racing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Each car's passes along ``s (T, N)`` (race distance [m]): ``made (N,)``, the times it
-    went from behind another car to ahead of it, and ``lost (N,)``, the times another car did
-    so to it (sign changes of the pairwise gaps, a step level with a car not counted as a
-    change). With ``racing (T, N)`` bool (each car still in the race at each step) only the
-    steps from which both cars were still racing count: a car that finished or retired is
+def pass_events(s: np.ndarray, racing: np.ndarray | None = None) -> list[tuple[int, int, int]]:
+    """Every pass along ``s (T, N)`` (race distance [m]) as ``(step, passer, passed)``: the
+    step at which the gap between two cars changed sign (a step level with a car not counted
+    as a change). With ``racing (T, N)`` bool (each car still in the race at each step) only
+    the steps from which both cars were still racing count: a car that finished or retired is
     frozen, and the cars that reach its spot later do not pass it."""
     T, N = s.shape
     racing = np.ones((T, N), dtype=bool) if racing is None else np.asarray(racing, dtype=bool)
-    made = np.zeros(N, dtype=int)
-    lost = np.zeros(N, dtype=int)
+    events = []
     for i, j in itertools.combinations(range(N), 2):
         both = racing[:, i] & racing[:, j]
-        counted = np.concatenate([[True], both[:-1]])  # step t counts if both raced at t - 1
+        counted = np.flatnonzero(np.concatenate([[True], both[:-1]]))  # step t counts if both raced at t - 1
         sign = np.sign(s[counted, i] - s[counted, j])
-        sign = sign[sign != 0]
-        changes = sign[1:][sign[1:] != sign[:-1]]  # the sign after each change: +1 i passed j
-        made[i] += int(np.sum(changes > 0))
-        lost[j] += int(np.sum(changes > 0))
-        made[j] += int(np.sum(changes < 0))
-        lost[i] += int(np.sum(changes < 0))
+        steps, sign = counted[sign != 0], sign[sign != 0]
+        for k in np.flatnonzero(sign[1:] != sign[:-1]) + 1:  # the sign after each change: +1 i passed j
+            events.append((int(steps[k]), i, j) if sign[k] > 0 else (int(steps[k]), j, i))
+    return sorted(events)
+
+
+def overtakes_by_car(s: np.ndarray, racing: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each car's passes along ``s (T, N)`` (:func:`pass_events`): ``made (N,)``, the times it
+    went from behind another car to ahead of it, and ``lost (N,)``, the times another car did
+    so to it."""
+    made = np.zeros(s.shape[1], dtype=int)
+    lost = np.zeros(s.shape[1], dtype=int)
+    for _, passer, passed in pass_events(s, racing):
+        made[passer] += 1
+        lost[passed] += 1
     return made, lost
 
 

@@ -423,6 +423,16 @@ def test_overtakes_count_sign_changes():
     """Two cars swapping the lead twice make two overtakes."""
     s = np.array([[0.0, 1.0], [2.0, 1.5], [3.0, 3.5]])
     assert tour.count_overtakes(s) == 2
+    assert tour.pass_events(s) == [(1, 0, 1), (2, 1, 0)]
+
+
+def test_pass_events_skip_level_steps_and_cars_out_of_the_race():
+    """A step level with the other car is no change; a frozen car is not passed."""
+    s = np.array([[0.0, 1.0, 5.0], [1.0, 1.0, 5.0], [2.0, 1.5, 5.0], [6.0, 1.6, 5.0]])
+    racing = np.ones((4, 3), dtype=bool)
+    racing[2:, 2] = False  # car 2 stopped racing at step 2
+    assert tour.pass_events(s, racing) == [(2, 0, 1)]
+    assert tour.pass_events(s) == [(2, 0, 1), (3, 0, 2)]
 
 
 # slow: a cut last line is dropped (test_jsonl), an interrupted tournament resumes without
