@@ -122,9 +122,9 @@ def make_agent(spec: str, **kwargs: Any) -> Agent:
     valid = list(AGENTS) + [f"{RL}:<path/to/model.zip>", f"{RL}:<algo>:<path>"]
     if not isinstance(spec, str):
         raise ValueError(f"agent spec must be a string, one of {valid}; got {spec!r}")
-    key, _ = split_car(spec)  # the car's class is the race's (the lineup's builder reads it)
-    if not key:
+    if not spec.strip():
         raise ValueError(f"agent spec is empty; valid specs: {', '.join(valid)}")
+    key, _ = split_car(spec)  # the car's class is the race's (the lineup's builder reads it)
     if key.lower().startswith(f"{RL}:"):
         from planners.agents.sb3 import SB3_ALGOS, SB3Agent  # the RL layer, only for RL specs
 
