@@ -59,3 +59,27 @@ def test_only_duels_are_compared():
     race["cars"].append(_car("c", 3, 3))
     with pytest.raises(ValueError, match="duels"):
         car_races([race], "trefoil")
+
+
+def test_the_stackelberg_study_reports_every_claim_from_its_folders(tmp_path):
+    """The study's report reads each circuit's results.jsonl and writes every claim's row."""
+    import json
+
+    from experiments import stackelberg_study as study
+
+    folder = tmp_path / "trefoil"
+    folder.mkdir()
+    records = []
+    for grid in range(2):
+        for other in ("ilqr", "ilqgame-ol"):
+            for agent in ("ilqgame-leader", "ilqgame-fb", "ilqgame-follower"):
+                records.append(_duel(grid, _car(agent, 1, 1, blocks=1 if agent == "ilqgame-leader" else 0),
+                                     _car(other, 2, 2)))
+    folder.joinpath("results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    rows = study.load(tmp_path, circuits=(("trefoil", "trefoil", None),))
+    assert len(rows) == 2 * len(records)
+    page = study.report(rows)
+    for claim in study.CLAIMS:
+        assert claim.text in page
+    line = next(row for row in page.splitlines() if row.startswith("| leading blocks more than Nash play"))
+    assert "| +1.000 | [+1.000, +1.000] | 4 | reproduced |" in line
