@@ -113,15 +113,7 @@ def test_the_egos_gains_come_from_its_own_row_of_the_pair_game():
 # --------------------------------------------------------------------------------------
 
 
-def _action(agent, observation, x) -> np.ndarray:
-    """The single agent's action in float64 (before its cast to float32): the jerk of its plan,
-    or its braking action."""
-    rounded = agent.act(observation, x)
-    if agent.diagnostics()["fallback_kind"] == "brake":
-        return rounded.astype(np.float64)
-    action = np.clip(agent._follow(x, agent._age) / agent.jerk_max, -1.0, 1.0)
-    np.testing.assert_array_equal(action.astype(np.float32), rounded)
-    return action
+from test_batched_opponents import _single_action as _action  # noqa: E402 - the single agent's float64 action
 
 
 def _race(spec: str, seed: int, steps: int, rivals: tuple[str, ...] = (RIVAL,)) -> dict:
