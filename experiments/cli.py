@@ -101,6 +101,7 @@ def _cmd_tournament(args: argparse.Namespace) -> int:
         enforce_budget=args.enforce_budget,
         on_collision=args.collision, on_off_track=args.off_track, scenario=args.scenario, **_contact_fields(args),
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}), car=args.car,
+        **_track_scale(args),
     )
     _check_ray(args.backend)
     run_tournament(config, Path(args.out), gif=not args.no_gif, fresh=args.fresh, backend=args.backend,
@@ -236,6 +237,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         imitate_spread=args.imitate_spread,
         hyperparameters=tuple(parse_hyperparameter(text) for text in args.hyperparameter or ()),
         **({} if args.jerk_weight is None else {"jerk_weight": args.jerk_weight}), car=args.car,
+        **_track_scale(args),
     )
     report = run_training(config, Path(args.out), fresh=args.fresh)
     return 130 if report["status"] == "interrupted" else 0
@@ -254,6 +256,7 @@ def _cmd_exploit(args: argparse.Namespace) -> int:
         learner=args.learner, envs=args.envs, grids=args.grids, eval_every=args.eval_every,
         hyperparameters=tuple(parse_hyperparameter(text) for text in args.hyperparameter or ()),
         track=args.track, laps=args.laps, race_distance=args.race_distance, max_steps=args.max_steps, car=args.car,
+        **_track_scale(args),
     )
     report = run_exploit(config, Path(args.out), backend=args.backend, workers=args.workers, address=args.address,
                          fresh=args.fresh)
@@ -267,6 +270,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     config = load_sweep(path)
     if args.car is not None:
         config = dataclasses.replace(config, car=args.car)
+    if args.track_scale is not None:
+        config = dataclasses.replace(config, track_scale=args.track_scale)
     _check_ray(args.backend)
     out = Path(args.out) if args.out else Path("runs/sweep") / path.stem
     report = run_sweep(config, out, backend=args.backend, workers=args.workers, address=args.address,
@@ -285,6 +290,11 @@ def _cmd_cars(args: argparse.Namespace) -> int:
     return 0
 
 
+def _track_scale(args: argparse.Namespace) -> dict[str, float]:
+    """``track_scale`` of ``--track-scale``, where given."""
+    return {} if args.track_scale is None else {"track_scale": args.track_scale}
+
+
 def _car_option(default: str | None = "paper") -> argparse.ArgumentParser:
     """``--car NAME``: every car's class (racing_env.car_classes)."""
     from racing_env.car_classes import car_names
@@ -294,6 +304,10 @@ def _car_option(default: str | None = "paper") -> argparse.ArgumentParser:
                         help=f"every car's class, one of {', '.join(car_names())}, but an agent's whose spec says "
                         "car=NAME (racing cars lists them; default: "
                         + ("the sweep file's, else paper)" if default is None else f"{default}, the paper's car)"))
+    parent.add_argument("--track-scale", type=float, default=None, metavar="K",
+                        help="race on a model of the track at scale K, e.g. 0.1 for the 1:10 f1tenth class (its racing "
+                        "line, grid and the steward's distances scaled alike; default: "
+                        + ("the sweep file's, else 1: full size)" if default is None else "1: full size)"))
     return parent
 
 

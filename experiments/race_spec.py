@@ -21,6 +21,7 @@ from racing_env.contact import CONTACT_MODES
 from racing_env.observation import check_observation_units
 from racing_env.steward import DEFAULT_RULES, check_stewarding
 from racing_env.costs import RACING_JERK_WEIGHT, CostWeights, racing_weights
+from racing_env.track import check_scale, get_track
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -54,6 +55,9 @@ class RaceSpec:
         car: every car's class (:data:`racing_env.car_classes.CAR_CLASSES`: ``paper``, the
             default, ``tum``, ``av21``, ``f1tenth``), but for the cars whose agent spec names
             its own (``car=NAME``, :func:`planners.agents.split_car`; :meth:`car_classes`).
+        track_scale: the track as a model at this scale (``racing_env.track.get_track``'s
+            ``scale``: 0.1 is a 1:10 model for the ``f1tenth`` class, its racing line, grid and
+            the steward's distances scaled alike); 1, the default, full size.
     """
 
     track: str = "trefoil"
@@ -69,6 +73,7 @@ class RaceSpec:
     rules: tuple[str, ...] = DEFAULT_RULES
     observation_units: str = "scaled"
     car: str = "paper"
+    track_scale: float = 1.0
 
     def __post_init__(self) -> None:
         check_race_spec(self)
@@ -105,7 +110,8 @@ class RaceSpec:
         ``reward``, ``render_mode``, ...), which override the spec's (e.g. per-car
         ``weights``). The paper's class for every car leaves the cars to the scenario (whose
         cars are the paper's)."""
-        race: dict[str, Any] = dict(track=self.track, laps=self.laps, race_distance=self.race_distance,
+        track = self.track if self.track_scale == 1.0 else get_track(self.track, self.track_scale)
+        race: dict[str, Any] = dict(track=track, laps=self.laps, race_distance=self.race_distance,
                                     max_steps=self.max_steps, on_collision=self.on_collision,
                                     on_off_track=self.on_off_track, weights=self.weights(), contact=self.contact,
                                     penalties=self.penalties, penalty_seconds=self.penalty_seconds,
@@ -146,6 +152,7 @@ def check_race_spec(spec: RaceSpec) -> None:
     check_stewarding(spec.penalties, spec.penalty_seconds, 3, spec.rules)
     check_observation_units(spec.observation_units)
     check_car(spec.car)
+    check_scale(spec.track_scale)
 
 
 def check_car(name: str) -> None:

@@ -78,7 +78,7 @@ else:  # pragma: no cover - Python 3.10
 RESULTS = "results.jsonl"
 CONFIG = "sweep.json"
 RACE_PARAMETERS = RACE_FIELDS  # the race's fields a point may set (RaceSpec's)
-ADDED_LATER = ("on_collision", "on_off_track", "rules", "observation_units", "car")  # left out of sweep.json at their defaults
+ADDED_LATER = ("on_collision", "on_off_track", "rules", "observation_units", "car", "track_scale")  # left out of sweep.json at their defaults
 NUMBER_PARAMETERS = ("laps", "race_distance", "max_steps", "jerk_weight")
 WEIGHT_FIELDS = tuple(f.name for f in dataclasses.fields(CostWeights))
 VEHICLE_FIELDS = SCALAR_FIELDS  # the car's numbers (its limit table is the class's: ``car``, ``agent<i>.car``)

@@ -49,7 +49,8 @@ from racing_env.scenarios import FIXED_STARTS, SCENARIOS
 RESULTS = "results.jsonl"
 CONFIG = "tournament.json"
 GIF = "race.gif"
-ADDED_LATER = ("on_collision", "on_off_track", "rules", "scenario", "lineup", "observation_units", "car")  # left out of tournament.json at their defaults
+ADDED_LATER = ("on_collision", "on_off_track", "rules", "scenario", "lineup", "observation_units", "car",
+               "track_scale")  # left out of tournament.json at their defaults
 # (enforce_budget too, without a budget: StepBudget.added_later)
 
 

@@ -392,6 +392,10 @@ class RacelineDriver:
         track, index, vehicle = self.track, self.index, self.vehicle
         arrays = _LineTables(n=self._n_ref, chi=self._chi_ref, kappa=self._kappa, v=self._v_ref, ax=self._ax_ref)
         jx_max, jy_max = (float(j) for j in self._jerk_max)
+        # on a model at scale k the law's times scale as sqrt(k) (Froude: equal accelerations,
+        # lengths k times, speeds sqrt(k) times): its gains [1/s] divided by it, its stiffness
+        # [1/s^2] by k, its previews [s] times it; exactly 1 at full size
+        time_scale = float(np.sqrt(track.scale))
 
         def policy(x, racing=None):
             # JAX's widest float when traced: float64 with jax_enable_x64 on, float32 with it off
@@ -401,8 +405,8 @@ class RacelineDriver:
             x = jnp.asarray(x, dtype=dtype)
             s, v, n, chi, ax, ay = (x[index, k] for k in range(6))
             v_pos = jnp.maximum(v, 0.0)
-            ahead = s + v_pos * RACELINE_PREVIEW
-            ahead_v = s + v_pos * RACELINE_SPEED_PREVIEW
+            ahead = s + v_pos * RACELINE_PREVIEW * time_scale
+            ahead_v = s + v_pos * RACELINE_SPEED_PREVIEW * time_scale
             n_ref = track._interp(tables.n, s)
             chi_ref = track._interp(tables.chi, s)
             n_target, kappa_ahead = n_ref, track._interp(tables.kappa, ahead)
@@ -417,10 +421,11 @@ class RacelineDriver:
             cap = RACELINE_ERROR_CAP * track.scale
             lateral_error = jnp.clip(n - n_target, -cap, cap)
             error_rate = v * (jnp.sin(chi) - jnp.sin(chi_ref))
-            ay_des = (kappa_ahead * v**2 - RACELINE_LATERAL_STIFFNESS * lateral_error
-                      - RACELINE_LATERAL_DAMPING * error_rate)
+            ay_des = (kappa_ahead * v**2 - RACELINE_LATERAL_STIFFNESS / time_scale**2 * lateral_error
+                      - RACELINE_LATERAL_DAMPING / time_scale * error_rate)
             rho = vehicle.rho(v_pos)
-            ax_des = track._interp(tables.ax, ahead_v) + RACELINE_SPEED_GAIN * (track._interp(tables.v, ahead_v) - v)
+            ax_des = (track._interp(tables.ax, ahead_v)
+                      + RACELINE_SPEED_GAIN / time_scale * (track._interp(tables.v, ahead_v) - v))
             if self.yielding:
                 ax_des = jnp.minimum(ax_des, ax_cap)
             # faster than the profile where it is: the braking it asks for keeps a share of the
@@ -435,8 +440,8 @@ class RacelineDriver:
             room = jnp.sqrt(jnp.maximum((rho - jnp.abs(ay_des)) * (rho + jnp.abs(ay_des)), 0.0))
             # the tyres' share: the net acceleration plus the still-air drag it overcomes
             ax_des = jnp.clip(ax_des + vehicle.c_drag * v_pos * v_pos, -room, jnp.minimum(room, vehicle.drive_max(v_pos)))
-            jx = RACELINE_ACCEL_GAIN * (ax_des - ax) / jx_max
-            jy = RACELINE_ACCEL_GAIN * (ay_des - ay) / jy_max
+            jx = RACELINE_ACCEL_GAIN / time_scale * (ax_des - ax) / jx_max
+            jy = RACELINE_ACCEL_GAIN / time_scale * (ay_des - ay) / jy_max
             action = jnp.clip(jnp.stack([jx, jy]), -1.0, 1.0)
             return jnp.where(jnp.all(jnp.isfinite(action)), action, brake)
 

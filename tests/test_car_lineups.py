@@ -160,3 +160,29 @@ def test_a_field_of_the_1_10_class_races_clean_on_a_1_10_model(monza_model):
 def test_car_names_are_what_the_specs_take():
     for name in car_names():
         assert split_car(f"raceline:car={name}")[1] == name
+
+
+@pytest.mark.slow
+def test_the_racing_line_driver_takes_monzas_first_chicane_on_a_1_10_model(monza_model):
+    """Alone through the first 130 m of 1:10 Monza (its first chicane) the racing-line driver's
+    law, its times scaled to the model, keeps the car on the track (unscaled it left the track
+    for 1.4 s there)."""
+    from experiments.tournament import race_lineup
+    from racing_env.config import RaceConfig
+
+    race = RaceConfig(num_agents=1, track=monza_model, vehicles=get_car("f1tenth"), race_distance=130.0,
+                      max_steps=400)
+    record, _ = race_lineup(race, ["raceline"], seed=0, replay=False, cars=["f1tenth"])
+    car = record["cars"][0]
+    assert car["finish_time"] is not None and car["time_off_track"] == 0.0
+
+
+def test_a_race_spec_at_a_track_scale_races_the_model_and_refuses_a_bad_scale():
+    from racing_env.track import get_track
+
+    config = RaceSpec(track="Monza", track_scale=0.1, car="f1tenth").to_race_config(2)
+    assert config.track.scale == 0.1 and config.track.length == pytest.approx(0.1 * get_track("Monza").length)
+    assert RaceSpec(track="Monza").to_race_config(2).track == "Monza"  # full size: the name, as before
+    for bad in (0.0, -1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="scale must be a finite number > 0"):
+            RaceSpec(track="Monza", track_scale=bad)
