@@ -168,6 +168,7 @@ def _race_against_lane_keeper(spec: str, weights, steps: int = 40):
     return run_race(env, agents, seed=3).xs
 
 
+@pytest.mark.slow  # two planner races (the default run's budget)
 def test_a_private_weight_drives_like_the_same_weight_set_in_the_race():
     """Against a scripted rival (which ignores weights), ``ilqgame-fb:c_gap=2`` in a race
     with default weights and ``ilqgame-fb`` in a race whose weights give its car c_gap = 2

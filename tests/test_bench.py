@@ -217,6 +217,7 @@ def test_convergence_rows_summarise_the_single_solves_of_the_same_scenes():
         next(bench.convergence_rows(count, max_iterations=0))
 
 
+@pytest.mark.slow  # the default run's budget: the convergence rows' test covers the same solves by default
 def test_open_loop_from_feedback_rows_start_from_each_scenes_feedback_solution():
     """``open_loop_from_feedback``: per scene, the open-loop solve initialised with that
     scene's feedback solution, whether or not a feedback row comes first."""

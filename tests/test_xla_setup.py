@@ -271,6 +271,7 @@ def _env_child(mode: str, **env) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # three child processes, each compiling a race (the default run's budget)
 def test_inline_dispatch_is_set_by_the_call_and_changes_no_result():
     inline = _env_child("configure_first")
     queued = _env_child("configure_first", RACING_INLINE_DISPATCH="off")
