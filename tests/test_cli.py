@@ -134,6 +134,7 @@ def test_paper_reproduction_writes_figures_and_json(tmp_path):
             assert sum(e["count"] for e in record["equilibria"]) <= record["starts"] == paper.LANDSCAPE_STARTS
 
 
+@pytest.mark.slow  # the default run's budget: find_equilibria is tested by default (tests/test_certify.py)
 def test_equilibria_writes_the_certified_landscape(tmp_path, capsys):
     """`racing equilibria` on the paper scene with three starts (zero inputs and two pulses)."""
     out = tmp_path / "eq"

@@ -20,6 +20,7 @@ ARGS = ["convergence", "--scenes", "6", "--seed", "3", "--modes", "open_loop", "
         "--initial-step", "0.5", "--solver-option", "max_backtracks=3", "--no-compile-cache"]
 
 
+@pytest.mark.slow  # the default run's budget: the bench's convergence rows run the same solves by default
 def test_convergence_cli_writes_json_and_profile_plot(tmp_path, capsys):
     assert main(ARGS + ["--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "convergence.json").read_text())

@@ -930,6 +930,7 @@ def test_dynamics_curvature_adds_only_the_heading_diagonal_and_keeps_the_gradien
     np.testing.assert_allclose(added, expected, rtol=0, atol=1e-12 * float(np.abs(plain[0]).max()))
 
 
+@pytest.mark.slow  # the default run's budget: the curvature's form and fixed point are tested by default above and below
 def test_dynamics_curvature_converges_the_straight_at_the_racing_jerk_weight():
     """One car on a straight at r = 0.01 with a small lateral acceleration: without the
     progress curvature only the jerk weight curves the lateral states of the local LQ

@@ -202,6 +202,7 @@ def test_saved_demonstrations_belong_to_the_settings_that_drive_them():
         assert demonstrations_source(dataclasses.replace(base, **change)) != demonstrations_source(base), change
 
 
+@pytest.mark.slow  # the default run's budget
 def test_ctrl_c_while_the_expert_drives_keeps_its_episodes(tmp_path):
     """Ctrl-C on a real `racing train --imitate` while the expert drives: exit 130 with the
     finished episodes saved; the same command then drives only the missing ones, and keeps

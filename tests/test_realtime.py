@@ -65,7 +65,8 @@ def _first_stage_merit(game, xs, us, options):
     return float(np.max(np.abs(np.asarray(k)[0]))), np.asarray(K), np.asarray(k)
 
 
-@pytest.mark.parametrize("mode, cap", [("feedback", 2), ("open_loop", 1)])
+# feedback with the slow tests (the default run's budget)
+@pytest.mark.parametrize("mode, cap", [pytest.param("feedback", 2, marks=pytest.mark.slow), ("open_loop", 1)])
 def test_an_anytime_solve_is_never_worse_than_its_warm_start_by_its_merit(game, shifted_problem, mode, cap):
     x1, us = shifted_problem
     options = ilq.SolverOptions(mode=mode, max_iterations=cap, best_iterate=True, tolerance=1e-9)

@@ -139,6 +139,7 @@ def test_negative_seed_fails_before_the_output_folder_is_written(tmp_path, capsy
     assert not out.exists()
 
 
+@pytest.mark.slow  # the default run's budget
 def test_fresh_replaces_the_gif_and_a_resumed_run_keeps_it(tmp_path):
     """The GIF shows the first race of the results it sits with: --fresh draws it again (or,
     with --no-gif, deletes the old one), a resumed run keeps it."""
