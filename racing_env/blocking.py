@@ -23,11 +23,8 @@ from typing import NamedTuple
 import numpy as np
 
 from racing_env.dynamics import CHI, N_LAT, S, V
+from racing_env.steward import ACROSS_SPEED, DEFEND_GAP  # the steward's full-size defaults
 
-DEFEND_GAP = 20.0
-"""[m] the steward's default defending distance (:func:`racing_env.steward.make_steward`)."""
-ACROSS_SPEED = 0.5
-"""[m/s] the steward's default lateral speed that counts as moving across."""
 HOLD = 3.0
 """[s] how long after a defending move the car behind must still be behind for a block."""
 
