@@ -44,6 +44,17 @@ def is_number(value: object) -> bool:
     return isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
 
 
+DEFAULT_DT = 0.1
+"""The race's time step [s] on a full-size track (:attr:`RaceConfig.dt`)."""
+
+
+def model_step(track: Track | str, dt: float = DEFAULT_DT) -> float:
+    """The time step [s] of a race on ``track``: ``dt`` at full size (and for a track named by
+    a string), ``dt * sqrt(k)`` on a model at scale k (Froude scaling, :class:`RaceConfig`)."""
+    scale = track.scale if isinstance(track, Track) else 1.0
+    return float(dt) if scale == 1.0 else float(dt) * float(np.sqrt(scale))
+
+
 @dataclasses.dataclass(frozen=True)
 class RewardConfig:
     """Per-step reward of each car: a weighted sum of these terms.
@@ -112,7 +123,12 @@ class RaceConfig:
             open tracks: 20 m before the end of the track. The env refuses a finish line
             that is not ahead of every car's start or lies beyond an open track's end.
         max_steps: steps after which the race is truncated.
-        dt: time step [s].
+        dt: time step [s]; None (the default): :data:`DEFAULT_DT` on a full-size track and
+            ``DEFAULT_DT * sqrt(k)`` on a model at scale k (a :class:`Track` with ``scale`` k,
+            ``racing_env.track.circuit(name, k)``). A model races in Froude-scaled time: at equal
+            accelerations its lengths are k times and its speeds sqrt(k) times the full size's,
+            so its motion is 1/sqrt(k) times quicker and the step that resolves it sqrt(k) times
+            shorter (0.032 s at 1:10). A track named by a string is full size.
         horizon: planning horizon in steps for the game built from this config.
         on_collision / on_off_track: what an incident does to the cars' rewards and
             races: ``penalty`` (reward terms only, the default), ``terminate`` (the car is
@@ -162,7 +178,7 @@ class RaceConfig:
     laps: int = 1
     race_distance: float | None = None
     max_steps: int = 3000
-    dt: float = 0.1
+    dt: float | None = None
     horizon: int = 50
     on_collision: str = "penalty"
     on_off_track: str = "penalty"
@@ -190,8 +206,11 @@ class RaceConfig:
         if self.scenario not in SCENARIOS:
             raise ValueError(f"unknown scenario {self.scenario!r}; choose one of {sorted(SCENARIOS)}")
         check_race_length(self.laps, self.race_distance, self.max_steps)
-        if not (np.isfinite(self.dt) and self.dt > 0):
-            raise ValueError(f"dt must be a positive number of seconds, got {self.dt!r}")
+        if self.dt is None:
+            object.__setattr__(self, "dt", model_step(self.track))
+        if not (is_number(self.dt) and np.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"dt must be None (DEFAULT_DT, Froude-scaled on a model) or a positive number of "
+                             f"seconds, got {self.dt!r}")
         check_incident_rules(on_collision=self.on_collision, on_off_track=self.on_off_track)
         check_contact(self.contact, self.restitution, self.contact_friction)
         check_stewarding(self.penalties, self.penalty_seconds, self.disqualify_after, self.rules)

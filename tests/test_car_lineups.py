@@ -163,18 +163,34 @@ def test_car_names_are_what_the_specs_take():
 
 
 @pytest.mark.slow
-def test_the_racing_line_driver_takes_monzas_first_chicane_on_a_1_10_model(monza_model):
-    """Alone through the first 130 m of 1:10 Monza (its first chicane) the racing-line driver's
-    law, its times scaled to the model, keeps the car on the track (unscaled it left the track
-    for 1.4 s there)."""
+@pytest.mark.parametrize("name", ["Monza", "Suzuka"])
+def test_the_racing_line_driver_laps_a_1_10_model_on_the_track(name):
+    """Alone, a lap of a 1:10 model from the grid: the racing-line driver's law with its times
+    scaled to the model, in a race whose step is scaled alike (0.032 s), keeps the car on the
+    track (at the full size's 0.1 s step it left Suzuka's for 2.9 s a lap; with the law's times
+    unscaled too, Monza's first chicane for 1.4 s)."""
     from experiments.tournament import race_lineup
-    from racing_env.config import RaceConfig
 
-    race = RaceConfig(num_agents=1, track=monza_model, vehicles=get_car("f1tenth"), race_distance=130.0,
-                      max_steps=400)
+    race = RaceSpec(track=name, track_scale=0.1, car="f1tenth", max_steps=3000).to_race_config(1)
     record, _ = race_lineup(race, ["raceline"], seed=0, replay=False, cars=["f1tenth"])
     car = record["cars"][0]
     assert car["finish_time"] is not None and car["time_off_track"] == 0.0
+
+
+def test_a_race_on_a_model_steps_in_froude_scaled_time(monza_model):
+    """A race's step is 0.1 s at full size and 0.1 s x sqrt(k) on a model at scale k, unless
+    given; a step that is no positive number is refused."""
+    from racing_env.config import DEFAULT_DT, RaceConfig, model_step
+
+    assert RaceConfig(track="Monza").dt == DEFAULT_DT == 0.1
+    assert RaceConfig(track=circuit("Monza")).dt == DEFAULT_DT
+    assert RaceConfig(track=monza_model).dt == pytest.approx(0.1 * np.sqrt(0.1), rel=1e-15)
+    assert model_step(circuit("Spa", 0.25)) == pytest.approx(0.05, rel=1e-15)
+    assert RaceConfig(track=monza_model, dt=0.05).dt == 0.05  # given: kept
+    assert RaceSpec(track="Monza", track_scale=0.1).to_race_config(2).dt == pytest.approx(0.1 * np.sqrt(0.1))
+    for bad in (0.0, -0.1, float("nan"), "0.1", True):
+        with pytest.raises(ValueError, match="dt must be None"):
+            RaceConfig(dt=bad)
 
 
 def test_a_race_spec_at_a_track_scale_races_the_model_and_refuses_a_bad_scale():
