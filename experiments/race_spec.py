@@ -85,9 +85,9 @@ class RaceSpec:
 
     def weights(self) -> CostWeights:
         """Every car's cost weights in the race's game: the defaults with jerk weight
-        ``jerk_weight``, scaled for the jerk limits of the race's ``car``
-        (:func:`racing_env.costs.racing_weights`)."""
-        return racing_weights(self.jerk_weight, get_car(self.car))
+        ``jerk_weight``, scaled for the jerk limits of the race's ``car`` and the track's
+        ``track_scale`` (:func:`racing_env.costs.racing_weights`)."""
+        return racing_weights(self.jerk_weight, get_car(self.car), self.track_scale)
 
     def car_classes(self, lineup: Sequence[str | None]) -> list[str]:
         """The class of each car of ``lineup`` (agent specs by starting slot, None for a car
@@ -124,12 +124,12 @@ class RaceSpec:
         if cars is not None and len(set(cars)) > 1:
             vehicles = [get_car(name) for name in cars]
             race["vehicles"] = vehicles
-            race["weights"] = [racing_weights(self.jerk_weight, vehicle) for vehicle in vehicles]
+            race["weights"] = [racing_weights(self.jerk_weight, vehicle, self.track_scale) for vehicle in vehicles]
         else:
             car = self.car if cars is None else cars[0]
             if car != "paper":
                 race["vehicles"] = get_car(car)
-                race["weights"] = racing_weights(self.jerk_weight, race["vehicles"])
+                race["weights"] = racing_weights(self.jerk_weight, race["vehicles"], self.track_scale)
         race.update(fields)
         return RaceConfig(num_agents=num_agents, scenario=scenario, **race)
 

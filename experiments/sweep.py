@@ -228,7 +228,7 @@ class SweepConfig(StepBudget, RaceSpec):
             vehicle = get_car(classes[agent]).replace(
                 **{**fields("vehicles.", VEHICLE_FIELDS), **fields(f"agent{agent}.", VEHICLE_FIELDS)})
             vehicles.append(vehicle)
-            weights.append(racing_weights(race.jerk_weight, vehicle).replace(
+            weights.append(racing_weights(race.jerk_weight, vehicle, race.track_scale).replace(
                 **{**fields("weights.", WEIGHT_FIELDS), **fields(f"agent{agent}.", WEIGHT_FIELDS)}))
         any_car = set(classes) != {"paper"} or any(k.split(".", 1)[-1] in VEHICLE_FIELDS for k in point if "." in k)
         return race.to_race_config(cars, "grid", weights=weights,

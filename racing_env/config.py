@@ -113,7 +113,8 @@ class RaceConfig:
             racing in it use: one ``CostWeights`` for all cars, one per car, or None: every car
             ``CostWeights(r_jx=RACING_JERK_WEIGHT, r_jy=RACING_JERK_WEIGHT)``, the other weights
             at their defaults, the jerk weights scaled for a car whose jerk limits are not the
-            paper car's 30 m/s^3 (:func:`racing_env.costs.racing_weights`). Racing wants the jerk weight small
+            paper car's 30 m/s^3 and on a model of a circuit by its scale
+            (:func:`racing_env.costs.racing_weights`). Racing wants the jerk weight small
             (:data:`racing_env.costs.RACING_JERK_WEIGHT`, 0.01): at ``CostWeights``' own default
             r = 1, the one for single solves, a 5 s horizon buys so little progress per unit of
             jerk that the planners barely accelerate. Tournaments, sweeps and training race with
@@ -248,8 +249,9 @@ class RaceConfig:
         for its jerk limits (:func:`racing_env.costs.racing_weights`)."""
         if self.weights is not None:
             return self.weights
+        scale = self.track.scale if isinstance(self.track, Track) else 1.0
         if self.vehicles is None:
-            return racing_weights()
+            return racing_weights(scale=scale)
         if isinstance(self.vehicles, VehicleParams):
-            return racing_weights(vehicle=self.vehicles)
-        return [racing_weights(vehicle=vehicle) for vehicle in self.vehicles]
+            return racing_weights(vehicle=self.vehicles, scale=scale)
+        return [racing_weights(vehicle=vehicle, scale=scale) for vehicle in self.vehicles]

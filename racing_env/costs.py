@@ -128,17 +128,27 @@ feedback iLQGame planner beats the lane keeper; a larger or a smaller weight doe
 PAPER_JERK_LIMIT = 30.0
 
 
-def racing_weights(jerk_weight: float = RACING_JERK_WEIGHT, vehicle: VehicleParams | None = None) -> CostWeights:
+def racing_weights(jerk_weight: float = RACING_JERK_WEIGHT, vehicle: VehicleParams | None = None,
+                   scale: float = 1.0) -> CostWeights:
     """The cost weights of a car in a race: the defaults with jerk weight ``jerk_weight``
     [s^6/m^2] (``R = r I``) for the paper car's jerk limits, scaled for ``vehicle``'s (one car;
     None: the paper car's) by ``(PAPER_JERK_LIMIT / jx_max)^2`` and ``(PAPER_JERK_LIMIT /
     jy_max)^2``, so that the same share of a car's jerk limits costs the same: a car of a
     class with larger limits (the AV-21's 81 m/s^3) is not held back by the weight tuned for
-    30 m/s^3 (docs/model.md, "The jerk weight of a race")."""
+    30 m/s^3 (docs/model.md, "The jerk weight of a race").
+
+    ``scale``: the track's, on a model of a circuit at scale k (``track.scale``). The jerk
+    weight is then k times as large, so that the terminal reward counts progress in the full
+    size's metres (one model metre is k of them: ``-s_K`` in model metres is k times the
+    reward of the full size's ``-s_K / k``), and the planners weigh jerk against progress as on
+    the full-size circuit. Exactly the weights above at 1."""
+    k = float(scale)
+    if not (np.isfinite(k) and k > 0):
+        raise ValueError(f"scale must be a finite number > 0 (the track's model scale), got {scale!r}")
     if vehicle is None:
-        return CostWeights(r_jx=jerk_weight, r_jy=jerk_weight)
-    return CostWeights(r_jx=jerk_weight * (PAPER_JERK_LIMIT / float(vehicle.jx_max)) ** 2,
-                       r_jy=jerk_weight * (PAPER_JERK_LIMIT / float(vehicle.jy_max)) ** 2)
+        return CostWeights(r_jx=jerk_weight * k, r_jy=jerk_weight * k)
+    return CostWeights(r_jx=jerk_weight * k * (PAPER_JERK_LIMIT / float(vehicle.jx_max)) ** 2,
+                       r_jy=jerk_weight * k * (PAPER_JERK_LIMIT / float(vehicle.jy_max)) ** 2)
 
 
 def stack_weights(weights: Sequence[CostWeights]) -> CostWeights:

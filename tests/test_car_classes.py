@@ -215,6 +215,27 @@ def test_the_race_jerk_weight_is_scaled_for_a_class_jerk_limits(cars):
     assert [w.r_jy for w in field] == [RACING_JERK_WEIGHT, av21.r_jy]
 
 
+def test_on_a_model_the_jerk_weight_counts_progress_in_full_size_metres(cars):
+    """On a model at scale k the jerk weight is k times the full size's (the terminal reward
+    ``-s_K`` is in model metres, k of the full size's each), in the env's default weights and a
+    race spec's alike; a scale that is no finite positive number is refused."""
+    from experiments.race_spec import RaceSpec
+    from racing_env.config import RaceConfig
+    from racing_env.costs import racing_weights
+    from racing_env.track import circuit
+
+    full = racing_weights(vehicle=cars["f1tenth"])
+    model = racing_weights(vehicle=cars["f1tenth"], scale=0.1)
+    assert (model.r_jx, model.r_jy) == (full.r_jx * 0.1, full.r_jy * 0.1)
+    assert racing_weights(scale=1.0) == racing_weights()
+    config = RaceConfig(track=circuit("Monza", 0.1), vehicles=cars["f1tenth"])
+    assert config.game_weights() == model
+    assert RaceSpec(track="Monza", track_scale=0.1, car="f1tenth").weights() == model
+    for bad in (0.0, -0.1, float("inf")):
+        with pytest.raises(ValueError, match="scale must be a finite number > 0"):
+            racing_weights(scale=bad)
+
+
 def test_a_class_car_is_equal_to_itself_and_keys_a_cache(cars):
     """Two builds of a class are equal and hash alike (the JAX learner caches its compiled race
     by the race's config, whose cars are these), and another class differs."""
