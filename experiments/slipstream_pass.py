@@ -182,8 +182,7 @@ def plot(records: Sequence[dict[str, Any]], path: Path, follower: str = "ilqgame
     axes[2].set_ylabel("share of drag taken\nby the wake")
     for ax in axes:
         ax.axvline(STRAIGHT_END, color="black", linestyle="--", linewidth=0.8)
-    axes[2].set_xlabel(f"follower's arc length on Monza [m] (0: the line; dashed: the straight's end, "
-                       f"the chicane's braking zone from 778 m)")
+    axes[2].set_xlabel("follower's arc length on Monza [m] (dashed: the straight's end)")
     fig.suptitle(f"{follower} {gap:.0f} m behind the racing-line driver, two AV-21s on Monza's main straight")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
