@@ -686,6 +686,14 @@ def bench_rl() -> Iterator[dict[str, Any]]:
     return rl.bench_rl()
 
 
+def bench_real_time() -> Iterator[dict[str, Any]]:
+    """The real-time planner in both precisions against the throughput targets
+    (:func:`experiments.bench_rl.real_time_rows`)."""
+    from experiments import bench_rl as rl
+
+    return rl.real_time_rows()
+
+
 def bench_field() -> Iterator[dict[str, Any]]:
     """Fields of game planners and the vectorised env with a field (:mod:`experiments.bench_field`)."""
     from experiments import bench_field as field
@@ -803,7 +811,8 @@ def bench_render(rounds: int = 30, tracks: tuple[str, ...] = ("trefoil", "random
 
 SECTIONS: dict[str, Callable[[], Iterator[dict[str, Any]]]] = {
     "env": bench_env, "solvers": bench_solvers, "agents": bench_agents, "rl": bench_rl,
-    "certificates": bench_certificates, "render": bench_render, "field": bench_field}
+    "certificates": bench_certificates, "render": bench_render, "field": bench_field,
+    "realtime": bench_real_time}
 
 
 _FIGURE_KEYS = ("ms_per_frame", "steps_per_s", "exponent", "throughput_ratio", "speedup", "ms_per_iter", "ms_per_solve", "ms_p95",

@@ -30,10 +30,13 @@ RACE = dict(track="trefoil", max_steps=10**9, laps=1000, on_off_track="penalty")
 #: Batch sizes of the random-action rows.
 BATCHES = (1, 64, 1024)
 #: Opponents of the opponent rows, and the re-plan intervals they are raced with.
-OPPONENTS = ("lane-keeping", "ilqr", "ilqgame-ol", "ilqgame-fb", "ilqgame-fb:max_iterations=5",
-             "ilqgame-fb:iterations=2,trust_radius=10")
+#: The real-time feedback planner (two iterations a re-plan), in float64 and in float32.
+REAL_TIME = "ilqgame-fb:iterations=2,trust_radius=10"
+REAL_TIME_FLOAT32 = f"{REAL_TIME},precision=float32"
+OPPONENTS = ("lane-keeping", "ilqr", "ilqgame-ol", "ilqgame-fb", "ilqgame-fb:max_iterations=5", REAL_TIME,
+             REAL_TIME_FLOAT32)
 #: Opponents of the rows whose learner acts at random (as a learner does at the start of a training).
-RANDOM_LEARNER_OPPONENTS = ("ilqr", "ilqgame-fb", "ilqgame-fb:iterations=2,trust_radius=10")
+RANDOM_LEARNER_OPPONENTS = ("ilqr", "ilqgame-fb", REAL_TIME, REAL_TIME_FLOAT32)
 REPLAN_EVERY = (1, 5)
 
 
@@ -367,8 +370,8 @@ def training_rows() -> Iterator[dict[str, Any]]:
 #: (opponent spec, envs, target steps/s) of the JAX learner's rows: the lane keeper inside the compiled
 #: update, and feedback iLQGame re-planning every 5 steps on the host races (its batched solves).
 JAX_TRAINING = (("lane-keeping", 256, 50_000), ("lane-keeping", 1024, 50_000),
-                ("ilqgame-fb:replan_every=5", 64, 8_000), ("ilqgame-fb:iterations=2,trust_radius=10", 64, 3_000),
-                ("ilqgame-fb:iterations=2,trust_radius=10,replan_every=5", 64, 8_000))
+                ("ilqgame-fb:replan_every=5", 64, 8_000), (REAL_TIME, 64, 3_000), (REAL_TIME_FLOAT32, 64, 3_000),
+                (f"{REAL_TIME},replan_every=5", 64, 8_000), (f"{REAL_TIME_FLOAT32},replan_every=5", 64, 8_000))
 
 
 def jax_training_row(opponent: str, envs: int, updates: int = 4, target: float | None = None,
@@ -408,6 +411,19 @@ def jax_training_row(opponent: str, envs: int, updates: int = 4, target: float |
 def jax_training_rows() -> Iterator[dict[str, Any]]:
     for opponent, envs, target in JAX_TRAINING:
         yield jax_training_row(opponent, envs, updates=20 if opponent == "lane-keeping" else 4, target=target)
+
+
+def real_time_rows() -> Iterator[dict[str, Any]]:
+    """The rows of ``racing bench --only realtime``: the real-time feedback planner in float64
+    and in float32 against each throughput target, in one run: as the vectorised env's
+    opponent at B = 64 re-planning every step and every 5 steps, against a learner acting at
+    random, and in the JAX learner's training every step and every 5 steps."""
+    planners = (REAL_TIME, REAL_TIME_FLOAT32)
+    yield from opponent_rows(opponents=planners)
+    yield from opponent_rows(opponents=planners, learner_acts="random", replan_every=(1,))
+    for opponent, envs, target in JAX_TRAINING:
+        if opponent.startswith(REAL_TIME):
+            yield jax_training_row(opponent, envs, target=target)
 
 
 def bench_rl() -> Iterator[dict[str, Any]]:
