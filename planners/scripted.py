@@ -25,6 +25,7 @@ import numpy as np
 from planners import traffic
 from planners.methods import CONSTANT_SPEED, LANE_KEEPING
 from planners.traffic import RACELINE_STANDSTILL, RACELINE_TIME_GAP
+from racing_env.dynamics import MIN_FRENET_SCALE
 from racing_env.precision import default_float
 from racing_env.track import Track
 from racing_env.vehicle import VehicleParams
@@ -243,6 +244,10 @@ RACELINE_SPEED_PREVIEW = 0.4  # [s] speeds and accelerations are read this far a
 RACELINE_MARGIN = 1.25  # [m] the line is kept this far inside the boundaries (half a car's width)
 RACELINE_OVERSPEED = 2.0  # [m/s] this much faster than the profile, braking takes the grip before turning
 RACELINE_ERROR_CAP = 2.0  # [m] the lateral error the stiffness acts on is capped here (the start, a pass)
+#: [s] times ahead at the driver's speed at which a path the rules hold off the line is read for its corners
+RACELINE_PATH_PREVIEW = tuple(np.linspace(0.0, 4.0, 9))
+RACELINE_PATH_BRAKING = 0.7  # share of the grip the driver counts on to brake for a corner of such a path
+RACELINE_OFF_LINE = 1.0  # [m] farther than this from its target the car drives its own path, not the line
 
 
 def check_raceline_options(pace: float = 1.0, margin: float = RACELINE_MARGIN, line: str = "raceline",
@@ -371,7 +376,7 @@ class RacelineDriver:
         line_at_cars = track._interp(tables.n, s_cars)
         on_line = traffic.on_path(cars, traffic.path_offsets(cars, n, n_ref, line_at_cars, speed), look)
         decision = traffic.pass_target(cars, on_line, track._interp(tables.v, s_cars), s, n, look, track, margin,
-                                       standstill)
+                                       standstill, speed)
         side = traffic.alongside(cars, n, standstill)
         wanted = jnp.where(decision.passing, decision.n, n_ref)
         held = jnp.minimum(jnp.maximum(wanted, side.lower), side.upper)
@@ -382,6 +387,22 @@ class RacelineDriver:
         target_at_cars = jnp.where(side.beside, n_target, jnp.where(decision.passing, decision.n, line_at_cars))
         ahead = traffic.on_path(cars, traffic.path_offsets(cars, n, n_target, target_at_cars, speed), look)
         return n_target, adjusted, traffic.following_acceleration(cars, ahead, speed, self.time_gap, standstill)
+
+    def _path_speed(self, s: jax.Array, speed: jax.Array, offset: jax.Array, time_scale: float) -> jax.Array:
+        """The highest speed [m/s] from which the car can still take the corners of the path at
+        the constant ``offset`` [m] from the centre line, read at :data:`RACELINE_PATH_PREVIEW`
+        seconds ahead at ``speed``: at each point ``d`` ahead, ``sqrt(v_c^2 + 2 b d)`` with the
+        corner speed ``v_c = sqrt(rho / |kappa_path|)`` (the grip at it, with downforce, found in
+        two passes) and ``b`` the share :data:`RACELINE_PATH_BRAKING` of that grip."""
+        track, vehicle = self.track, self.vehicle
+        ahead = speed * jnp.asarray(RACELINE_PATH_PREVIEW, speed.dtype) * time_scale
+        kappa = track.kappa_at(s + ahead).astype(speed.dtype)
+        path = jnp.abs(kappa) / jnp.maximum(1.0 - offset * kappa, MIN_FRENET_SCALE)
+        path = jnp.maximum(path, 1e-9)
+        corner = jnp.sqrt(vehicle.rho(speed) / path)
+        corner = jnp.sqrt(vehicle.rho(jnp.minimum(corner, speed)) / path)
+        braking = RACELINE_PATH_BRAKING * vehicle.rho(corner)
+        return jnp.min(jnp.sqrt(corner**2 + 2.0 * braking * ahead))
 
     def jax_law(self) -> Callable[..., jnp.ndarray]:
         """The law as a pure JAX function ``policy(x (N, 6), racing=None) -> action (2,)``:
@@ -428,9 +449,20 @@ class RacelineDriver:
                       + RACELINE_SPEED_GAIN / time_scale * (track._interp(tables.v, ahead_v) - v))
             if self.yielding:
                 ax_des = jnp.minimum(ax_des, ax_cap)
+            # off its line (held off it by traffic, or thrown off it by a pass or a contact) the
+            # car drives a path at about a constant offset from the centre line, whose curvature
+            # kappa / (1 - n kappa) the line's speeds may be too fast for: it brakes to what the
+            # corners ahead allow, at its own offset and at its target's
+            off_line = jnp.abs(n - n_target) > RACELINE_OFF_LINE * track.scale
+            if self.yielding:
+                off_line = off_line | adjusted
+            path_speed = jnp.where(off_line, jnp.minimum(self._path_speed(s, v_pos, n, time_scale),
+                                                         self._path_speed(s, v_pos, n_target, time_scale)), jnp.inf)
+            ax_des = jnp.minimum(ax_des, RACELINE_SPEED_GAIN / time_scale * (path_speed - v))
             # faster than the profile where it is: the braking it asks for keeps a share of the
             # grip (growing with the excess), or a car at the lateral limit could not slow down
-            share = jnp.clip((v - track._interp(tables.v, s)) / (RACELINE_OVERSPEED * np.sqrt(track.scale)), 0.0, 1.0)
+            excess = jnp.maximum(v - track._interp(tables.v, s), v - path_speed)
+            share = jnp.clip(excess / (RACELINE_OVERSPEED * np.sqrt(track.scale)), 0.0, 1.0)
             reserve = jnp.minimum(jnp.maximum(-ax_des, 0.0), share * rho)
             lateral = jnp.where(reserve > 0, jnp.sqrt(jnp.maximum((rho - reserve) * (rho + reserve), 0.0)), rho)
             ay_des = jnp.clip(ay_des, -lateral, lateral)

@@ -21,9 +21,11 @@ path's target decays as the tracking law's critically damped response). Three ru
   distance over the jerk-limited ramp into braking allowed for). The caller clips it to the
   car's own gg room: the driver brakes within its limits.
 * **Passing** (:func:`pass_target`): when the nearest car on its line is slower than the
-  line's speed there, the driver moves to the side with more room beside that car, if the
-  track is wide enough there and no other car is in that lane from alongside to the
-  look-ahead; otherwise it stays on its line and follows.
+  line's speed there and within ``PASS_LOOKAHEAD`` seconds at the driver's speed (its
+  bumper gap beyond the standstill gap), the driver moves to the side with more room beside
+  that car, if the track is wide enough there and no other car is in that lane from alongside
+  to the look-ahead; otherwise it stays on its line and follows. Further back it keeps to its
+  line: where the car ahead is when the driver reaches it is not where it is now.
 * **Alongside** (:func:`alongside`): the lateral target never comes nearer than
   ``w_ik + ALONGSIDE_CLEARANCE`` to a car beside it (overlapping in arc length, up to a margin
   ahead and the standstill gap behind): the car that moves across answers for the contact.
@@ -57,6 +59,7 @@ ALONGSIDE_CLEARANCE = 0.75  # [m] between the footprints of cars side by side (m
 PASS_CLEARANCE = 1.0  # [m] between the footprints when passing (more than LATERAL_CLEARANCE)
 PASS_SPEED_MARGIN = 1.0  # [m/s] a car is passed when it is this much slower than the line there
 PASS_COMMITMENT = 2.0  # side score per metre the driver already is on that side of the car passed
+PASS_LOOKAHEAD = 1.5  # [s] a pass begins when the car to pass is within this many seconds at the driver's speed
 ALONGSIDE_AHEAD = 1.0  # [m] a car whose tail is less than this ahead of the nose is alongside
 PATH_FREQUENCY = 2.0  # [1/s] sqrt of the tracking law's lateral stiffness (RACELINE_LATERAL_STIFFNESS)
 _FAR = 1e9  # [m] an arc-length gap no car has: "none"
@@ -165,11 +168,13 @@ class PassTarget(NamedTuple):
 
 
 def pass_target(cars: Traffic, on_line: jax.Array, line_speed_at_cars: jax.Array, own_s: jax.Array,
-                own_n: jax.Array, look: jax.Array, track: Track, margin: float, standstill: float) -> PassTarget:
+                own_n: jax.Array, look: jax.Array, track: Track, margin: float, standstill: float,
+                speed: jax.Array) -> PassTarget:
     """Whether and where to pass the nearest car on the driver's line (``on_line (N,)`` bool).
 
     It is passed when it is slower than the line's speed at its place
-    (``line_speed_at_cars (N,)`` [m/s]) by ``PASS_SPEED_MARGIN``, on the side (left or right
+    (``line_speed_at_cars (N,)`` [m/s]) by ``PASS_SPEED_MARGIN`` and its bumper gap is within
+    ``standstill + PASS_LOOKAHEAD * speed`` (the driver's ``speed`` [m/s]), on the side (left or right
     of it, ``w_ik + PASS_CLEARANCE`` from its centre) that keeps the driver's centre ``margin``
     [m] inside the boundaries at the driver, at the car and a car's length beyond, and in
     whose lane no other car is, from ``standstill`` [m] behind the driver's tail to ``look``
@@ -179,6 +184,7 @@ def pass_target(cars: Traffic, on_line: jax.Array, line_speed_at_cars: jax.Array
     leader = jnp.argmin(jnp.where(on_line, cars.ds, jnp.inf))
     has_leader = jnp.any(on_line)
     slower = cars.v[leader] < line_speed_at_cars[leader] - PASS_SPEED_MARGIN * np.sqrt(cars.scale)
+    near = cars.gap[leader] < standstill + PASS_LOOKAHEAD * np.sqrt(cars.scale) * speed
     n_leader, s_leader = cars.n[leader], own_s + cars.ds[leader]
     clearance = cars.half_width[leader] + PASS_CLEARANCE * cars.scale
     samples = jnp.stack([own_s, s_leader, s_leader + 2.0 * cars.half_length[leader]])
@@ -197,7 +203,7 @@ def pass_target(cars: Traffic, on_line: jax.Array, line_speed_at_cars: jax.Array
     n_left, left_ok, left_score = side(1.0)
     n_right, right_ok, right_score = side(-1.0)
     go_left = left_ok & (~right_ok | (left_score >= right_score))
-    passing = has_leader & slower & (left_ok | right_ok)
+    passing = has_leader & slower & near & (left_ok | right_ok)
     return PassTarget(passing=passing, n=jnp.where(go_left, n_left, n_right), leader=leader)
 
 

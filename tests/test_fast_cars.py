@@ -47,7 +47,10 @@ def test_each_agent_drives_monzas_first_kilometre_with_the_fastest_class(spec):
     qss = float(np.interp(DISTANCE, np.asarray(env.track.s), profile.t))  # from s = 0 at the start speed
     assert finish is not None and off == 0, (finish, off)
     assert finish < 1.06 * qss, (finish, qss)
-    assert top > 0.9 * float(car.v_max)  # the class's speed, not the paper car's 25 m/s
+    # the class's speed, not the paper car's 25 m/s: near the limit profile's top speed over the
+    # same distance (with drag the car is still accelerating there, short of v_max)
+    profile_top = float(np.max(np.asarray(profile.v)[np.asarray(env.track.s) <= DISTANCE]))
+    assert top > 0.95 * profile_top, (top, profile_top)
 
 
 @pytest.mark.slow  # a long end: the default run stays within its budget

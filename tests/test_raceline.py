@@ -160,6 +160,41 @@ def test_behind_a_slower_car_on_its_line_it_passes_without_contact_where_the_old
     assert np.abs(xs_new[:, 0, 2]).max() > 2.0  # beside the slower car, not through it
 
 
+def test_a_pass_begins_within_its_reach_and_not_before():
+    """A 2 km straight, a car at 12 m/s on the line ahead of one at 20 m/s: 200 m behind it
+    the driver keeps to its line (where the car ahead is now says nothing of where it will be);
+    it pulls out once the bumper gap is within standstill + PASS_LOOKAHEAD V (3 + 1.5 x 20 =
+    33 m) and passes."""
+    from planners.traffic import PASS_LOOKAHEAD, RACELINE_STANDSTILL
+    from racing_env import track
+
+    wide = track.straight(length=2000.0, width_left=6.0, width_right=6.0)
+    xs, overlap = drive_scene(wide, [{}, dict(pace=0.6, yielding=False)], start([0.0, 205.0], [20.0, 12.0]),
+                              steps=400)
+    gap = xs[:, 1, 0] - xs[:, 0, 0] - 4.7
+    moved = np.flatnonzero(np.abs(xs[:, 0, 2]) > 0.05)
+    assert overlap.sum() == 0 and moved.size > 0
+    assert gap[moved[0]] < RACELINE_STANDSTILL + PASS_LOOKAHEAD * xs[moved[0], 0, 1] + 1.0
+    assert gap[moved[0]] > 5.0  # out before it had to brake for the car ahead
+    assert xs[-1, 0, 0] > xs[-1, 1, 0]  # passed
+
+
+@pytest.mark.slow  # two AV-21 duels of the law (about 12 s)
+def test_behind_an_equal_av21_it_keeps_to_the_track():
+    """Two AV-21s driven by the racing-line driver, a lap of Suzuka from the grid, both seeds:
+    the car behind keeps to the track. Before a pass began within its reach, and before the
+    driver slowed for the corners of a path off its line, it left the track for 12-14 s a lap
+    (a pass begun 200 m behind held it off its line into the esses at the line's speeds)."""
+    from experiments.race_spec import RaceSpec
+    from experiments.tournament import race_lineup
+
+    race = RaceSpec(track="Suzuka", car="av21").to_race_config(2)
+    for seed in (0, 1):
+        record, _ = race_lineup(race, ["raceline", "raceline"], seed, replay=False)
+        assert [car["time_off_track"] for car in record["cars"]] == [0.0, 0.0], seed
+        assert all(car["finish_time"] is not None for car in record["cars"])
+
+
 def test_where_there_is_no_room_to_pass_it_follows_at_its_time_gap():
     """A 7 m wide straight: no room beside a car on the centre line (the pass would need the
     car's centre 3 m off it, 1.25 m inside a boundary 3.5 m off). Behind a car at 12.5 m/s the
