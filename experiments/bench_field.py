@@ -9,8 +9,9 @@ as ``racing tournament`` races them. Race-steps per second for each N, the first
 (which compiles) reported apart, and the exponent of the cost of a step in N fitted over
 the fields (:func:`cost_exponent`). The 10- and 20-car fields race again with every other
 car predicted in each local game (``obstacles`` at least the field: the local game grows with
-N), and a row compares the two settings: the 20-car step over the 10-car step in each (target
-at most :data:`TARGET_20_OVER_10`), and the 10-car rate of the default over the other.
+N), and in float32 with the default obstacles, and rows compare the settings: the 20-car step
+over the 10-car step in each (target at most :data:`TARGET_20_OVER_10`), and the 10-car rate of
+the default, and of the default in float32, over that with every car predicted in float64.
 
 :func:`vector_field_rows`: the vectorised env with a field of coasting cars (random learner
 actions) beside two cars, at the same batch, timed in turns in one run.
@@ -30,6 +31,7 @@ TARGET_EXPONENT = 1.2  # the cost of a step in N: linear, at most this exponent
 EVERY_CAR_PREDICTED = ",obstacles=19"  # added to a spec: each local game predicts every other car of up to 20
 TARGET_20_OVER_10 = 2.1  # a 20-car step over a 10-car step with the default obstacles (linear: 2.0)
 TARGET_SPEEDUP_10 = 1.5  # the 10-car rate with the default obstacles over that with every car predicted
+FLOAT32 = ",precision=float32"  # added to a spec: the planners solve in float32
 
 
 def cost_exponent(cars: list[int], seconds_per_step: list[float]) -> float:
@@ -129,7 +131,8 @@ def field_rows(fields: tuple[int, ...] = FIELDS, steps: int = 40) -> Iterator[di
         yield exponent
     if 10 in fields and 20 in fields:
         runs = {f"field_{cars}_cars{suffix}_in_turns": (cars, FIELD_SPEC + extra)
-                for cars in (10, 20) for suffix, extra in (("", ""), ("_every_car_predicted", EVERY_CAR_PREDICTED))}
+                for cars in (10, 20) for suffix, extra in (("", ""), ("_every_car_predicted", EVERY_CAR_PREDICTED),
+                                                           ("_float32", FLOAT32))}
         timed = field_race_rates(runs, steps=steps)
         yield from timed.values()
         step = {name: row["ms_per_step"] for name, row in timed.items()}
@@ -137,9 +140,13 @@ def field_rows(fields: tuple[int, ...] = FIELDS, steps: int = 40) -> Iterator[di
                "step_20_over_10": step["field_20_cars_in_turns"] / step["field_10_cars_in_turns"],
                "step_20_over_10_every_car_predicted": (step["field_20_cars_every_car_predicted_in_turns"]
                                                        / step["field_10_cars_every_car_predicted_in_turns"]),
+               "step_20_over_10_float32": step["field_20_cars_float32_in_turns"] / step["field_10_cars_float32_in_turns"],
                "target_step_20_over_10": TARGET_20_OVER_10}
         yield {"name": "field_10_speedup",
                "speedup": step["field_10_cars_every_car_predicted_in_turns"] / step["field_10_cars_in_turns"],
+               "target_speedup": TARGET_SPEEDUP_10}
+        yield {"name": "field_10_speedup_float32",
+               "speedup": step["field_10_cars_every_car_predicted_in_turns"] / step["field_10_cars_float32_in_turns"],
                "target_speedup": TARGET_SPEEDUP_10}
 
 
