@@ -53,6 +53,12 @@ WAKES = ("game", "physics", "none")
 MAX_STEPS = 400
 
 
+def check_wake(wake: str) -> None:
+    """Refuse a wake that is not one of :data:`WAKES`, naming them."""
+    if wake not in WAKES:
+        raise ValueError(f"wake must be one of {WAKES}, got {wake!r}")
+
+
 def scene_start(gap: float, speed: float) -> np.ndarray:
     """The joint start state ``(2, 6)``: the follower (row 0) ``gap`` [m] behind the car ahead
     (row 1) at :data:`LEADER_START`, both on the centre line at ``speed`` [m/s], no acceleration."""
@@ -86,8 +92,7 @@ def race_scene(follower: str, wake: str, gap: float, speed: float) -> dict[str, 
     from racing_env.dynamics import slipstream_reduction
     from racing_env.env import RacingParallelEnv
 
-    if wake not in WAKES:
-        raise ValueError(f"wake must be one of {WAKES}, got {wake!r}")
+    check_wake(wake)
     spec = RaceSpec(track=TRACK, car=CAR, race_distance=FINISH, max_steps=MAX_STEPS)
     env = RacingParallelEnv(spec.to_race_config(2, slipstream=wake != "none"))
     plans_with = env.game if wake != "physics" else dataclasses.replace(env.game, slipstream=None)
@@ -98,7 +103,7 @@ def race_scene(follower: str, wake: str, gap: float, speed: float) -> dict[str, 
     xs = record.xs
     finished = np.flatnonzero(xs[:, :, 0].max(axis=1) >= FINISH)
     xs = xs[: int(finished[0]) + 1] if finished.size else xs  # a finished car stands still after
-    aero = (env.game if wake != "none" else dataclasses.replace(env.game, slipstream=None)).aero()
+    aero = env.game.aero()  # the physics' wake (none with wake="none")
     tow = np.array([float(slipstream_reduction(x, aero)[0]) for x in xs])
     cars = [{key: car.get(key) for key in ("position", "collision_steps", "time_off_track", "faults", "finish_time")}
             for car in record.summary]
@@ -123,8 +128,8 @@ def best_margin(s: np.ndarray, margin: np.ndarray, before: float) -> float:
 def summary_rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per record: who, which wake, the start gap [m]; where the follower first got
     ahead [m], its best margin on the straight (before :data:`STRAIGHT_END`) [m], its place out
-    of the chicane; its largest
-    lateral distance from the car ahead [m] and its mean tow while behind; the contact steps."""
+    of the chicane; its largest lateral distance from the car ahead [m] and its mean tow while
+    behind; the contact steps."""
     rows = []
     for r in records:
         s, margin, n, tow = (np.asarray(r[k]) for k in ("s", "margin", "n", "tow"))
@@ -206,8 +211,7 @@ def run(out: Path, followers: Sequence[str] = FOLLOWERS, gaps: Sequence[float] =
     from tqdm import tqdm
 
     for wake in wakes:
-        if wake not in WAKES:
-            raise ValueError(f"wake must be one of {WAKES}, got {wake!r}")
+        check_wake(wake)
     out.mkdir(parents=True, exist_ok=True)
     records = load(out)
     done = {(r["follower"], r["wake"], r["gap"]) for r in records}

@@ -244,7 +244,7 @@ RACELINE_SPEED_PREVIEW = 0.4  # [s] speeds and accelerations are read this far a
 RACELINE_MARGIN = 1.25  # [m] the line is kept this far inside the boundaries (half a car's width)
 RACELINE_OVERSPEED = 2.0  # [m/s] this much faster than the profile, braking takes the grip before turning
 RACELINE_ERROR_CAP = 2.0  # [m] the lateral error the stiffness acts on is capped here (the start, a pass)
-#: [s] times ahead at the driver's speed at which a path the rules hold off the line is read for its corners
+#: [s] times ahead at the driver's speed at which a path off the line (held off it, or thrown) is read for its corners
 RACELINE_PATH_PREVIEW = tuple(np.linspace(0.0, 4.0, 9))
 RACELINE_PATH_BRAKING = 0.7  # share of the grip the driver counts on to brake for a corner of such a path
 RACELINE_OFF_LINE = 1.0  # [m] farther than this from its target the car drives its own path, not the line
