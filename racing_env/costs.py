@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from racing_env.dynamics import AX, AY, N_LAT, S, V
-from racing_env.track import Track
+from racing_env.track import Track, check_scale
 from racing_env.vehicle import ArrayLike, VehicleParams, concrete_fields
 
 _NORM_EPS = 1e-12  # keeps |a| differentiable at a = 0
@@ -142,9 +142,7 @@ def racing_weights(jerk_weight: float = RACING_JERK_WEIGHT, vehicle: VehiclePara
     size's metres (one model metre is k of them: ``-s_K`` in model metres is k times the
     reward of the full size's ``-s_K / k``), and the planners weigh jerk against progress as on
     the full-size circuit. Exactly the weights above at 1."""
-    k = float(scale)
-    if not (np.isfinite(k) and k > 0):
-        raise ValueError(f"scale must be a finite number > 0 (the track's model scale), got {scale!r}")
+    k = check_scale(scale)
     if vehicle is None:
         return CostWeights(r_jx=jerk_weight * k, r_jy=jerk_weight * k)
     return CostWeights(r_jx=jerk_weight * k * (PAPER_JERK_LIMIT / float(vehicle.jx_max)) ** 2,
