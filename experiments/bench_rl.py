@@ -375,18 +375,21 @@ JAX_TRAINING = (("lane-keeping", 256, 50_000), ("lane-keeping", 1024, 50_000),
 
 
 def jax_training_row(opponent: str, envs: int, updates: int = 4, target: float | None = None,
-                     hyperparameters: tuple = ()) -> dict[str, Any]:
+                     hyperparameters: tuple = (), host: bool = False) -> dict[str, Any]:
     """The JAX learner's training steps per second on the trefoil against ``opponent``
     (:mod:`experiments.rl.train_jax`, the PPO settings ``racing train --learner jax`` gives
     ``envs`` races): a first update (compiling the update, or the policy's steps and the
-    opponent's solves) timed apart, then ``updates`` more, rollouts and fits together."""
+    opponent's solves) timed apart, then ``updates`` more, rollouts and fits together.
+    ``host``: race on the host (a pool of the one opponent, which the compiled form does not
+    take) even where the races could be compiled with the policy."""
     import jax
 
     from experiments.rl import ppo_jax
     from experiments.rl.train import TrainConfig
     from experiments.rl.train_jax import make_races, ppo_settings
 
-    config = TrainConfig(opponents=(opponent,), envs=envs, learner="jax", seed=0, hyperparameters=hyperparameters)
+    config = TrainConfig(opponents=(opponent,), envs=envs, learner="jax", seed=0, hyperparameters=hyperparameters,
+                         pool=host)
     settings = ppo_settings(config)
     races = make_races(config, settings)
     learner = ppo_jax.init_learner(jax.random.PRNGKey(0), races.observation_size, envs, settings)
@@ -402,7 +405,7 @@ def jax_training_row(opponent: str, envs: int, updates: int = 4, target: float |
     seconds = time.perf_counter() - start
     races.close()
     steps = updates * settings.n_steps * envs
-    return {"name": f"jax_ppo_{opponent}_B{envs}", "opponent": opponent, "envs": envs, "races": races.kind,
+    return {"name": f"jax_ppo_{opponent}_B{envs}" + ("_host" if host else ""), "opponent": opponent, "envs": envs, "races": races.kind,
             "steps_per_s": steps / seconds, "steps": steps, "first_update_s": compile_s,
             "n_steps": settings.n_steps, "batch_size": settings.batch_size, "n_epochs": settings.n_epochs,
             "target_steps_per_s": target}
@@ -417,13 +420,16 @@ def real_time_rows() -> Iterator[dict[str, Any]]:
     """The rows of ``racing bench --only realtime``: the real-time feedback planner in float64
     and in float32 against each throughput target, in one run: as the vectorised env's
     opponent at B = 64 re-planning every step and every 5 steps, against a learner acting at
-    random, and in the JAX learner's training every step and every 5 steps."""
+    random, and in the JAX learner's training every step and every 5 steps; last, what the
+    every-5-steps training's host races cost without any solve: the JAX learner against the
+    lane keeper raced on the host the same way (``_host``), the ceiling of that loop."""
     planners = (REAL_TIME, REAL_TIME_FLOAT32)
     yield from opponent_rows(opponents=planners)
     yield from opponent_rows(opponents=planners, learner_acts="random", replan_every=(1,))
     for opponent, envs, target in JAX_TRAINING:
         if opponent.startswith(REAL_TIME):
             yield jax_training_row(opponent, envs, target=target)
+    yield jax_training_row("lane-keeping", 64, host=True)
 
 
 def bench_rl() -> Iterator[dict[str, Any]]:

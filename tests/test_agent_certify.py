@@ -92,6 +92,8 @@ def test_certified_race_records_carry_the_share_of_the_verdicts(monkeypatch):
         assert modes[agent.mode] == len(certified)
 
 
+# slow (the default run's budget): the tournament test above checks the certified share by default
+@pytest.mark.slow
 def test_steps_without_an_adopted_re_plan_carry_no_certificate():
     env = racing_env.parallel_env(track="straight", num_agents=2, race_distance=60.0, max_steps=80)
     agent = make_agent("ilqgame-fb:certify=1,replan_every=3")

@@ -249,6 +249,8 @@ def test_a_car_stopped_at_the_edge_facing_out_rejoins_in_recovery(spec):
     assert speeds[None] > 5.0
 
 
+# slow (the default run's budget): the car stopped at the edge facing out rejoins by default
+@pytest.mark.slow
 def test_a_car_stopped_across_monzas_first_chicane_rejoins_in_recovery():
     """The standstill of a Monza race (iLQR after a spin in the first chicane):
     at rest 3.5 m right of the centre line, heading 1.43 rad to the right of it, in the
@@ -264,7 +266,10 @@ def test_a_car_stopped_across_monzas_first_chicane_rejoins_in_recovery():
     assert speeds[""] > RECOVERED_SPEED
 
 
-@pytest.mark.parametrize("spec", GAME_SPECS_DEFAULT_RUN)
+# slow (the default run's budget): tests/test_ilq.py checks by default that each car plans as if
+# alone with the other out of the race
+@pytest.mark.slow
+@pytest.mark.parametrize("spec", GAME_SPECS)
 def test_a_planner_drives_through_cars_out_of_the_race_as_the_env_does(spec):
     """Two cars collide at the first step and retire (``on_collision="terminate"``); the env
     freezes them 55 m ahead on the planner's line, and nothing collides with them any more.

@@ -181,6 +181,8 @@ def test_iteration_rows_report_the_distribution_of_every_configuration():
     assert [row["target_ms"] for row in rows] == [0.25, None, None, None]
 
 
+# slow (the default run's budget)
+@pytest.mark.slow
 def test_convergence_rows_summarise_the_single_solves_of_the_same_scenes():
     """The convergence row's fraction, status counts, iteration figures and per-scene
     outcomes are those of the same random scenes solved one at a time, with the row's
@@ -328,6 +330,8 @@ def test_jax_learner_row_times_updates_after_the_compiling_one():
     assert row["races"] == "compiled" and row["steps"] == 2 * 16 * 8
     assert row["steps_per_s"] > 0 and row["first_update_s"] > 0
     assert bench._target_verdict(row) is not None
+    host = bench_rl.jax_training_row("lane-keeping", 8, updates=2, hyperparameters=small, host=True)
+    assert host["races"] == "host" and host["name"] == "jax_ppo_lane-keeping_B8_host" and host["steps"] == 2 * 16 * 8
 
 
 @pytest.mark.slow  # a child process compiles the parts and the whole iteration (about 2 min)

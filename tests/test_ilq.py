@@ -297,6 +297,8 @@ def _merits_per_iteration(game, options):
     return np.array(merits), np.asarray(c.step_history)[: int(c.it)], c
 
 
+# slow (the default run's budget): an option off by default
+@pytest.mark.slow
 def test_residual_step_control_decreases_the_open_loop_residual(game, open_loop):
     options = ilq.SolverOptions(mode="open_loop", step_control="residual")
     merits, etas, last = _merits_per_iteration(game, options)

@@ -140,6 +140,8 @@ def test_the_agent_plans_against_the_lane_keeping_rollout():
         make_agent("ilqgame-fb:prediction=lane-keeping")
 
 
+# slow (the default run's budget): the best response to a given prediction is checked by default
+@pytest.mark.slow
 def test_ilqr_with_the_lane_keeping_prediction_gets_through_monzas_chicane():
     """The trace behind the Monza lap of docs/agents.md: iLQR alongside the lane keeper into the
     first chicane (s = 850-980 m), 3.5 m to its left and 1.3 m ahead, both at 25 m/s.

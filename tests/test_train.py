@@ -85,6 +85,8 @@ def test_training_writes_checkpoints_logs_and_a_model_that_races(tmp_path):
     assert not any(h["fallback"] for h in agent.history)
 
 
+# slow (the default run's budget): the interrupted training's resume is checked bit for bit by default
+@pytest.mark.slow
 def test_training_is_deterministic_in_one_process_or_several(tmp_path):
     config = TrainConfig(**{**TINY, "timesteps": 512, "eval_every": 0})
     run_training(config, tmp_path / "a", progress=False)

@@ -42,7 +42,9 @@ def _float32_ulps(a, b) -> None:
     np.testing.assert_array_max_ulp(np.asarray(a, np.float32), np.asarray(b, np.float32), maxulp=1)
 
 
-@pytest.mark.parametrize("race", [dict(envs=4), dict(start="mixed", envs=4), dict(opponents=(), envs=2)],
+# mixed starts with the slow tests (the default run's budget)
+@pytest.mark.parametrize("race", [dict(envs=4), pytest.param(dict(start="mixed", envs=4), marks=pytest.mark.slow),
+                                  dict(opponents=(), envs=2)],
                          ids=["duel", "duel-mixed-starts", "time-trial"])
 def test_the_races_are_those_of_a_dummy_vec_env_of_single_env_copies(race):
     """Copy k of both runs the same episodes, seeded as SB3 seeds a VecEnv (seed + k):
@@ -173,6 +175,8 @@ def test_reset_takes_a_seed_for_every_race_or_none():
         env.close()
 
 
+# slow (the default run's budget): tests/test_batched_opponents.py draws pools' drivers by default
+@pytest.mark.slow
 def test_a_pool_names_each_episodes_driver():
     """With a pool every race draws each opponent car's driver per episode; every step's info
     names the episode's driver, its last step included (when the next one is drawn)."""

@@ -58,7 +58,8 @@ SHORT = dict(max_steps=12, on_off_track="terminate")
 @pytest.mark.parametrize("num_envs, mode, race, min_ends, min_contacts", [
     (1, AutoresetMode.NEXT_STEP, RACE, 2, 0),
     (4, AutoresetMode.NEXT_STEP, RACE, 8, 0),
-    (4, AutoresetMode.NEXT_STEP, dict(track="trefoil", num_agents=3, **SHORT), 32, 0),
+    pytest.param(4, AutoresetMode.NEXT_STEP, dict(track="trefoil", num_agents=3, **SHORT), 32, 0,
+                 marks=pytest.mark.slow),  # the default run's budget: the 4-race rows cover the autoresets
     (4, AutoresetMode.SAME_STEP, dict(track="Monza", scenario="anywhere", **SHORT), 32, 5),
 ])
 def test_every_race_is_the_single_envs_race_over_several_episodes(num_envs, mode, race, min_ends, min_contacts):
