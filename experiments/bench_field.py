@@ -1,8 +1,8 @@
 """`racing bench --only field`: races of fields of game planners, and the vectorised env with a field.
 
 :func:`field_rows`: a race of N feedback iLQGame planners on the trefoil's grid, every car
-re-planning every step in its real-time setting (``iterations=2,trust_radius=10``, the one
-that races as well as converged re-plans: docs/experiments/cheap-replans.md) and playing
+re-planning every step in its real-time setting (``iterations=2,trust_radius=10``:
+docs/experiments/cheap-replans.md) and playing
 its local game with its ``rivals=2`` nearest rivals (:mod:`planners.rival_game`), the
 field's re-plans solved as one batch per step (:func:`planners.agents.field.solve_field`),
 as ``racing tournament`` races them. Race-steps per second for each N, the first step
@@ -13,8 +13,9 @@ N), and in float32 with the default obstacles, and rows compare the settings: th
 over the 10-car step in each (target at most :data:`TARGET_20_OVER_10`), and the 10-car rate of
 the default, and of the default in float32, over that with every car predicted in float64.
 
-:func:`vector_field_rows`: the vectorised env with a field of coasting cars (random learner
-actions) beside two cars, at the same batch, timed in turns in one run.
+:func:`vector_field_rows`: the vectorised env with fields of coasting cars (random learner
+actions) beside two cars, at the same batch, each with contact physics and with ghost cars
+(no contact checks, no penalties): what the contact checks over all pairs of cars cost.
 """
 
 from __future__ import annotations
@@ -150,11 +151,13 @@ def field_rows(fields: tuple[int, ...] = FIELDS, steps: int = 40) -> Iterator[di
                "target_speedup": TARGET_SPEEDUP_10}
 
 
-def vector_field_rows(cars: tuple[int, ...] = (2, 10), num_envs: int = 256, calls: int = 200,
+def vector_field_rows(cars: tuple[int, ...] = (2, 10, 20), num_envs: int = 256, calls: int = 200,
                       repeats: int = 3) -> Iterator[dict[str, Any]]:
     """The vectorised env (``RaceVectorEnv``) of ``num_envs`` races of ``cars`` cars on the
-    trefoil, random learner actions, the other cars coasting: race-steps per second (median
-    of ``repeats`` runs of ``calls`` steps), each field's row with its ratio to the first's."""
+    trefoil, random learner actions, the other cars coasting, with contact physics and the
+    steward (the default) and with ghost cars and no penalties: race-steps per second (median
+    of ``repeats`` runs of ``calls`` steps). Each field's physics row has its ratio to the
+    first field's (``vs_first_field``) and to its own ghost row (``vs_ghost``)."""
     import gymnasium
 
     import racing_env  # noqa: F401 - registers racing_env/Race-v0
@@ -162,13 +165,20 @@ def vector_field_rows(cars: tuple[int, ...] = (2, 10), num_envs: int = 256, call
 
     first = None
     for count in cars:
-        envs = gymnasium.make_vec("racing_env/Race-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
-                                  num_agents=count, track="trefoil", on_off_track="penalty")  # as bench_rl's RACE
-        rate, rates, compile_s = _random_action_rate(envs, num_envs, calls, repeats)
+        rates_by_contact = {}
+        for contact, extra in (("physics", {}), ("ghost", dict(contact="ghost", penalties="none"))):
+            envs = gymnasium.make_vec("racing_env/Race-v0", num_envs=num_envs, vectorization_mode="vector_entry_point",
+                                      num_agents=count, track="trefoil", on_off_track="penalty", **extra)  # bench_rl's RACE
+            rate, rates, compile_s = _random_action_rate(envs, num_envs, calls, repeats)
+            rates_by_contact[contact] = (rate, rates, compile_s)
+        rate, rates, compile_s = rates_by_contact["physics"]
         first = first or rate
-        yield {"name": f"vector_env_{count}_cars_B{num_envs}", "cars": count, "races": num_envs,
-               "steps_per_s": rate, "vs_first_field": rate / first, "compile_s": compile_s,
-               "repeats": [round(r) for r in rates]}
+        yield {"name": f"vector_env_{count}_cars_B{num_envs}", "cars": count, "races": num_envs, "contact": "physics",
+               "steps_per_s": rate, "vs_first_field": rate / first, "vs_ghost": rate / rates_by_contact["ghost"][0],
+               "compile_s": compile_s, "repeats": [round(r) for r in rates]}
+        rate, rates, compile_s = rates_by_contact["ghost"]
+        yield {"name": f"vector_env_{count}_cars_B{num_envs}_ghost", "cars": count, "races": num_envs,
+               "contact": "ghost", "steps_per_s": rate, "compile_s": compile_s, "repeats": [round(r) for r in rates]}
 
 
 def bench_field() -> Iterator[dict[str, Any]]:

@@ -322,6 +322,15 @@ def test_render_section_times_each_camera_and_the_recording_of_a_race():
     assert race["ms_replay_write"] > 0
 
 
+def test_the_vector_field_rows_time_each_field_with_contact_and_with_ghost_cars():
+    from experiments.bench_field import vector_field_rows
+
+    physics, ghost = vector_field_rows(cars=(3,), num_envs=4, calls=5, repeats=1)
+    assert (physics["name"], ghost["name"]) == ("vector_env_3_cars_B4", "vector_env_3_cars_B4_ghost")
+    assert physics["vs_ghost"] == pytest.approx(physics["steps_per_s"] / ghost["steps_per_s"], rel=1e-12)
+    assert physics["vs_first_field"] == 1.0 and ghost["steps_per_s"] > 0
+
+
 def test_jax_learner_row_times_updates_after_the_compiling_one():
     from experiments import bench_rl
 
