@@ -1,5 +1,5 @@
 """The `racing` command line: demo, agents, tracks, paper, equilibria, tournament, replay, convergence, train, exploit, sweep,
-bench.
+study, bench.
 
 Each command's code is imported only when it runs: the RL layer (:mod:`experiments.rl`, torch
 and stable-baselines3) only by ``racing train``. Guide: README.md and docs/.
@@ -276,6 +276,17 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path("runs/sweep") / path.stem
     report = run_sweep(config, out, backend=args.backend, workers=args.workers, address=args.address,
                        fresh=args.fresh, plans=args.plans, report=args.report)
+    return 130 if report["interrupted"] else 0
+
+
+def _cmd_study(args: argparse.Namespace) -> int:
+    from experiments.study import load_study, run_study
+
+    path = Path(args.file)
+    study = load_study(path)
+    _check_ray(args.backend)
+    out = Path(args.out) if args.out else Path("runs/study") / study.name
+    report = run_study(study, out, backend=args.backend, workers=args.workers, address=args.address, fresh=args.fresh)
     return 130 if report["interrupted"] else 0
 
 
@@ -785,6 +796,24 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--out", default=None, help="output folder (default: runs/sweep/<file or example name>)")
     sweep.add_argument("--fresh", action="store_true", help="discard earlier results in --out and start over")
     sweep.set_defaults(func=_cmd_sweep)
+
+    study = sub.add_parser(
+        "study", help="a declared study of several sweeps, raced as one resumable run (`racing study run FILE`)",
+        description="A study is a TOML file of named parts, each a sweep (docs/sweeps.md#studies). "
+        "racing study run races every part's races as one run: records go to OUT/results.jsonl as races end, one "
+        "progress bar with the time left covers the whole study, rerunning the same command resumes it.",
+    )
+    study_commands = study.add_subparsers(dest="study_command", metavar="SUBCOMMAND", required=True)
+    study_run = study_commands.add_parser(
+        "run", parents=[cache, backends], help="race (or resume) a study",
+        description="Race every race of the study's parts (resumable), here, on --workers local processes or on "
+        "Ray; writes OUT/results.jsonl, OUT/study.json (its settings), OUT/summary.json (each part's summary) and "
+        "every race's replay (OUT/replays, for racing replay).",
+    )
+    study_run.add_argument("file", metavar="FILE", help="the study's TOML file, e.g. docs/studies/outlook.toml")
+    study_run.add_argument("--out", default=None, help="output folder (default: runs/study/<the study's name>)")
+    study_run.add_argument("--fresh", action="store_true", help="discard earlier races in --out and start over")
+    study_run.set_defaults(func=_cmd_study)
 
     bench = sub.add_parser(
         "bench", help="performance figures as JSON (stdout) and a table (stderr)",

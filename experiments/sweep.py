@@ -320,28 +320,41 @@ def load_sweep(path: Path) -> SweepConfig:
         data = tomllib.loads(Path(path).read_text())
     except tomllib.TOMLDecodeError as err:
         raise ValueError(f"{path} is not valid TOML: {err}") from None
+    return sweep_from_table(data, str(path))
+
+
+def sweep_from_table(data: dict[str, Any], where: str) -> SweepConfig:
+    """The sweep of a TOML table (a sweep file's, or a study's part); ``where`` names it in
+    the errors.
+
+    Raises:
+        ValueError: an unknown key, no lineup, parameters that are not a table, or what
+            :class:`SweepConfig` refuses.
+    """
     allowed = {f.name for f in dataclasses.fields(SweepConfig)}
     unknown = sorted(set(data) - allowed)
     if unknown:
-        raise ValueError(f"{path}: unknown keys {unknown}; a sweep file has {sorted(allowed)}")
+        raise ValueError(f"{where}: unknown keys {unknown}; a sweep has {sorted(allowed)}")
     lineup = data.get("lineup")
     if not isinstance(lineup, list) or not all(isinstance(spec, str) for spec in lineup):
-        raise ValueError(f"{path}: a sweep needs a lineup, a list of agent specs, e.g. "
+        raise ValueError(f"{where}: a sweep needs a lineup, a list of agent specs, e.g. "
                          f"lineup = [\"ilqgame-fb\", \"lane-keeping\"]; got {lineup!r}")
     table = data.get("parameters", {})
     if not isinstance(table, dict):
-        raise ValueError(f"{path}: parameters must be a table ([parameters]), got {table!r}")
-    parameters = tuple((name, tuple(v) if isinstance(v, list) else v) for name, v in _flatten(path, table).items())
+        raise ValueError(f"{where}: parameters must be a table ([parameters]), got {table!r}")
+    parameters = tuple((name, tuple(v) if isinstance(v, list) else v)
+                       for name, v in flatten_parameters(where, table).items())
     return SweepConfig(**{**data, "lineup": tuple(data["lineup"]), "parameters": parameters})
 
 
-def _flatten(path: Path, table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten_parameters(path: Path | str, table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     """Parameters by dotted name: an unquoted dotted key (``agent0.c_gap = [...]``) is a
     nested table in TOML, the same parameter as the quoted ``"agent0.c_gap"``."""
     flat: dict[str, Any] = {}
     for key, value in table.items():
         name = f"{prefix}{key}"
-        for inner, values in (_flatten(path, value, f"{name}.") if isinstance(value, dict) else {name: value}).items():
+        nested = flatten_parameters(path, value, f"{name}.") if isinstance(value, dict) else {name: value}
+        for inner, values in nested.items():
             if inner in flat:
                 raise ValueError(f"{path}: parameter {inner!r} is given twice (quoted and unquoted)")
             flat[inner] = values

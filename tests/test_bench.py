@@ -339,8 +339,16 @@ def test_jax_learner_row_times_updates_after_the_compiling_one():
     assert row["races"] == "compiled" and row["steps"] == 2 * 16 * 8
     assert row["steps_per_s"] > 0 and row["first_update_s"] > 0
     assert bench._target_verdict(row) is not None
+
+
+@pytest.mark.slow  # the host races' training compiles apart (about 15 s)
+def test_the_jax_learner_row_races_on_the_host_when_asked():
+    from experiments import bench_rl
+
+    small = (("n_steps", 16), ("batch_size", 64), ("n_epochs", 1))
     host = bench_rl.jax_training_row("lane-keeping", 8, updates=2, hyperparameters=small, host=True)
     assert host["races"] == "host" and host["name"] == "jax_ppo_lane-keeping_B8_host" and host["steps"] == 2 * 16 * 8
+    assert host["steps_per_s"] > 0 and host["first_update_s"] > 0
 
 
 @pytest.mark.slow  # a child process compiles the parts and the whole iteration (about 2 min)
