@@ -263,7 +263,7 @@ def machine_info() -> dict[str, Any]:
 
     from planners.compile_cache import compile_cache_dir
 
-    return {"platform": platform.platform(), "cpu": _cpu_model(), "cpu_count": os.cpu_count(),
+    return {"platform": platform.platform(), "cpu": cpu_model(), "cpu_count": os.cpu_count(),
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
             "python": platform.python_version(), "jax": jax.__version__,
             "devices": [str(d) for d in jax.devices()],
@@ -272,7 +272,7 @@ def machine_info() -> dict[str, Any]:
             "compile_cache": compile_cache_dir()}
 
 
-def _cpu_model() -> str:
+def cpu_model() -> str:
     """The CPU's model name: ``/proc/cpuinfo`` on Linux, else :func:`platform.processor`."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():

@@ -30,9 +30,20 @@ MEASURES: dict[str, Callable[[dict[str, Any], dict[str, Any]], float]] = {
     "contact": lambda car, race: float(car["collision_steps"] > 0),
     "time off track [s]": lambda car, race: float(car["time_off_track"]),
     "passes made": lambda car, race: float(car["overtakes"]),
+    "margin [s]": lambda car, race: _margin(car, race["cars"]),
+    "lap time over the limit": lambda car, race: np.nan if car.get("limit_ratio") is None else float(car["limit_ratio"]),
 }
 """Measure name -> its value for one car's record in one race (``blocks``: NaN in a record
-made before :mod:`racing_env.blocking`)."""
+made before :mod:`racing_env.blocking`; ``margin [s]``: the other car's finish time less
+this car's, NaN unless both finished; ``lap time over the limit``: the finish time over the
+car class's lap-time limit, NaN unfinished)."""
+
+
+def _margin(car: dict[str, Any], cars: Sequence[dict[str, Any]]) -> float:
+    others = [other for other in cars if other is not car]
+    if len(others) != 1 or car["finish_time"] is None or others[0]["finish_time"] is None:
+        return float("nan")
+    return float(others[0]["finish_time"] - car["finish_time"])
 
 
 @dataclasses.dataclass(frozen=True)

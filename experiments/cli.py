@@ -290,6 +290,32 @@ def _cmd_study(args: argparse.Namespace) -> int:
     return 130 if report["interrupted"] else 0
 
 
+def _cmd_study_report(args: argparse.Namespace) -> int:
+    import json as json_module
+
+    from experiments.outlook import write_page
+    from experiments.study import CONFIG
+
+    run = Path(args.run)
+    if not (run / CONFIG).is_file():
+        raise ValueError(f"{run} is not a study's run folder (racing study run --out): it has no {CONFIG}")
+    study_file = args.study or f"docs/studies/{json_module.loads((run / CONFIG).read_text())['name']}.toml"
+    path = write_page(run, Path(args.page), study_file, Path(args.figures) if args.figures else None)
+    print(f"wrote {path}" + (f" and its figures in {args.figures}" if args.figures else ""), file=sys.stderr)
+    return 0
+
+
+def _cmd_study_check(args: argparse.Namespace) -> int:
+    from experiments.outlook import check_page
+
+    differences = check_page(Path(args.page), Path(args.run))
+    for line in differences:
+        print(line, file=sys.stderr)
+    print(f"{args.page}: " + (f"{len(differences)} line(s) differ from {args.run}" if differences
+                              else f"every number matches {args.run}"), file=sys.stderr)
+    return 1 if differences else 0
+
+
 def _cmd_cars(args: argparse.Namespace) -> int:
     from experiments.cars import car_rows, print_cars, write_limits_page
     from racing_env.track import circuit_names
@@ -798,10 +824,11 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.set_defaults(func=_cmd_sweep)
 
     study = sub.add_parser(
-        "study", help="a declared study of several sweeps, raced as one resumable run (`racing study run FILE`)",
+        "study", help="a declared study of several sweeps raced as one resumable run, its page and the page's check",
         description="A study is a TOML file of named parts, each a sweep (docs/sweeps.md#studies). "
         "racing study run races every part's races as one run: records go to OUT/results.jsonl as races end, one "
-        "progress bar with the time left covers the whole study, rerunning the same command resumes it.",
+        "progress bar with the time left covers the whole study, rerunning the same command resumes it. "
+        "racing study report writes its page from the run folder; racing study check compares a page with it.",
     )
     study_commands = study.add_subparsers(dest="study_command", metavar="SUBCOMMAND", required=True)
     study_run = study_commands.add_parser(
@@ -814,6 +841,28 @@ def build_parser() -> argparse.ArgumentParser:
     study_run.add_argument("--out", default=None, help="output folder (default: runs/study/<the study's name>)")
     study_run.add_argument("--fresh", action="store_true", help="discard earlier races in --out and start over")
     study_run.set_defaults(func=_cmd_study)
+    study_report = study_commands.add_parser(
+        "report", help="write a study's page from its run folder",
+        description="Write the page of a study of the paper's outlook (experiments.outlook: its parts named duel-*, "
+        "fields, place-*) from its run folder: per agent and car class, head to head, every claim with its "
+        "interval and verdict, fields and place-switched weights; with --figures, the win-rate matrix, the "
+        "margins' distributions and, from the replays, a map per car class of where on each circuit the duels' "
+        "passes happened, as PNGs.",
+    )
+    study_report.add_argument("run", metavar="RUN", help="the study's run folder (racing study run --out)")
+    study_report.add_argument("--page", required=True, help="the Markdown page to write, e.g. docs/experiments/outlook.md")
+    study_report.add_argument("--figures", default=None, help="folder of the figures (default: none drawn)")
+    study_report.add_argument("--study", default=None,
+                              help="how the page names the study's file (default: docs/studies/<its name>.toml)")
+    study_report.set_defaults(func=_cmd_study_report)
+    study_check = study_commands.add_parser(
+        "check", help="check every number of a study's page against its run folder",
+        description="Compute the page again from RUN and compare it line by line with PAGE; exit status 1 and the "
+        "differing lines if any number differs.",
+    )
+    study_check.add_argument("page", metavar="PAGE", help="a page written by racing study report")
+    study_check.add_argument("--run", required=True, help="the run folder the page was written from")
+    study_check.set_defaults(func=_cmd_study_check)
 
     bench = sub.add_parser(
         "bench", help="performance figures as JSON (stdout) and a table (stderr)",

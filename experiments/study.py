@@ -48,6 +48,7 @@ import functools
 import json
 import re
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +66,7 @@ else:  # pragma: no cover - Python 3.10
 RESULTS = "results.jsonl"
 CONFIG = "study.json"
 SUMMARY = "summary.json"
+RUN_LOG = "run.json"  # each invocation of the run: commit, machine, start, seconds, races run
 STUDY_KEYS = ("name", "question", "shared", "part")
 PART_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")  # a part's name: a folder-safe word, no "/"
 
@@ -177,12 +179,42 @@ def summarize_study(study: StudyConfig, records: list[dict[str, Any]]) -> dict[s
             for name, sweep in study.parts}
 
 
+def source_commit() -> str | None:
+    """The commit of the code that runs (``git describe --always --dirty`` of the package's
+    checkout; None outside a git checkout)."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        done = subprocess.run(["git", "describe", "--always", "--dirty", "--abbrev=7"], cwd=root,
+                              capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return (done.stdout.strip() or None) if done.returncode == 0 else None
+
+
+def _log_invocation(out: Path, started: float, seconds: float, races: int, backend: str, workers: int) -> None:
+    """Append this invocation to ``out/run.json`` (what a page says the study ran on)."""
+    import datetime
+    import os
+
+    from experiments.bench import cpu_model
+
+    path = out / RUN_LOG
+    log = json.loads(path.read_text()) if path.exists() else {"invocations": []}
+    log["invocations"].append({
+        "started": datetime.datetime.fromtimestamp(started, datetime.timezone.utc).isoformat(timespec="seconds"),
+        "seconds": round(seconds, 1), "races": races, "commit": source_commit(), "cpu": cpu_model(),
+        "cpu_count": os.cpu_count(), "backend": backend, "workers": workers})
+    replace_atomically(lambda partial: partial.write_text(json.dumps(log, indent=1)), path)
+
+
 def run_study(study: StudyConfig, out: Path, backend: str = "local", workers: int = 1, address: str | None = None,
               fresh: bool = False, progress: bool = True) -> dict[str, Any]:
     """Run (or resume) a study into ``out``; returns ``{"races": done, "scheduled": total,
     "interrupted": bool, "parts": summaries}`` and writes ``results.jsonl`` (one record per
-    race), ``study.json`` (its settings), ``summary.json`` and every race's replay in
-    ``replays/``.
+    race), ``study.json`` (its settings), ``summary.json``, ``run.json`` (each invocation's
+    commit, machine, start, seconds and races) and every race's replay in ``replays/``.
 
     Raises:
         ValueError: a bad backend, an agent spec or race the parts cannot make, or ``out``
@@ -203,8 +235,10 @@ def run_study(study: StudyConfig, out: Path, backend: str = "local", workers: in
         log = JobLog(out, schedule(study), log=RESULTS, settings_file=CONFIG, settings=_settings(study),
                      what="study", fresh=fresh, outputs=(SUMMARY,))
         log.announce(console)
+        started, done_before = time.time(), len(log.done)
         interrupted = log.run(functools.partial(run_study_job, study), backend, workers, address, progress=progress,
                               desc=study.name)
+        _log_invocation(out, started, time.time() - started, len(log.done) - done_before, backend, workers)
         records = log.records()
         parts = summarize_study(study, records)
         summary = {"study": study.name, "races": len(records), "scheduled": len(log.jobs), "parts": parts}
