@@ -850,7 +850,7 @@ def build_parser() -> argparse.ArgumentParser:
         "passes happened, as PNGs.",
     )
     study_report.add_argument("run", metavar="RUN", help="the study's run folder (racing study run --out)")
-    study_report.add_argument("--page", required=True, help="the Markdown page to write, e.g. docs/experiments/outlook.md")
+    study_report.add_argument("--page", required=True, help="the Markdown page to write (e.g. outlook.md in docs/experiments)")
     study_report.add_argument("--figures", default=None, help="folder of the figures (default: none drawn)")
     study_report.add_argument("--study", default=None,
                               help="how the page names the study's file (default: docs/studies/<its name>.toml)")

@@ -1,5 +1,5 @@
-"""The page of a study of the seed paper's outlook (docs/experiments/outlook.md), generated
-from the study's run folder, and the check of a page against its run.
+"""The page of a study of the seed paper's outlook (the study of docs/studies/outlook.toml),
+generated from the study's run folder, and the check of a page against its run.
 
 The study (:mod:`experiments.study`, e.g. ``docs/studies/outlook.toml``) names its parts by
 what they race: ``duel-*`` two agents against each other, ``fields`` fields of the same
