@@ -233,8 +233,8 @@ def page(run: Run, run_name: str, study_file: str, figures: str | None = None,
     lines += _provenance(run, study_file)
     lines += ["## Agents in their duels", "",
               "Each agent over all its duels (both slots, every circuit), per car class: the win rate with its 95% "
-              "Wilson interval, the others with 95% bootstrap intervals (margins and lap times over races both cars "
-              "finished).", ""]
+              "Wilson interval, the others with 95% bootstrap intervals (margins over the races both cars finished, "
+              "lap times over the limit over the races the car finished).", ""]
     for scope in ("all", "av21", "paper"):
         scoped = [row for row, point in duels if in_scope(point, scope, classes)]
         if not scoped:
