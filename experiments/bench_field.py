@@ -15,7 +15,7 @@ the default, and of the default in float32, over that with every car predicted i
 
 :func:`vector_field_rows`: the vectorised env with fields of coasting cars (random learner
 actions) beside two cars, at the same batch, each with contact physics and with ghost cars
-(no contact checks, no penalties): what the contact checks over all pairs of cars cost.
+(no collision, no penalties): what colliding the cars, pair by pair, costs.
 """
 
 from __future__ import annotations

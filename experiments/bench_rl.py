@@ -405,7 +405,8 @@ def jax_training_row(opponent: str, envs: int, updates: int = 4, target: float |
     seconds = time.perf_counter() - start
     races.close()
     steps = updates * settings.n_steps * envs
-    return {"name": f"jax_ppo_{opponent}_B{envs}" + ("_host" if host else ""), "opponent": opponent, "envs": envs, "races": races.kind,
+    return {"name": f"jax_ppo_{opponent}_B{envs}" + ("_host" if host else ""), "opponent": opponent, "envs": envs,
+            "races": races.kind,
             "steps_per_s": steps / seconds, "steps": steps, "first_update_s": compile_s,
             "n_steps": settings.n_steps, "batch_size": settings.batch_size, "n_epochs": settings.n_epochs,
             "target_steps_per_s": target}
