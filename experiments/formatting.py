@@ -3,7 +3,7 @@ progress lines and reports."""
 
 from __future__ import annotations
 
-from typing import Iterable
+from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -28,3 +28,9 @@ def or_dash(value: float | None, form: str) -> str:
     """``form`` (a ``str.format`` template such as ``"{:+.2f} s"``) applied to ``value``, or
     ``-`` when there is no value (e.g. a mean over no finished races)."""
     return "-" if value is None else form.format(value)
+
+
+def markdown_table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> list[str]:
+    """A Markdown table's lines: the header, its rule and one line per row of cells."""
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header),
+            *("| " + " | ".join(row) + " |" for row in rows)]

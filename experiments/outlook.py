@@ -39,6 +39,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from experiments.claims import CarRace, MEASURES, Mean, agent_mean, compare, head_to_head
+from experiments.formatting import markdown_table
 from experiments.jsonl import read_jsonl
 from experiments.standings import wilson_interval, won_race
 from experiments.study import CONFIG, RESULTS, RUN_LOG
@@ -184,8 +185,7 @@ def _mean(mean: Mean, form: str) -> str:
 
 
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
-    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header),
-            *("| " + " | ".join(row) + " |" for row in rows), ""]
+    return [*markdown_table(header, rows), ""]
 
 
 FORMS = {"win": "{:.2f}", "margin [s]": "{:+.2f}", "at-fault incidents": "{:.2f}", "time off track [s]": "{:.2f}",
@@ -212,7 +212,7 @@ def judge(claim: Claim, rows: Sequence[CarRace]) -> str:
         return "not measured"
     form = FORMS[claim.measure].replace(":", ":+") if "+" not in FORMS[claim.measure] else FORMS[claim.measure]
     return (f"{form.format(comparison.difference)} [{form.format(comparison.low)}, {form.format(comparison.high)}] "
-            f"of {comparison.pairs} pairs: {_verdict(comparison.low, comparison.high, 0.0)}")
+            f"of {comparison.pairs} pairs: {comparison.verdict}")
 
 
 # --- the page ---------------------------------------------------------------------------------------
@@ -393,7 +393,8 @@ def duel_passes(folder: Path) -> list[dict[str, Any]]:
         record = race["record"]
         if not record["part"].startswith("duel-"):
             continue
-        name, car = run.point(record)["track"], run.point(record)["car"]
+        point = run.point(record)
+        name, car = point["track"], point["car"]
         track = get_track(name)
         if (name, car) not in zones:
             zones[name, car] = track_zones(track, get_car(car))[0]

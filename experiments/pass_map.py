@@ -160,13 +160,12 @@ def pass_table(passes: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def format_table(rows: Sequence[dict[str, Any]]) -> str:
     """``rows`` (:func:`pass_table`) as a Markdown table: made and suffered per zone."""
+    from experiments.formatting import markdown_table
+
     head = ["agent", *(f"made: {z}" for z in ZONES), "made", *(f"suffered: {z}" for z in ZONES), "suffered"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        cells = [r["agent"], *(str(r["made"][z]) for z in ZONES), str(r["made_total"]),
-                 *(str(r["suffered"][z]) for z in ZONES), str(r["suffered_total"])]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    cells = ([r["agent"], *(str(r["made"][z]) for z in ZONES), str(r["made_total"]),
+              *(str(r["suffered"][z]) for z in ZONES), str(r["suffered_total"])] for r in rows)
+    return "\n".join(markdown_table(head, cells))
 
 
 def plot_pass_map(track, passes: Sequence[dict[str, Any]], path: Path, zones: np.ndarray | None = None,
