@@ -193,8 +193,7 @@ FORMS = {"win": "{:.2f}", "margin [s]": "{:+.2f}", "at-fault incidents": "{:.2f}
 
 
 def _verdict(low: float, high: float, middle: float) -> str:
-    if not (np.isfinite(low) and np.isfinite(high)):
-        return "not measurable"
+    """A win rate's verdict against one half (``middle``) from its Wilson interval."""
     return "reproduced" if low > middle else "refuted" if high < middle else "not separated"
 
 
