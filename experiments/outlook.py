@@ -276,10 +276,16 @@ def _provenance(run: Run, study_file: str) -> list[str]:
     machines = sorted({f"{i['cpu']} ({i['cpu_count']} CPUs), {i['backend']} backend, workers: {i['workers']}"
                        for i in invocations})
     parts = run.settings.get("parts", {})
+    timed = sum(i["races"] for i in invocations)
+    untimed = len(run.records) - timed
+    pace = f", {seconds / timed:.1f} s a race" if timed else ""
     return [f"**Study:** `{study_file}` ({len(parts)} parts); {len(run.records)} races recorded.", "",
-            f"**Ran:** {len(invocations)} invocation(s) of `racing study run`, {seconds / 3600:.2f} h in all; "
-            f"commit(s) {', '.join(f'`{c}`' for c in commits) or 'unknown'}; {'; '.join(machines) or 'machine unknown'}.",
-            ""]
+            f"**Ran:** {len(invocations)} invocation(s) of `racing study run`, {seconds / 3600:.2f} h for "
+            f"{timed} races{pace}"
+            + (f" ({untimed} more races were run by invocations killed before they logged their time)"
+               if untimed > 0 else "")
+            + f"; commit(s) {', '.join(f'`{c}`' for c in commits) or 'unknown'}; "
+            f"{'; '.join(machines) or 'machine unknown'}.", ""]
 
 
 def _class_line(classes: dict[str, dict[str, str]]) -> str:

@@ -65,13 +65,20 @@ class JobLog:
         append_jsonl(self.path, record)
         self.done[record["id"]] = record
 
+    def _record(self, record: dict[str, Any], bar: Any, on_record: Callable[[dict[str, Any]], None] | None) -> None:
+        self.add(record)
+        bar.update(1)
+        if on_record is not None:
+            on_record(record)
+
     def records(self) -> list[dict[str, Any]]:
         """The recorded jobs' records in schedule order."""
         return [self.done[job["id"]] for job in self.jobs if job["id"] in self.done]
 
     def run(self, function: Callable[[dict[str, Any]], dict[str, Any]], backend: str = "local", workers: int = 1,
             address: str | None = None, progress: bool = True, desc: str = "jobs",
-            here_first: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> bool:
+            here_first: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
+            on_record: Callable[[dict[str, Any]], None] | None = None) -> bool:
         """Run the jobs still to do, recording each as it ends, with a progress bar; returns
         whether Ctrl-C stopped the run (what was done is kept, the backend's workers are
         stopped).
@@ -79,6 +86,7 @@ class JobLog:
         ``function(job)`` makes a job's record on the backend (it must be importable by name:
         :func:`experiments.backends.run_jobs`). ``here_first``: the first job to do runs in
         this process through this function instead (e.g. one that also draws the race).
+        ``on_record(record)`` is called after each record is written.
         """
         from tqdm import tqdm
 
@@ -86,14 +94,12 @@ class JobLog:
         with tqdm(total=len(todo), desc=desc, disable=not progress) as bar:
             try:
                 if here_first is not None and todo:
-                    self.add(here_first(todo[0]))
+                    self._record(here_first(todo[0]), bar, on_record)
                     todo = todo[1:]
-                    bar.update(1)
                 records = run_jobs(function, todo, backend, workers, address)
                 try:
                     for record in records:
-                        self.add(record)
-                        bar.update(1)
+                        self._record(record, bar, on_record)
                 finally:
                     records.close()  # at an interruption: stops the workers or the Ray tasks
             except KeyboardInterrupt:

@@ -193,20 +193,33 @@ def source_commit() -> str | None:
     return (done.stdout.strip() or None) if done.returncode == 0 else None
 
 
-def _log_invocation(out: Path, started: float, seconds: float, races: int, backend: str, workers: int) -> None:
-    """Append this invocation to ``out/run.json`` (what a page says the study ran on)."""
-    import datetime
-    import os
+class _Invocation:
+    """This invocation's entry in ``out/run.json`` (what a page says the study ran on): its
+    start, commit and machine, and the seconds and races so far, rewritten after every race
+    so that a run killed without clean-up still leaves the time of the races it recorded."""
 
-    from experiments.bench import cpu_model
+    def __init__(self, out: Path, backend: str, workers: int) -> None:
+        import datetime
+        import os
 
-    path = out / RUN_LOG
-    log = json.loads(path.read_text()) if path.exists() else {"invocations": []}
-    log["invocations"].append({
-        "started": datetime.datetime.fromtimestamp(started, datetime.timezone.utc).isoformat(timespec="seconds"),
-        "seconds": round(seconds, 1), "races": races, "commit": source_commit(), "cpu": cpu_model(),
-        "cpu_count": os.cpu_count(), "backend": backend, "workers": workers})
-    replace_atomically(lambda partial: partial.write_text(json.dumps(log, indent=1)), path)
+        from experiments.bench import cpu_model
+
+        self.path, self.started = out / RUN_LOG, time.time()
+        self.log = json.loads(self.path.read_text()) if self.path.exists() else {"invocations": []}
+        self.entry = {
+            "started": datetime.datetime.fromtimestamp(self.started, datetime.timezone.utc).isoformat(timespec="seconds"),
+            "seconds": 0.0, "races": 0, "commit": source_commit(), "cpu": cpu_model(),
+            "cpu_count": os.cpu_count(), "backend": backend, "workers": workers}
+        self.log["invocations"].append(self.entry)
+        self._write()
+
+    def update(self, races: int) -> None:
+        """Record ``races`` done so far by this invocation and the seconds since it started."""
+        self.entry.update(seconds=round(time.time() - self.started, 1), races=races)
+        self._write()
+
+    def _write(self) -> None:
+        replace_atomically(lambda partial: partial.write_text(json.dumps(self.log, indent=1)), self.path)
 
 
 def run_study(study: StudyConfig, out: Path, backend: str = "local", workers: int = 1, address: str | None = None,
@@ -235,10 +248,10 @@ def run_study(study: StudyConfig, out: Path, backend: str = "local", workers: in
         log = JobLog(out, schedule(study), log=RESULTS, settings_file=CONFIG, settings=_settings(study),
                      what="study", fresh=fresh, outputs=(SUMMARY,))
         log.announce(console)
-        started, done_before = time.time(), len(log.done)
+        invocation, done_before = _Invocation(out, backend, workers), len(log.done)
         interrupted = log.run(functools.partial(run_study_job, study), backend, workers, address, progress=progress,
-                              desc=study.name)
-        _log_invocation(out, started, time.time() - started, len(log.done) - done_before, backend, workers)
+                              desc=study.name, on_record=lambda _: invocation.update(len(log.done) - done_before))
+        invocation.update(len(log.done) - done_before)
         records = log.records()
         parts = summarize_study(study, records)
         summary = {"study": study.name, "races": len(records), "scheduled": len(log.jobs), "parts": parts}

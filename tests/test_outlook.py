@@ -83,6 +83,16 @@ def test_a_changed_record_fails_the_check(tmp_path):
     assert check_page(PAGE, run) != []
 
 
+def test_the_page_says_how_many_races_its_run_log_did_not_time(tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(RUN, run)
+    log = json.loads((run / "run.json").read_text())
+    log["invocations"][0]["races"] -= 5  # five races of an invocation killed before it logged them
+    (run / "run.json").write_text(json.dumps(log))
+    text = page(Run.read(run), run_name="run", study_file="study.toml")
+    assert "for 33 races" in text and "(5 more races were run by invocations killed before" in text
+
+
 def test_a_page_not_written_by_the_report_is_refused(tmp_path):
     other = tmp_path / "page.md"
     other.write_text("# a page\n")

@@ -93,10 +93,16 @@ def test_a_killed_study_resumes_without_repeating_a_race(tmp_path):
     before = [r["id"] for r in read_jsonl(results)]
     scheduled = [job["id"] for job in load_study(path).schedule()]
     assert 3 <= len(before) < len(scheduled)
+    # the killed invocation logged its races as they ended: all of them, or all but one when the
+    # kill fell between a record's line and the log's rewrite
+    (killed,) = json.loads((out / study_module.RUN_LOG).read_text())["invocations"]
+    assert len(before) - 1 <= killed["races"] <= len(before) and killed["seconds"] > 0
     assert main(["study", "run", str(path), "--out", str(out), "--no-compile-cache"]) == 0
     after = [r["id"] for r in read_jsonl(results)]
     assert after[: len(before)] == before  # the races run before the kill were kept, not run again
     assert sorted(after) == sorted(scheduled) and len(set(after)) == len(after)
+    resumed = json.loads((out / study_module.RUN_LOG).read_text())["invocations"][1]
+    assert resumed["races"] == len(scheduled) - len(before)
 
 
 @pytest.mark.parametrize("text, message", [
