@@ -141,6 +141,19 @@ def compare(rows: Sequence[CarRace], a: str, b: str, measure: str) -> Comparison
     against the same opponent (neither of them), circuit, grid and slot."""
     mine = {r.key: r.values[measure] for r in rows if r.agent == a and r.opponent not in (a, b)}
     theirs = {r.key: r.values[measure] for r in rows if r.agent == b and r.opponent not in (a, b)}
+    return _paired(a, b, measure, mine, theirs)
+
+
+def duel_difference(rows: Sequence[CarRace], a: str, b: str, measure: str) -> Comparison:
+    """``a``'s ``measure`` less ``b``'s in the same race, over their duels (``a`` against
+    ``b``: each race's two cars, matched by circuit, grid and the two start slots 1 and 2)."""
+    mine = {(r.track, r.grid, r.slot): r.values[measure] for r in rows if r.agent == a and r.opponent == b}
+    theirs = {(r.track, r.grid, 3 - r.slot): r.values[measure] for r in rows if r.agent == b and r.opponent == a}
+    return _paired(a, b, measure, mine, theirs)
+
+
+def _paired(a: str, b: str, measure: str, mine: dict[Any, float], theirs: dict[Any, float]) -> Comparison:
+    """The comparison of the values under the keys both hold (NaN on either side: left out)."""
     keys = sorted(k for k in mine.keys() & theirs.keys() if not (np.isnan(mine[k]) or np.isnan(theirs[k])))
     diffs = np.array([mine[k] - theirs[k] for k in keys])
     low, high = bootstrap_interval(diffs)

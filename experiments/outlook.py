@@ -17,16 +17,21 @@ run log (``run.json``) the page gives:
 * every claim of the paper's outlook and of Rowold et al. (arXiv 2402.01918) as a head-to-head
   win rate or a paired comparison against the same opponents (:func:`experiments.claims.compare`),
   overall, per car class and per circuit class (fast or slow, many or few corners: each
-  half of the study's circuits by the paper car's mean speed at its lap-time limit and by
+  half of the study's circuits by the AV-21's mean speed at its lap-time limit and by
   :func:`racing_env.track.count_corners`), with its verdict: reproduced, refuted or not
-  separated (the interval contains no difference);
+  separated (the interval contains no difference); the verdicts also as one table at the
+  top, and for a head-to-head claim the other measures in the same races
+  (:func:`experiments.claims.duel_difference`);
 * the fields (mean place per agent) and the place-switched weights (win rate against the
   unswitched planner).
 
 ``racing study report RUN --page PAGE [--figures DIR]`` writes the page (and its figures);
 ``racing study check PAGE --run RUN`` computes the page again from RUN and compares it line
 by line: every number on it comes from the run, so a changed number (or a run that changed)
-fails the check. The figures are drawn from the same numbers and are not compared.
+fails the check. The figures are drawn from the same numbers and are not compared. The
+authors' reading of the results, between the lines ``<!-- reading -->`` and
+``<!-- /reading -->``, is prose: the report keeps it where it was when it writes the page
+again, and the check leaves it out.
 """
 
 from __future__ import annotations
@@ -38,7 +43,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from experiments.claims import CarRace, MEASURES, Mean, agent_mean, compare, head_to_head
+from experiments.claims import (CarRace, Comparison, MEASURES, Mean, agent_mean, compare, duel_difference,
+                                head_to_head)
 from experiments.formatting import markdown_table
 from experiments.jsonl import read_jsonl
 from experiments.standings import wilson_interval, won_race
@@ -200,18 +206,49 @@ def _verdict(low: float, high: float, middle: float) -> str:
 def judge(claim: Claim, rows: Sequence[CarRace]) -> str:
     """A claim's cell on ``rows``: the head-to-head win rate with its interval, or the paired
     difference with its interval, and the verdict."""
+    return _assess(claim, rows)[0]
+
+
+def _assess(claim: Claim, rows: Sequence[CarRace]) -> tuple[str, str]:
+    """A claim's cell on ``rows`` (:func:`judge`) and its verdict alone (``not raced``: no
+    duel of the two, ``not measured``: no matched races)."""
     if claim.measure is None:
         wins = [r.values["win"] for r in rows if r.agent == claim.a and r.opponent == claim.b]
         if not wins:
-            return "not raced"
+            return "not raced", "not raced"
         low, high = wilson_interval(int(sum(wins)), len(wins))
-        return f"{np.mean(wins):.2f} [{low:.2f}, {high:.2f}] of {len(wins)}: {_verdict(low, high, 0.5)}"
+        verdict = _verdict(low, high, 0.5)
+        return f"{np.mean(wins):.2f} [{low:.2f}, {high:.2f}] of {len(wins)}: {verdict}", verdict
     comparison = compare(rows, claim.a, claim.b, claim.measure)
     if comparison.pairs == 0:  # no matched races, or the measure undefined in them (a lap time: no full laps)
-        return "not measured"
-    form = FORMS[claim.measure].replace(":", ":+") if "+" not in FORMS[claim.measure] else FORMS[claim.measure]
-    return (f"{form.format(comparison.difference)} [{form.format(comparison.low)}, {form.format(comparison.high)}] "
-            f"of {comparison.pairs} pairs: {comparison.verdict}")
+        return "not measured", "not measured"
+    return f"{_difference(comparison)} of {comparison.pairs} pairs: {comparison.verdict}", comparison.verdict
+
+
+def _difference(comparison: Comparison) -> str:
+    """A comparison's difference with its interval, signed."""
+    form = FORMS[comparison.measure]
+    form = form if "+" in form else form.replace(":", ":+")
+    return f"{form.format(comparison.difference)} [{form.format(comparison.low)}, {form.format(comparison.high)}]"
+
+
+def _in_their_duels(claim: Claim, duels: Sequence[tuple[CarRace, dict[str, str]]],
+                    classes: dict[str, dict[str, str]]) -> list[str]:
+    """A head-to-head claim's other measures, per scope: ``a``'s margin over ``b`` and ``a``'s
+    at-fault incidents, time off the track and lap time over the limit less ``b``'s in the
+    same race, with 95% bootstrap intervals."""
+    table = []
+    for scope in SCOPES:
+        rows = [row for row, point in duels if in_scope(point, scope, classes)]
+        margin = agent_mean(rows, claim.a, "margin [s]", opponents=[claim.b])
+        cells = [_mean(margin, FORMS["margin [s]"])]
+        for measure in PER_RACE[2:]:
+            comparison = duel_difference(rows, claim.a, claim.b, measure)
+            cells.append(f"{_difference(comparison)} ({comparison.pairs})" if comparison.pairs else "-")
+        table.append([scope, *cells])
+    return [f"In their duels: {claim.a}'s margin over {claim.b}, and {claim.a}'s measure less {claim.b}'s in the "
+            "same race (races).", "", *_table(["races", "margin [s]", *(f"{m}, difference" for m in PER_RACE[2:])],
+                                               table)]
 
 
 # --- the page ---------------------------------------------------------------------------------------
@@ -229,7 +266,12 @@ def page(run: Run, run_name: str, study_file: str, figures: str | None = None,
     lines = [f"# {run.settings['question']}", "",
              f"<!-- generated by `racing study report {run_name} --page PAGE`; every number below comes from that "
              f"run folder: `racing study check PAGE --run {run_name}` -->", ""]
-    lines += _provenance(run, study_file)
+    lines += _provenance(run, run_name, study_file)
+    lines += ["## Verdicts", "",
+              "Each claim (below, with its numbers) on every duel, each car class and each circuit class.", ""]
+    lines += _table(["claim", *SCOPES], [[claim.text, *(_assess(claim, [row for row, point in duels
+                                                                         if in_scope(point, scope, classes)])[1]
+                                                       for scope in SCOPES)] for claim in CLAIMS])
     lines += ["## Agents in their duels", "",
               "Each agent over all its duels (both slots, every circuit), per car class: the win rate with its 95% "
               "Wilson interval, the others with 95% bootstrap intervals (margins over the races both cars finished, "
@@ -264,12 +306,14 @@ def page(run: Run, run_name: str, study_file: str, figures: str | None = None,
         lines += _table(["races", "result"], [[scope, judge(claim, [row for row, point in duels
                                                                      if in_scope(point, scope, classes)])]
                                               for scope in SCOPES])
+        if claim.measure is None and any(row.agent == claim.a and row.opponent == claim.b for row in rows):
+            lines += _in_their_duels(claim, duels, classes)
     lines += _fields(run.part_records("fields"))
     lines += _place(run)
     return "\n".join(lines).rstrip() + "\n"
 
 
-def _provenance(run: Run, study_file: str) -> list[str]:
+def _provenance(run: Run, run_name: str, study_file: str) -> list[str]:
     invocations = run.log.get("invocations", [])
     seconds = sum(i["seconds"] for i in invocations)
     commits = sorted({i["commit"] for i in invocations if i.get("commit")})
@@ -279,7 +323,8 @@ def _provenance(run: Run, study_file: str) -> list[str]:
     timed = sum(i["races"] for i in invocations)
     untimed = len(run.records) - timed
     pace = f", {seconds / timed:.1f} s a race" if timed else ""
-    return [f"**Study:** `{study_file}` ({len(parts)} parts); {len(run.records)} races recorded.", "",
+    return [f"**Study:** `{study_file}` ({len(parts)} parts); {len(run.records)} races recorded. Reproduce: "
+            f"`racing study run {study_file} --out {run_name}`, then `racing study report {run_name} --page PAGE`.", "",
             f"**Ran:** {len(invocations)} invocation(s) of `racing study run`, {seconds / 3600:.2f} h for "
             f"{timed} races{pace}"
             + (f" ({untimed} more races were run by invocations killed before they logged their time)"
@@ -464,12 +509,42 @@ def write_page(run_folder: Path, page_path: Path, study_file: str, figures: Path
         circuits = sorted({run.point(r)["track"] for r in run.part_records("duel-")})
         pass_maps = [path.name for path in draw_pass_maps(passes, circuits, figures)] if passes else []
     text = page(run, run_folder.name, study_file, relative, pass_maps)
+    reading = _reading(page_path.read_text()) if page_path.is_file() else []
+    if reading:  # the authors' reading of the page before, kept in its place
+        lines = text.splitlines()
+        at = lines.index(_READING_BEFORE)
+        text = "\n".join(lines[:at] + reading + [""] + lines[at:]) + "\n"
     page_path.parent.mkdir(parents=True, exist_ok=True)
     page_path.write_text(_with_source(text, run_folder, study_file, relative, pass_maps))
     return page_path
 
 
 _SOURCE = "<!-- source: "
+READING_START, READING_END = "<!-- reading -->", "<!-- /reading -->"
+"""The lines that open and close the authors' reading of a page: prose the report keeps when
+it writes the page again (before the per-agent tables) and the check leaves out."""
+_READING_BEFORE = "## Agents in their duels"
+
+
+def _reading(text: str) -> list[str]:
+    """The lines of a page's reading, its markers included (none: the page has none)."""
+    lines = text.splitlines()
+    if READING_START not in lines:
+        return []
+    start = lines.index(READING_START)
+    if READING_END not in lines[start:]:
+        raise ValueError(f"the page's reading opens with {READING_START} and never closes with {READING_END}")
+    return lines[start: lines.index(READING_END, start) + 1]
+
+
+def _without_reading(text: str) -> list[str]:
+    """A page's lines without its reading and the blank line after it."""
+    lines, reading = text.splitlines(), _reading(text)
+    if not reading:
+        return lines
+    start = lines.index(READING_START)
+    end = start + len(reading) + (1 if start + len(reading) < len(lines) and not lines[start + len(reading)] else 0)
+    return lines[:start] + lines[end:]
 
 
 def _with_source(text: str, run_folder: Path, study_file: str, figures: str | None,
@@ -488,7 +563,8 @@ def _relative(path: Path, start: Path) -> str:
 
 def check_page(page_path: Path, run_folder: Path) -> list[str]:
     """The lines of the page at ``page_path`` that differ from the page computed again from
-    ``run_folder`` (none: every number matches), as ``line N: page '...' / run '...'``."""
+    ``run_folder`` (none: every number matches), as ``line N: page '...' / run '...'`` (N
+    counted without the page's reading, which is prose and not checked)."""
     text = Path(page_path).read_text()
     last = text.rstrip().rsplit("\n", 1)[-1]
     if not last.startswith(_SOURCE):
@@ -497,7 +573,7 @@ def check_page(page_path: Path, run_folder: Path) -> list[str]:
     maps = source.get("pass_maps", [])
     expected = _with_source(page(Run.read(run_folder), source["run"], source["study"], source["figures"], maps),
                             Path(source["run"]), source["study"], source["figures"], maps)
-    have, want = text.splitlines(), expected.splitlines()
+    have, want = _without_reading(text), expected.splitlines()
     differences = [f"line {k + 1}: page {a!r} / run {b!r}" for k, (a, b) in enumerate(zip(have, want)) if a != b]
     if len(have) != len(want):
         differences.append(f"the page has {len(have)} lines, the run gives {len(want)}")

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from experiments.claims import agent_mean, bootstrap_interval, car_races, compare, head_to_head
+from experiments.claims import agent_mean, bootstrap_interval, car_races, compare, duel_difference, head_to_head
 
 
 def _car(agent: str, place: int, start: int, faults: int = 0, blocks: int = 0) -> dict:
@@ -40,6 +40,18 @@ def test_a_paired_difference_is_the_mean_of_the_matched_races_and_says_its_verdi
     safer = compare(rows, "nash", "leader", "at-fault incidents")
     assert safer.difference == -1.0 and safer.verdict == "refuted"
     assert compare(rows, "leader", "nobody", "win").verdict == "not measurable"
+
+
+def test_a_duel_difference_compares_the_two_cars_of_each_race():
+    rows = car_races(_records(), "trefoil")
+    # leader (slot 1) against nash (slot 2) on four grids: nash wins every one
+    wins = duel_difference(rows, "nash", "leader", "win")
+    assert wins.pairs == 4 and (wins.difference, wins.low, wins.high) == (1.0, 1.0, 1.0)
+    assert wins.verdict == "reproduced" and duel_difference(rows, "leader", "nash", "win").verdict == "refuted"
+    # leader against opp: one incident a race for leader, none for opp; nash's duels with opp are not paired
+    faults = duel_difference(rows, "leader", "opp", "at-fault incidents")
+    assert faults.pairs == 4 and faults.difference == 1.0
+    assert duel_difference(rows, "nash", "nobody", "win").pairs == 0
 
 
 def test_means_head_to_head_and_intervals():

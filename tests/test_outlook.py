@@ -93,6 +93,29 @@ def test_the_page_says_how_many_races_its_run_log_did_not_time(tmp_path):
     assert "for 33 races" in text and "(5 more races were run by invocations killed before" in text
 
 
+def test_the_reading_is_kept_by_the_report_and_left_out_by_the_check(tmp_path):
+    page_path = tmp_path / "page.md"
+    shutil.copy(PAGE, page_path)
+    lines = PAGE.read_text().splitlines()
+    at = lines.index("## Agents in their duels")
+    reading = ["<!-- reading -->", "## Reading", "", "Prose with a number the run does not hold: 12.5.", "<!-- /reading -->"]
+    page_path.write_text("\n".join(lines[:at] + reading + [""] + lines[at:]) + "\n")
+    assert check_page(page_path, RUN) == []
+    assert main(["study", "report", str(RUN), "--page", str(page_path), "--study", "tests/data/outlook-small/study.toml"]) == 0
+    written = page_path.read_text().splitlines()
+    assert written[at: at + len(reading) + 1] == reading + [""] and written[at + len(reading) + 1] == lines[at]
+    assert check_page(page_path, RUN) == []
+    # a number outside the reading still fails, counted in the page's lines without the reading
+    row = next(k for k, line in enumerate(written) if line.startswith("| ilqgame-fb |"))
+    written[row] = written[row].replace("0.", "9.", 1)
+    page_path.write_text("\n".join(written) + "\n")
+    (difference,) = check_page(page_path, RUN)
+    assert difference.startswith(f"line {row + 1 - len(reading) - 1}:")
+    page_path.write_text("\n".join(lines[:at] + reading[:-1] + lines[at:]) + "\n")
+    with pytest.raises(ValueError, match="never closes"):
+        check_page(page_path, RUN)
+
+
 def test_a_page_not_written_by_the_report_is_refused(tmp_path):
     other = tmp_path / "page.md"
     other.write_text("# a page\n")
