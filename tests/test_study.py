@@ -72,6 +72,23 @@ def test_a_study_is_its_parts_sweeps_raced_as_one_run(tiny, tmp_path):
     assert summary["parts"]["duels"] == json.loads(json.dumps(summarize(duels, in_sweep)))
 
 
+@pytest.mark.slow  # a real local Ray instance (about 30 s to start); the sweep's Ray leg is slow too
+def test_a_study_on_a_local_ray_cluster_records_what_one_in_this_process_does(tiny, tmp_path):
+    pytest.importorskip("ray")
+    runs = {name: run_study(tiny, tmp_path / name, progress=False, **options)
+            for name, options in {"here": dict(), "ray": dict(backend="ray", workers=2)}.items()}
+    assert runs["ray"]["interrupted"] is False and runs["ray"]["parts"] == runs["here"]["parts"]
+
+    def records(name):  # without the action times, which differ run to run
+        return {r["id"]: {**r, "agents": [{k: v for k, v in car.items() if not k.startswith("act_time")}
+                                          for car in r["agents"]]}
+                for r in read_jsonl(tmp_path / name / study_module.RESULTS)}
+
+    assert records("ray") == records("here")
+    (invocation,) = json.loads((tmp_path / "ray" / study_module.RUN_LOG).read_text())["invocations"]
+    assert (invocation["backend"], invocation["workers"], invocation["races"]) == ("ray", 2, len(tiny.schedule()))
+
+
 def test_a_killed_study_resumes_without_repeating_a_race(tmp_path):
     """SIGKILL to a real `racing study run` mid-run (no clean-up at all): rerun, every race
     is recorded once and the study is complete."""
