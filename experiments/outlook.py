@@ -308,7 +308,7 @@ def page(run: Run, run_name: str, study_file: str, figures: str | None = None,
                                               for scope in SCOPES])
         if claim.measure is None and any(row.agent == claim.a and row.opponent == claim.b for row in rows):
             lines += _in_their_duels(claim, duels, classes)
-    lines += _fields(run.part_records("fields"))
+    lines += _fields(run)
     lines += _place(run)
     return "\n".join(lines).rstrip() + "\n"
 
@@ -339,24 +339,40 @@ def _class_line(classes: dict[str, dict[str, str]]) -> str:
     return f"fast: {names('speed', 'fast')}; many corners: {names('corners', 'many')}"
 
 
-def _fields(records: Sequence[dict[str, Any]]) -> list[str]:
+CAR_SCOPES = ("both", "av21", "paper")
+"""The car classes the fields and the place-switched weights are given for (``both``: pooled)."""
+
+
+def _by_car(run: Run, records: Sequence[dict[str, Any]]) -> list[tuple[str, list[dict[str, Any]]]]:
+    """``records`` pooled and per car class, leaving out a class they do not race."""
+    groups = [(car, [r for r in records if car == "both" or run.point(r)["car"] == car]) for car in CAR_SCOPES]
+    return [(car, group) for car, group in groups if group]
+
+
+def _fields(run: Run) -> list[str]:
+    records = run.part_records("fields")
     if not records:
         return []
-    places: dict[str, list[float]] = {}
-    wins: dict[str, int] = {}
-    for record in records:
-        for car in record["agents"]:
-            name = agent_name(car["agent"])
-            places.setdefault(name, []).append(float(car["place"]))
-            wins[name] = wins.get(name, 0) + int(won_race(car, len(record["agents"])))
-    sizes = sorted({len(r["agents"]) for r in records})
     table = []
-    for name in sorted(places):
-        mean = agent_mean([CarRace(name, "", "", 0, 0, {"place": p}) for p in places[name]], name, "place")
-        table.append([name, str(len(places[name])), _mean(mean, "{:.2f}"), str(wins[name])])
+    for car, group in _by_car(run, records):
+        places: dict[str, list[float]] = {}
+        faults: dict[str, list[float]] = {}
+        wins: dict[str, int] = {}
+        for record in group:
+            for entry in record["agents"]:
+                name = agent_name(entry["agent"])
+                places.setdefault(name, []).append(float(entry["place"]))
+                faults.setdefault(name, []).append(float(entry["faults"]))
+                wins[name] = wins.get(name, 0) + int(won_race(entry, len(record["agents"])))
+        for name in sorted(places):
+            rows = [CarRace(name, "", "", 0, 0, {"place": p, "faults": f}) for p, f in zip(places[name], faults[name])]
+            table.append([name, car, str(len(places[name])), _mean(agent_mean(rows, name, "place"), "{:.2f}"),
+                          str(wins[name]), _mean(agent_mean(rows, name, "faults"), "{:.2f}")])
+    sizes = sorted({len(r["agents"]) for r in records})
     return ["## Fields", "", f"{len(records)} fields of {', '.join(map(str, sizes))} cars: each agent's cars' places "
-            "(mean with its 95% bootstrap interval; cars of one field are not independent, read it as rough).", "",
-            *_table(["agent", "cars raced", "mean place", "wins"], table)]
+            "and at-fault incidents per car (means with 95% bootstrap intervals; cars of one field are not "
+            "independent, read them as rough) and wins, both car classes pooled and each alone.", "",
+            *_table(["agent", "car", "cars raced", "mean place", "wins", "at-fault incidents"], table)]
 
 
 def _place(run: Run) -> list[str]:
@@ -365,19 +381,20 @@ def _place(run: Run) -> list[str]:
         return []
     table = []
     for part in sorted({r["part"] for r in records}):
-        mine = [r for r in records if r["part"] == part]
-        # the switched planner is the lineup's first agent (agent index 0 of the sweep record)
-        wins = [int(won_race(r["agents"][0], 2)) for r in mine]
-        margins = np.array([MEASURES["margin [s]"](r["agents"][0], {"cars": r["agents"]}) for r in mine])
-        low, high = wilson_interval(sum(wins), len(wins))
-        mean_margin = agent_mean([CarRace("s", "", "", 0, 0, {"m": m}) for m in margins], "s", "m")
-        table.append([agent_name(mine[0]["agents"][0]["agent"]), str(len(wins)),
-                      f"{np.mean(wins):.2f} [{low:.2f}, {high:.2f}]: {_verdict(low, high, 0.5)}",
-                      _mean(mean_margin, "{:+.2f}")])
+        for car, mine in _by_car(run, [r for r in records if r["part"] == part]):
+            # the switched planner is the lineup's first agent (agent index 0 of the sweep record)
+            wins = [int(won_race(r["agents"][0], 2)) for r in mine]
+            margins = np.array([MEASURES["margin [s]"](r["agents"][0], {"cars": r["agents"]}) for r in mine])
+            low, high = wilson_interval(sum(wins), len(wins))
+            mean_margin = agent_mean([CarRace("s", "", "", 0, 0, {"m": m}) for m in margins], "s", "m")
+            table.append([agent_name(mine[0]["agents"][0]["agent"]), car, str(len(wins)),
+                          f"{np.mean(wins):.2f} [{low:.2f}, {high:.2f}]: {_verdict(low, high, 0.5)}",
+                          _mean(mean_margin, "{:+.2f}")])
     return ["## Weights switched by place", "",
             "Each game planner with its weights switched by its place against itself unswitched: the switched "
-            "planner's win rate (95% Wilson interval; reproduced: above one half) and mean margin [s].", "",
-            *_table(["planner", "races", "win rate of the switched", "mean margin [s]"], table)]
+            "planner's win rate (95% Wilson interval; reproduced: above one half) and mean margin [s], both car "
+            "classes pooled and each alone.", "",
+            *_table(["planner", "car", "races", "win rate of the switched", "mean margin [s]"], table)]
 
 
 # --- figures ----------------------------------------------------------------------------------------
