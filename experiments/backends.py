@@ -15,6 +15,11 @@ import signal
 from typing import Any, Callable, Iterable, Iterator
 
 BACKENDS = ("local", "ray")
+JOBS_PER_WORKER = 50
+"""Jobs a worker process runs before a fresh one takes its place. A worker keeps every
+program it compiles (a planner per circuit, car class and field size): a long study's workers
+grow by about 250 memory maps and 30 MB a race and, near the kernel's limit of 65,530 maps,
+fail to compile. A fresh worker loads its programs from the compilation cache in seconds."""
 
 
 def check_backend(backend: str, workers: int) -> None:
@@ -26,13 +31,15 @@ def check_backend(backend: str, workers: int) -> None:
 
 
 def run_jobs(function: Callable[[Any], Any], jobs: Iterable[Any], backend: str = "local", workers: int = 1,
-             address: str | None = None) -> Iterator[Any]:
+             address: str | None = None, jobs_per_worker: int = JOBS_PER_WORKER) -> Iterator[Any]:
     """Yield ``function(job)`` for every job as each finishes.
 
     ``local`` with one worker runs the jobs here, in order; with more, in a pool of spawned
     processes. ``ray`` runs each job as a task of one CPU on the cluster at ``address``, or
-    on a local Ray instance of ``workers`` CPUs started and stopped here. Closing the
-    iterator early (e.g. at Ctrl-C) terminates the workers or cancels the pending tasks.
+    on a local Ray instance of ``workers`` CPUs started and stopped here. A worker process
+    runs at most ``jobs_per_worker`` jobs before a fresh one replaces it
+    (:data:`JOBS_PER_WORKER`). Closing the iterator early (e.g. at Ctrl-C) terminates the
+    workers or cancels the pending tasks.
     """
     from planners.compile_cache import compile_cache_dir
 
@@ -41,9 +48,11 @@ def run_jobs(function: Callable[[Any], Any], jobs: Iterable[Any], backend: str =
     if backend == "local" and workers == 1:
         return (function(job) for job in jobs)
     task = functools.partial(_in_worker, function, compile_cache_dir())
+    if not isinstance(jobs_per_worker, int) or jobs_per_worker < 1:
+        raise ValueError(f"jobs_per_worker must be an integer >= 1, got {jobs_per_worker!r}")
     if backend == "local":
-        return _run_pool(task, jobs, workers)
-    return _run_ray(task, jobs, workers, address)
+        return _run_pool(task, jobs, workers, jobs_per_worker)
+    return _run_ray(task, jobs, workers, address, jobs_per_worker)
 
 
 def _in_worker(function, compile_cache: str | None, job):
@@ -68,10 +77,11 @@ def _ignore_interrupts() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _run_pool(task, jobs, workers: int) -> Iterator[Any]:
+def _run_pool(task, jobs, workers: int, jobs_per_worker: int) -> Iterator[Any]:
     import multiprocessing
 
-    pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_ignore_interrupts)
+    pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_ignore_interrupts,
+                                                     maxtasksperchild=jobs_per_worker)
     finished = False
     try:
         yield from pool.imap_unordered(task, jobs)
@@ -86,7 +96,7 @@ def _run_pool(task, jobs, workers: int) -> Iterator[Any]:
         pool.join()
 
 
-def _run_ray(task, jobs, workers: int, address: str | None) -> Iterator[Any]:
+def _run_ray(task, jobs, workers: int, address: str | None, jobs_per_worker: int) -> Iterator[Any]:
     import ray
 
     started = not ray.is_initialized()
@@ -97,7 +107,7 @@ def _run_ray(task, jobs, workers: int, address: str | None) -> Iterator[Any]:
         except ConnectionError as err:
             raise ValueError(f"could not join the Ray cluster at {address!r}: {err}") from None
     try:
-        remote = ray.remote(num_cpus=1)(_call)
+        remote = ray.remote(num_cpus=1, max_calls=jobs_per_worker)(_call)
         pending = [remote.remote(task, job) for job in jobs]
         try:
             while pending:
