@@ -16,10 +16,14 @@ from typing import Any, Callable, Iterable, Iterator
 
 BACKENDS = ("local", "ray")
 JOBS_PER_WORKER = 50
-"""Jobs a worker process runs before a fresh one takes its place. A worker keeps every
-program it compiles (a planner per circuit, car class and field size): a long study's workers
-grow by about 250 memory maps and 30 MB a race and, near the kernel's limit of 65,530 maps,
-fail to compile. A fresh worker loads its programs from the compilation cache in seconds."""
+"""Jobs a worker process runs before a fresh one takes its place: a bound on whatever a
+worker keeps from job to job, beside :data:`MAP_BUDGET`."""
+MAP_BUDGET = 20_000
+"""Memory maps a process may hold after a job before its compiled programs are let go. A
+process keeps every program it compiles (a planner per circuit, car class and field size:
+1,500-2,000 maps for a duel of a game planner on a new circuit, more for a field), and near
+the kernel's limit (``vm.max_map_count``, 65,530 by default) it fails to compile. Programs let
+go are loaded from the compilation cache when they are needed again."""
 
 
 def check_backend(backend: str, workers: int) -> None:
@@ -46,7 +50,7 @@ def run_jobs(function: Callable[[Any], Any], jobs: Iterable[Any], backend: str =
     check_backend(backend, workers)
     jobs = list(jobs)
     if backend == "local" and workers == 1:
-        return (function(job) for job in jobs)
+        return (_released_after(function(job)) for job in jobs)
     task = functools.partial(_in_worker, function, compile_cache_dir())
     if not isinstance(jobs_per_worker, int) or jobs_per_worker < 1:
         raise ValueError(f"jobs_per_worker must be an integer >= 1, got {jobs_per_worker!r}")
@@ -68,7 +72,26 @@ def _in_worker(function, compile_cache: str | None, job):
         from planners.compile_cache import enable_compile_cache
 
         enable_compile_cache(compile_cache)
-    return function(job)
+    return _released_after(function(job))
+
+
+def _released_after(result: Any, budget: int = MAP_BUDGET) -> Any:
+    """``result``, after letting go of this process's compiled programs if it holds more than
+    ``budget`` memory maps (:data:`MAP_BUDGET`; where ``/proc/self/maps`` cannot be read, the
+    worker's job count bounds them, :data:`JOBS_PER_WORKER`)."""
+    try:
+        with open("/proc/self/maps") as maps:
+            count = sum(1 for _ in maps)
+    except OSError:
+        return result
+    if count > budget:
+        import gc
+
+        import jax
+
+        jax.clear_caches()
+        gc.collect()
+    return result
 
 
 def _ignore_interrupts() -> None:
