@@ -48,12 +48,12 @@ def run_jobs(function: Callable[[Any], Any], jobs: Iterable[Any], backend: str =
     from planners.compile_cache import compile_cache_dir
 
     check_backend(backend, workers)
+    if not isinstance(jobs_per_worker, int) or jobs_per_worker < 1:
+        raise ValueError(f"jobs_per_worker must be an integer >= 1, got {jobs_per_worker!r}")
     jobs = list(jobs)
     if backend == "local" and workers == 1:
         return (_released_after(function(job)) for job in jobs)
     task = functools.partial(_in_worker, function, compile_cache_dir())
-    if not isinstance(jobs_per_worker, int) or jobs_per_worker < 1:
-        raise ValueError(f"jobs_per_worker must be an integer >= 1, got {jobs_per_worker!r}")
     if backend == "local":
         return _run_pool(task, jobs, workers, jobs_per_worker)
     return _run_ray(task, jobs, workers, address, jobs_per_worker)

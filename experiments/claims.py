@@ -103,11 +103,18 @@ def agent_mean(rows: Sequence[CarRace], agent: str, measure: str, *, opponents: 
     """``agent``'s mean of ``measure`` over its races (against ``opponents`` only, if given)."""
     values = np.array([r.values[measure] for r in rows
                        if r.agent == agent and (opponents is None or r.opponent in opponents)])
+    if measure not in ("win", "contact"):
+        return bootstrap_mean(values)
     values = values[~np.isnan(values)]
-    if measure in ("win", "contact"):
-        low, high = wilson_interval(int(values.sum()), values.size)
-    else:
-        low, high = bootstrap_interval(values)
+    low, high = wilson_interval(int(values.sum()), values.size)
+    return Mean(value=float(values.mean()) if values.size else float("nan"), low=low, high=high, n=int(values.size))
+
+
+def bootstrap_mean(values: Sequence[float]) -> Mean:
+    """The mean of ``values`` (NaN left out) with its 95% bootstrap interval."""
+    values = np.asarray(values, dtype=float)
+    values = values[~np.isnan(values)]
+    low, high = bootstrap_interval(values)
     return Mean(value=float(values.mean()) if values.size else float("nan"), low=low, high=high, n=int(values.size))
 
 

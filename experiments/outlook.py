@@ -43,8 +43,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from experiments.claims import (CarRace, Comparison, MEASURES, Mean, agent_mean, compare, duel_difference,
-                                head_to_head)
+from experiments.claims import (CarRace, Comparison, MEASURES, Mean, agent_mean, bootstrap_mean, compare,
+                                duel_difference, head_to_head)
 from experiments.formatting import markdown_table
 from experiments.jsonl import read_jsonl
 from experiments.standings import wilson_interval, won_race
@@ -365,9 +365,8 @@ def _fields(run: Run) -> list[str]:
                 faults.setdefault(name, []).append(float(entry["faults"]))
                 wins[name] = wins.get(name, 0) + int(won_race(entry, len(record["agents"])))
         for name in sorted(places):
-            rows = [CarRace(name, "", "", 0, 0, {"place": p, "faults": f}) for p, f in zip(places[name], faults[name])]
-            table.append([name, car, str(len(places[name])), _mean(agent_mean(rows, name, "place"), "{:.2f}"),
-                          str(wins[name]), _mean(agent_mean(rows, name, "faults"), "{:.2f}")])
+            table.append([name, car, str(len(places[name])), _mean(bootstrap_mean(places[name]), "{:.2f}"),
+                          str(wins[name]), _mean(bootstrap_mean(faults[name]), "{:.2f}")])
     sizes = sorted({len(r["agents"]) for r in records})
     return ["## Fields", "", f"{len(records)} fields of {', '.join(map(str, sizes))} cars: each agent's cars' places "
             "and at-fault incidents per car (means with 95% bootstrap intervals; cars of one field are not "
@@ -384,9 +383,9 @@ def _place(run: Run) -> list[str]:
         for car, mine in _by_car(run, [r for r in records if r["part"] == part]):
             # the switched planner is the lineup's first agent (agent index 0 of the sweep record)
             wins = [int(won_race(r["agents"][0], 2)) for r in mine]
-            margins = np.array([MEASURES["margin [s]"](r["agents"][0], {"cars": r["agents"]}) for r in mine])
+            margins = [MEASURES["margin [s]"](r["agents"][0], {"cars": r["agents"]}) for r in mine]
             low, high = wilson_interval(sum(wins), len(wins))
-            mean_margin = agent_mean([CarRace("s", "", "", 0, 0, {"m": m}) for m in margins], "s", "m")
+            mean_margin = bootstrap_mean(margins)
             table.append([agent_name(mine[0]["agents"][0]["agent"]), car, str(len(wins)),
                           f"{np.mean(wins):.2f} [{low:.2f}, {high:.2f}]: {_verdict(low, high, 0.5)}",
                           _mean(mean_margin, "{:+.2f}")])
